@@ -1,0 +1,213 @@
+//! Images in and out: linear RGB(A) f32 OpenEXR for data, sRGB PNG for looking at.
+//!
+//! Every write goes to a temporary file beside the target and is renamed into place only when
+//! complete, so an interrupted or failed run never leaves a partial image behind.
+
+use std::path::{Path, PathBuf};
+
+use exr::prelude::{self as x, WritableImage};
+use glam::Vec3;
+
+use crate::error::{Error, Result};
+
+/// A linear RGB image, row-major, row 0 at the top, with an optional alpha channel (lightprobe
+/// writes the fraction of camera samples that saw scene geometry there).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<Vec3>,
+    pub alpha: Option<Vec<f32>>,
+}
+
+impl Image {
+    /// A black image without alpha.
+    pub fn new(width: u32, height: u32) -> Image {
+        Image { width, height, rgb: vec![Vec3::ZERO; (width * height) as usize], alpha: None }
+    }
+
+    /// Mean of each channel over all pixels.
+    pub fn mean(&self) -> Vec3 {
+        let s = self.rgb.iter().fold(glam::DVec3::ZERO, |a, p| a + p.as_dvec3());
+        (s / self.rgb.len().max(1) as f64).as_vec3()
+    }
+}
+
+/// Runs `write` on a temporary path beside `path`, then renames it into place. On failure the
+/// temporary file is removed and `path` is untouched.
+pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    let name = path.file_name().ok_or_else(|| Error::file(path, "is not a file path"))?;
+    let tmp: PathBuf = path.with_file_name(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));
+    let result = write(&tmp).and_then(|()| std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e)));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Writes bytes atomically.
+pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_atomic(path, |tmp| std::fs::write(tmp, bytes).map_err(|e| Error::io(path, e)))
+}
+
+/// Writes a linear f32 EXR (RGB, plus A when the image has alpha), losslessly compressed.
+pub fn write_exr(path: &Path, img: &Image) -> Result<()> {
+    write_exr_with(path, img, x::LayerAttributes::default())
+}
+
+/// Writes a linear f32 EXR with the given layer attributes (e.g. the lat-long environment tag).
+pub fn write_exr_with(path: &Path, img: &Image, attributes: x::LayerAttributes) -> Result<()> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    if img.rgb.len() != w * h || img.alpha.as_ref().is_some_and(|a| a.len() != w * h) {
+        return Err(Error::Invalid(format!("image buffer does not match {w}×{h}")));
+    }
+    let at = |p: x::Vec2<usize>| p.y() * w + p.x();
+    write_atomic(path, |tmp| {
+        let result = match &img.alpha {
+            Some(alpha) => {
+                let channels = x::SpecificChannels::rgba(|p: x::Vec2<usize>| {
+                    let c = img.rgb[at(p)];
+                    (c.x, c.y, c.z, alpha[at(p)])
+                });
+                let layer = x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
+                x::Image::from_layer(layer).write().to_file(tmp)
+            }
+            None => {
+                let channels = x::SpecificChannels::rgb(|p: x::Vec2<usize>| {
+                    let c = img.rgb[at(p)];
+                    (c.x, c.y, c.z)
+                });
+                let layer = x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
+                x::Image::from_layer(layer).write().to_file(tmp)
+            }
+        };
+        result.map_err(|e| Error::file(path, format!("cannot write EXR: {e}")))
+    })
+}
+
+/// Reads the first RGB(A) layer of an EXR as f32. Alpha is kept only if the file has it.
+pub fn read_exr(path: &Path) -> Result<Image> {
+    if !path.exists() {
+        return Err(Error::file(path, "no such file"));
+    }
+    struct Buf {
+        w: usize,
+        rgb: Vec<Vec3>,
+        alpha: Option<Vec<f32>>,
+    }
+    let img = x::read_first_rgba_layer_from_file(
+        path,
+        |size, channels: &x::RgbaChannels| Buf {
+            w: size.width(),
+            rgb: vec![Vec3::ZERO; size.area()],
+            alpha: channels.3.as_ref().map(|_| vec![1.0; size.area()]),
+        },
+        |buf: &mut Buf, p: x::Vec2<usize>, (r, g, b, a): (f32, f32, f32, f32)| {
+            let i = p.y() * buf.w + p.x();
+            buf.rgb[i] = Vec3::new(r, g, b);
+            if let Some(alpha) = &mut buf.alpha {
+                alpha[i] = a;
+            }
+        },
+    )
+    .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
+    let size = img.layer_data.size;
+    let buf = img.layer_data.channel_data.pixels;
+    Ok(Image { width: size.width() as u32, height: size.height() as u32, rgb: buf.rgb, alpha: buf.alpha })
+}
+
+/// The sRGB transfer function (linear [0, 1] → encoded).
+pub fn linear_to_srgb(c: f32) -> f32 {
+    if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
+}
+
+/// An exposure that maps the 99th percentile of luminance to 1 (for previews).
+pub fn auto_exposure(img: &Image) -> f32 {
+    let mut lum: Vec<f32> = img.rgb.iter().map(|c| luminance(*c)).filter(|l| l.is_finite() && *l > 0.0).collect();
+    if lum.is_empty() {
+        return 1.0;
+    }
+    let k = ((lum.len() - 1) as f32 * 0.99) as usize;
+    let (_, p99, _) = lum.select_nth_unstable_by(k, f32::total_cmp);
+    1.0 / *p99
+}
+
+/// Rec. 709 luminance of linear RGB.
+#[inline]
+pub fn luminance(c: Vec3) -> f32 {
+    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
+/// Writes `img × exposure`, clamped and sRGB-encoded, as an 8-bit PNG.
+pub fn write_png(path: &Path, img: &Image, exposure: f32) -> Result<()> {
+    let bytes: Vec<u8> = img
+        .rgb
+        .iter()
+        .flat_map(|c| (*c * exposure).to_array())
+        .map(|v| (linear_to_srgb(if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 }) * 255.0 + 0.5) as u8)
+        .collect();
+    write_rgb8_png(path, img.width, img.height, bytes)
+}
+
+/// Writes 8-bit RGB bytes (already encoded) as a PNG.
+pub fn write_rgb8_png(path: &Path, width: u32, height: u32, bytes: Vec<u8>) -> Result<()> {
+    let buf = image::RgbImage::from_raw(width, height, bytes)
+        .ok_or_else(|| Error::Invalid(format!("PNG buffer does not match {width}×{height}")))?;
+    write_atomic(path, |tmp| {
+        buf.save_with_format(tmp, image::ImageFormat::Png)
+            .map_err(|e| Error::file(path, format!("cannot write PNG: {e}")))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(alpha: bool) -> Image {
+        let (w, h) = (7u32, 5u32);
+        let rgb = (0..w * h).map(|i| Vec3::new(i as f32 * 0.5, -(i as f32), 1e-7 * i as f32)).collect();
+        Image { width: w, height: h, rgb, alpha: alpha.then(|| (0..w * h).map(|i| i as f32 / 35.0).collect()) }
+    }
+
+    #[test]
+    fn exr_round_trip_is_exact_with_and_without_alpha() {
+        let dir = tempfile::tempdir().unwrap();
+        for alpha in [false, true] {
+            let img = sample(alpha);
+            let p = dir.path().join(format!("a{alpha}.exr"));
+            write_exr(&p, &img).unwrap();
+            assert_eq!(read_exr(&p).unwrap(), img);
+        }
+        // Only the final files remain: no temporaries.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2);
+    }
+
+    #[test]
+    fn failed_write_leaves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("x.exr");
+        let r = write_atomic(&p, |tmp| {
+            std::fs::write(tmp, b"partial").unwrap();
+            Err(Error::Invalid("boom".into()))
+        });
+        assert!(r.is_err());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn reading_garbage_is_an_error_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("bad.exr");
+        std::fs::write(&p, b"not an exr at all").unwrap();
+        let e = read_exr(&p).unwrap_err().to_string();
+        assert!(e.contains("bad.exr"), "{e}");
+    }
+
+    #[test]
+    fn srgb_round_trip() {
+        for i in 0..=100 {
+            let c = i as f32 / 100.0;
+            assert!((crate::scene::srgb_to_linear(linear_to_srgb(c)) - c).abs() < 1e-5);
+        }
+    }
+}

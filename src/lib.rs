@@ -1,0 +1,18 @@
+//! lightprobe: estimate the lighting of a 3D scene from images of it.
+//!
+//! A scene is a glTF 2.0 file plus a RON sidecar ([`scene`]). One path tracer ([`render`])
+//! over one BVH ([`accel`]) renders reference images under sphere lights; [`metrics`] measures
+//! photometric error; [`imageio`] reads and writes EXR/PNG. Data flows one way:
+//! scene → core → outputs. The command-line tool in `src/main.rs` is a thin layer over this.
+
+pub mod accel;
+pub mod error;
+pub mod imageio;
+pub mod metrics;
+pub mod render;
+pub mod scene;
+
+pub use error::{Error, Result};
+
+/// The crate version, recorded in every output's metadata.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");

@@ -1,0 +1,182 @@
+//! The path tracer — the only one in lightprobe. Lambertian two-sided surfaces; next-event
+//! estimation of the lights combined with cosine-weighted BSDF sampling by multiple importance
+//! sampling (power heuristic). What a path delivers goes to an [`Accumulator`] as
+//! (emitter, weight per unit emitted radiance), so the same tracer renders radiance or
+//! accumulates derivatives with respect to each emitter.
+
+use glam::{Vec2, Vec3};
+
+use super::lights::Lights;
+use super::sampling::{INV_PI, Rng, cosine_hemisphere, power_heuristic, r2};
+use super::{Accumulator, RenderSettings, Strategy};
+use crate::accel::{Accel, Hit};
+use crate::scene::Scene;
+
+/// The random numbers of one camera sample: the first few 2D dimensions come from a
+/// per-pixel-rotated R2 sequence (stratified across the pixel's samples), the rest from PCG.
+pub(super) struct PathSampler {
+    pub rng: Rng,
+    pub index: u32,
+    pub offsets: [Vec2; 3],
+}
+
+/// Which 2D dimension of a sample is being drawn (low-discrepancy for the first vertex).
+#[derive(Clone, Copy)]
+enum Dim {
+    Pixel = 0,
+    FirstLight = 1,
+    FirstBsdf = 2,
+}
+
+impl PathSampler {
+    #[inline]
+    fn get(&mut self, dim: Dim, first_vertex: bool) -> Vec2 {
+        if first_vertex || matches!(dim, Dim::Pixel) {
+            r2(self.index, self.offsets[dim as usize])
+        } else {
+            self.rng.next_2d()
+        }
+    }
+
+    #[inline]
+    pub fn pixel_jitter(&mut self) -> Vec2 {
+        self.get(Dim::Pixel, true)
+    }
+}
+
+/// Local geometry at a surface hit, with both normals facing the incoming ray.
+struct SurfacePoint {
+    p: Vec3,
+    /// Geometric normal, facing the side the ray came from.
+    ng: Vec3,
+    /// Shading normal (interpolated), on the same side as `ng`.
+    ns: Vec3,
+    albedo: Vec3,
+}
+
+fn surface_point(scene: &Scene, hit: &Hit, d: Vec3) -> SurfacePoint {
+    let mesh = &scene.mesh;
+    let t = hit.triangle as usize;
+    let [ia, ib, ic] = mesh.triangles[t].map(|i| i as usize);
+    let b0 = 1.0 - hit.b1 - hit.b2;
+    let [a, b, c] = [mesh.positions[ia], mesh.positions[ib], mesh.positions[ic]];
+    let p = a * b0 + b * hit.b1 + c * hit.b2;
+    let mut ng = (b - a).cross(c - a).normalize_or_zero();
+    if ng.dot(d) > 0.0 {
+        ng = -ng;
+    }
+    let n = mesh.normals[ia] * b0 + mesh.normals[ib] * hit.b1 + mesh.normals[ic] * hit.b2;
+    let mut ns = n.normalize_or(ng);
+    if ns.dot(ng) < 0.0 {
+        ns = -ns;
+    }
+    let uv = mesh.uvs[ia] * b0 + mesh.uvs[ib] * hit.b1 + mesh.uvs[ic] * hit.b2;
+    let albedo = scene.materials[mesh.triangle_material[t] as usize].albedo_at(uv);
+    SurfacePoint { p, ng, ns, albedo }
+}
+
+/// A ray origin just off the surface on the side of `n`, scaled to the coordinates' magnitude.
+#[inline]
+fn offset(p: Vec3, n: Vec3) -> Vec3 {
+    p + n * (1e-4 * (1.0 + p.abs().max_element()))
+}
+
+/// Geometry, lights and settings of one render.
+pub(super) struct Tracer<'a> {
+    pub scene: &'a Scene,
+    pub accel: &'a Accel,
+    pub lights: &'a Lights,
+    pub settings: &'a RenderSettings,
+}
+
+impl Tracer<'_> {
+    /// Traces one camera path from `origin` along unit `dir`, handing every emitter it reaches
+    /// to `acc`. Returns whether the camera ray hit scene geometry (for the coverage mask).
+    pub fn trace<A: Accumulator>(&self, origin: Vec3, dir: Vec3, s: &mut PathSampler, acc: &A, px: &mut A::Pixel) -> bool {
+        let (lights, st) = (self.lights, self.settings);
+        let (use_light, use_bsdf) = match st.strategy {
+            Strategy::Mis => (true, true),
+            Strategy::LightOnly => (true, false),
+            Strategy::BsdfOnly => (false, true),
+        };
+        let mis = use_light && use_bsdf;
+
+        let (mut o, mut d) = (origin, dir);
+        let mut throughput = Vec3::ONE;
+        let mut depth = 0u32; // scattering events so far
+        let (mut prev_p, mut prev_pdf_bsdf) = (origin, 0.0f32);
+        let mut hit_geometry = false;
+        loop {
+            let light_hit = lights.intersect(o, d, 0.0, f32::INFINITY);
+            let t_max = light_hit.map_or(f32::INFINITY, |h| h.0);
+            let Some(hit) = self.accel.intersect(o, d, t_max) else {
+                // ---- An emitter seen directly, or through BSDF sampling ----
+                if let Some((_, e)) = light_hit {
+                    if depth == 0 {
+                        if !st.hide_emitters {
+                            acc.add(px, e, throughput);
+                        }
+                    } else if use_bsdf {
+                        let w = if mis { power_heuristic(prev_pdf_bsdf, lights.pdf(e, prev_p)) } else { 1.0 };
+                        acc.add(px, e, throughput * w);
+                    }
+                }
+                break;
+            };
+            if depth == 0 {
+                hit_geometry = true;
+            }
+            if depth == st.max_bounces {
+                break;
+            }
+            depth += 1;
+            let first = depth == 1;
+            let sp = surface_point(self.scene, &hit, d);
+            let f = sp.albedo * INV_PI;
+
+            // ---- Emitter sampling ----
+            if use_light {
+                let u_pick = s.rng.next_f32();
+                let u = s.get(Dim::FirstLight, first);
+                if let Some(ls) = lights.sample(sp.p, u_pick, u) {
+                    let cos_s = ls.wi.dot(sp.ns);
+                    if cos_s > 0.0 && ls.wi.dot(sp.ng) > 0.0 {
+                        let o_shadow = offset(sp.p, sp.ng);
+                        let t_shadow = ls.dist * (1.0 - 1e-4);
+                        let blocked = self.accel.occluded(o_shadow, ls.wi, t_shadow)
+                            || lights.intersect(o_shadow, ls.wi, 0.0, t_shadow).is_some();
+                        if !blocked {
+                            let w = if mis { power_heuristic(ls.pdf, cos_s * INV_PI) } else { 1.0 };
+                            acc.add(px, ls.emitter, throughput * f * (cos_s * w / ls.pdf));
+                        }
+                    }
+                }
+            }
+
+            // ---- BSDF sampling ----
+            let wi = cosine_hemisphere(sp.ns, s.get(Dim::FirstBsdf, first));
+            let pdf = wi.dot(sp.ns) * INV_PI;
+            if wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 {
+                break;
+            }
+            throughput *= sp.albedo; // f · cos / pdf for a Lambertian
+            if throughput == Vec3::ZERO {
+                break;
+            }
+            prev_p = sp.p;
+            prev_pdf_bsdf = pdf;
+            o = offset(sp.p, sp.ng);
+            d = wi;
+        }
+        hit_geometry
+    }
+
+    /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading
+    /// normal facing the camera, albedo), or `None` if the ray sees no scene geometry.
+    pub fn first_hit(&self, origin: Vec3, dir: Vec3) -> Option<(f32, Vec3, Vec3)> {
+        let t_light = self.lights.intersect(origin, dir, 0.0, f32::INFINITY).map_or(f32::INFINITY, |h| h.0);
+        let hit = self.accel.intersect(origin, dir, t_light)?;
+        let sp = surface_point(self.scene, &hit, dir);
+        Some((hit.t, sp.ns, sp.albedo))
+    }
+}

@@ -1,0 +1,201 @@
+//! The lights a path can reach: spherical area lights (and, later, the environment map).
+//! Each light kind keeps sampling, pdf and evaluation side by side.
+//!
+//! Sphere lights are sampled uniformly in the cone they subtend (pbrt's "sample by solid
+//! angle"); pdfs are per unit solid angle at the shading point and include the probability of
+//! picking the light.
+
+use glam::{Vec2, Vec3};
+
+use super::sampling::uniform_cone;
+use crate::scene::SphereLight;
+
+/// Which emitter a path reached. Transport is linear in each emitter's radiance, so
+/// accumulators receive this plus a weight per unit of emitted radiance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Emitter {
+    Sphere(u32),
+}
+
+/// A sampled direction toward a light.
+#[derive(Debug, Clone, Copy)]
+pub struct LightSample {
+    pub emitter: Emitter,
+    /// Unit direction from the shading point, world space.
+    pub wi: Vec3,
+    /// Distance to the emitting surface, metres.
+    pub dist: f32,
+    /// Probability density per unit solid angle (including the choice of light).
+    pub pdf: f32,
+}
+
+/// The set of lights of a render.
+#[derive(Debug, Clone, Default)]
+pub struct Lights {
+    pub spheres: Vec<SphereLight>,
+}
+
+impl Lights {
+    pub fn new(spheres: Vec<SphereLight>) -> Lights {
+        Lights { spheres }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.spheres.is_empty()
+    }
+
+    /// Emitted radiance of `emitter` (linear RGB).
+    #[inline]
+    pub fn radiance(&self, emitter: Emitter) -> Vec3 {
+        match emitter {
+            Emitter::Sphere(i) => self.spheres[i as usize].radiance,
+        }
+    }
+
+    /// Picks a light uniformly with `u_pick` and samples a direction to it with `u`.
+    #[inline]
+    pub fn sample(&self, p: Vec3, u_pick: f32, u: Vec2) -> Option<LightSample> {
+        let n = self.spheres.len();
+        if n == 0 {
+            return None;
+        }
+        let i = ((u_pick * n as f32) as usize).min(n - 1);
+        let (wi, dist, pdf) = sample_sphere(&self.spheres[i], p, u)?;
+        Some(LightSample { emitter: Emitter::Sphere(i as u32), wi, dist, pdf: pdf / n as f32 })
+    }
+
+    /// The pdf [`Lights::sample`] has for reaching `emitter` in direction `wi` from `p`.
+    #[inline]
+    pub fn pdf(&self, emitter: Emitter, p: Vec3) -> f32 {
+        match emitter {
+            Emitter::Sphere(i) => cone_pdf(&self.spheres[i as usize], p) / self.spheres.len() as f32,
+        }
+    }
+
+    /// The closest emitter along a unit ray within (t_min, t_max).
+    #[inline]
+    pub fn intersect(&self, o: Vec3, d: Vec3, t_min: f32, t_max: f32) -> Option<(f32, Emitter)> {
+        let mut best: Option<(f32, Emitter)> = None;
+        for (i, s) in self.spheres.iter().enumerate() {
+            if let Some(t) = intersect_sphere(s, o, d, t_min)
+                && t < best.map_or(t_max, |b| b.0)
+            {
+                best = Some((t, Emitter::Sphere(i as u32)));
+            }
+        }
+        best
+    }
+}
+
+/// `1 − cos θmax` of the cone a sphere subtends from `p`, or `None` from inside it.
+#[inline]
+fn one_minus_cos_max(s: &SphereLight, p: Vec3) -> Option<f32> {
+    let d2 = (s.center - p).length_squared();
+    let r2 = s.radius * s.radius;
+    if d2 <= r2 * 1.0001 {
+        return None;
+    }
+    let sin2 = r2 / d2;
+    let cos_max = (1.0 - sin2).max(0.0).sqrt();
+    Some(sin2 / (1.0 + cos_max))
+}
+
+/// Samples the cone subtended by `s` from `p`: (direction, distance to the surface, pdf).
+#[inline]
+pub fn sample_sphere(s: &SphereLight, p: Vec3, u: Vec2) -> Option<(Vec3, f32, f32)> {
+    let omc = one_minus_cos_max(s, p)?;
+    let to_c = s.center - p;
+    let d = to_c.length();
+    let wi = uniform_cone(to_c / d, omc, u);
+    // Distance to the near surface along wi (clamped for directions grazing the rim).
+    let cos_t = wi.dot(to_c) / d;
+    let perp2 = (d * d * (1.0 - cos_t * cos_t)).max(0.0);
+    let dist = d * cos_t - (s.radius * s.radius - perp2).max(0.0).sqrt();
+    Some((wi, dist.max(0.0), 1.0 / (std::f32::consts::TAU * omc)))
+}
+
+/// The cone-sampling pdf of any direction that hits `s` from `p` (0 from inside).
+#[inline]
+pub fn cone_pdf(s: &SphereLight, p: Vec3) -> f32 {
+    one_minus_cos_max(s, p).map_or(0.0, |omc| 1.0 / (std::f32::consts::TAU * omc))
+}
+
+/// The first crossing of a unit ray with the sphere's surface beyond `t_min`.
+#[inline]
+pub fn intersect_sphere(s: &SphereLight, o: Vec3, d: Vec3, t_min: f32) -> Option<f32> {
+    let oc = o - s.center;
+    let b = oc.dot(d);
+    // r² − |oc − b·d|² is the discriminant, computed without the cancellation of b² − c.
+    let perp = oc - b * d;
+    let disc = s.radius * s.radius - perp.length_squared();
+    if disc < 0.0 {
+        return None;
+    }
+    let q = disc.sqrt();
+    let (t0, t1) = (-b - q, -b + q);
+    if t0 > t_min {
+        Some(t0)
+    } else if t1 > t_min {
+        Some(t1)
+    } else {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::sampling::Rng;
+
+    fn light() -> SphereLight {
+        SphereLight { center: Vec3::new(0.3, 2.0, -0.5), radius: 0.4, radiance: Vec3::ONE }
+    }
+
+    #[test]
+    fn samples_land_on_the_sphere() {
+        let s = light();
+        let p = Vec3::new(0.1, 0.0, 0.2);
+        let mut r = Rng::new(1);
+        for _ in 0..10_000 {
+            let (wi, dist, pdf) = sample_sphere(&s, p, r.next_2d()).unwrap();
+            let q = p + wi * dist;
+            assert!(((q - s.center).length() - s.radius).abs() < 1e-4);
+            let t = intersect_sphere(&s, p, wi, 0.0).unwrap();
+            assert!((t - dist).abs() < 1e-3, "{t} {dist}");
+            assert!((pdf - cone_pdf(&s, p)).abs() < 1e-3 * pdf);
+        }
+    }
+
+    #[test]
+    fn cone_pdf_integrates_to_one_over_the_sphere_silhouette() {
+        // Monte Carlo over uniform directions: ∫ pdf · 1[hits] dω = 1. A large sphere, so that
+        // ~6% of directions hit it and the 2% bound is about 3σ.
+        let s = SphereLight { radius: 1.0, ..light() };
+        let p = Vec3::new(0.1, 0.0, 0.2);
+        let mut r = Rng::new(2);
+        let n = 400_000;
+        let mut acc = 0.0f64;
+        for _ in 0..n {
+            let w = crate::render::sampling::uniform_sphere(r.next_2d());
+            if intersect_sphere(&s, p, w, 0.0).is_some() {
+                acc += cone_pdf(&s, p) as f64 * 4.0 * std::f64::consts::PI;
+            }
+        }
+        assert!((acc / n as f64 - 1.0).abs() < 0.02, "{}", acc / n as f64);
+    }
+
+    #[test]
+    fn inside_has_no_sample_and_zero_pdf() {
+        let s = light();
+        assert!(sample_sphere(&s, s.center, Vec2::splat(0.5)).is_none());
+        assert_eq!(cone_pdf(&s, s.center + Vec3::X * 0.1), 0.0);
+    }
+
+    #[test]
+    fn tiny_far_sphere_keeps_precision() {
+        let s = SphereLight { center: Vec3::new(0.0, 1000.0, 0.0), radius: 0.01, radiance: Vec3::ONE };
+        let omc = one_minus_cos_max(&s, Vec3::ZERO).unwrap();
+        // 1 − cos θ ≈ θ²/2 with θ = 1e-5.
+        assert!((omc / 5e-11 - 1.0).abs() < 1e-3, "{omc}");
+    }
+}

@@ -1,0 +1,234 @@
+//! Rendering: the tile loop, written once, over the one path tracer ([`integrator`]), generic
+//! over what it accumulates ([`Accumulator`]): radiance for images, or later derivatives with
+//! respect to each emitter.
+//!
+//! Determinism: every camera sample draws from a stream keyed by (seed, stream, pixel, sample
+//! index), and tiles are fixed, so an image is bit-identical whatever the thread count.
+//!
+//! ```no_run
+//! use lightprobe::{render::{Renderer, RenderSettings, Lights}, scene::Scene};
+//! let scene = Scene::load(std::path::Path::new("scenes/tabletop/tabletop.ron"))?;
+//! let lights = Lights::new(scene.lights.clone());
+//! let renderer = Renderer::new(&scene, &lights);
+//! let image = renderer.render_radiance(&scene.cameras[0], 0, &RenderSettings::from_scene(&scene.settings), &|_| {});
+//! # Ok::<(), lightprobe::Error>(())
+//! ```
+
+mod integrator;
+pub mod lights;
+pub mod sampling;
+
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+pub use lights::{Emitter, LightSample, Lights};
+
+use crate::accel::Accel;
+use crate::imageio::Image;
+use crate::scene::{Camera, Scene, SceneSettings};
+use integrator::{PathSampler, Tracer};
+use sampling::{Rng, mix64};
+
+/// Side of the square tiles work is split into.
+pub const TILE: u32 = 16;
+
+/// Which light-transport estimator to use at each surface vertex.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Strategy {
+    /// Emitter sampling and BSDF sampling combined by the power heuristic (default).
+    Mis,
+    /// Emitter sampling only (emitters hit by BSDF rays count nothing).
+    LightOnly,
+    /// BSDF sampling only (no shadow rays).
+    BsdfOnly,
+}
+
+/// Monte Carlo settings of one render.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct RenderSettings {
+    /// Camera samples per pixel.
+    pub spp: u32,
+    /// Scattering events per path: 1 = direct light only.
+    pub max_bounces: u32,
+    /// Seed of every random stream.
+    pub seed: u64,
+    pub strategy: Strategy,
+    /// Emitters seen directly by the camera render black (they still occlude), like
+    /// Mitsuba's `hide_emitters`.
+    pub hide_emitters: bool,
+}
+
+impl RenderSettings {
+    /// The sidecar's settings, with MIS and hidden emitters.
+    pub fn from_scene(s: &SceneSettings) -> Self {
+        RenderSettings { spp: s.spp, max_bounces: s.max_bounces, seed: s.seed, strategy: Strategy::Mis, hide_emitters: true }
+    }
+
+    /// A quick, noisy preset for looking at a scene.
+    pub fn preview() -> Self {
+        RenderSettings { spp: 16, max_bounces: 2, seed: 1, strategy: Strategy::Mis, hide_emitters: true }
+    }
+}
+
+/// What the tracer accumulates per pixel. A path hands over each emitter it reaches with a
+/// weight per unit of that emitter's radiance (throughput × MIS weight / pdf).
+pub trait Accumulator: Sync {
+    type Pixel: Send;
+    fn new_pixel(&self) -> Self::Pixel;
+    fn add(&self, pixel: &mut Self::Pixel, emitter: Emitter, weight: Vec3);
+    /// Turns the sum over `spp` samples into the pixel's estimate.
+    fn finish(&self, pixel: &mut Self::Pixel, spp: u32);
+}
+
+/// Accumulates radiance: weight × the emitter's radiance, averaged over samples.
+pub struct RadianceAccumulator<'a>(pub &'a Lights);
+
+impl Accumulator for RadianceAccumulator<'_> {
+    type Pixel = Vec3;
+    fn new_pixel(&self) -> Vec3 {
+        Vec3::ZERO
+    }
+    #[inline]
+    fn add(&self, pixel: &mut Vec3, emitter: Emitter, weight: Vec3) {
+        *pixel += weight * self.0.radiance(emitter);
+    }
+    fn finish(&self, pixel: &mut Vec3, spp: u32) {
+        *pixel /= spp as f32;
+    }
+}
+
+/// One accumulated image: a pixel per position, row-major, row 0 at the top, and the fraction
+/// of camera samples that saw scene geometry (the mask of every error metric).
+pub struct Frame<P> {
+    pub width: u32,
+    pub height: u32,
+    pub pixels: Vec<P>,
+    pub coverage: Vec<f32>,
+}
+
+/// Geometry buffers at pixel centres, for checking against other tools.
+pub struct Aovs {
+    /// Distance from the camera to the first hit, metres (0 where the ray sees no geometry).
+    pub depth: Image,
+    /// Shading normal facing the camera, world space (0 where none).
+    pub normal: Image,
+    /// Albedo, linear RGB (0 where none).
+    pub albedo: Image,
+}
+
+/// Builds the ray-query structure over a scene's triangles.
+pub fn build_accel(scene: &Scene) -> Accel {
+    let tris: Vec<[Vec3; 3]> = (0..scene.mesh.triangle_count()).map(|t| scene.mesh.corners(t)).collect();
+    Accel::build(&tris)
+}
+
+/// A scene, its BVH and a set of lights, ready to render from any camera.
+pub struct Renderer<'a> {
+    pub scene: &'a Scene,
+    pub lights: &'a Lights,
+    pub accel: Accel,
+}
+
+impl<'a> Renderer<'a> {
+    /// Builds the BVH.
+    pub fn new(scene: &'a Scene, lights: &'a Lights) -> Self {
+        Renderer { scene, lights, accel: build_accel(scene) }
+    }
+
+    fn tracer<'s>(&'s self, settings: &'s RenderSettings) -> Tracer<'s> {
+        Tracer { scene: self.scene, accel: &self.accel, lights: self.lights, settings }
+    }
+
+    /// Renders `camera` with `acc`. `stream` separates the random streams of renders that
+    /// share a seed (e.g. the view index). `progress` is called with the pixels of each
+    /// finished tile.
+    pub fn render<A: Accumulator>(
+        &self,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+        acc: &A,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Frame<A::Pixel> {
+        let (w, h) = (camera.width, camera.height);
+        let tracer = self.tracer(settings);
+        let tiles = tiles(w, h);
+        let key = mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)));
+        let done: Vec<Vec<(u32, A::Pixel, f32)>> = tiles
+            .par_iter()
+            .map(|&(x0, y0, x1, y1)| {
+                let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let index = y * w + x;
+                        let pixel_key = mix64(key ^ index as u64);
+                        let mut offsets_rng = Rng::new(pixel_key);
+                        let offsets = [offsets_rng.next_2d(), offsets_rng.next_2d(), offsets_rng.next_2d()];
+                        let mut px = acc.new_pixel();
+                        let mut hits = 0u32;
+                        for i in 0..settings.spp {
+                            let mut s = PathSampler { rng: Rng::new(pixel_key.wrapping_add(mix64(i as u64 + 1))), index: i, offsets };
+                            let j = s.pixel_jitter();
+                            let dir = camera.ray_dir_world(x as f32 + j.x, y as f32 + j.y);
+                            hits += tracer.trace(camera.origin_world, dir, &mut s, acc, &mut px) as u32;
+                        }
+                        acc.finish(&mut px, settings.spp);
+                        out.push((index, px, hits as f32 / settings.spp as f32));
+                    }
+                }
+                progress(out.len() as u64);
+                out
+            })
+            .collect();
+
+        let n = (w * h) as usize;
+        let mut slots: Vec<Option<A::Pixel>> = (0..n).map(|_| None).collect();
+        let mut coverage = vec![0.0; n];
+        for (index, px, cov) in done.into_iter().flatten() {
+            slots[index as usize] = Some(px);
+            coverage[index as usize] = cov;
+        }
+        let pixels = slots.into_iter().map(|p| p.expect("every pixel belongs to one tile")).collect();
+        Frame { width: w, height: h, pixels, coverage }
+    }
+
+    /// Renders radiance; the coverage becomes the image's alpha.
+    pub fn render_radiance(&self, camera: &Camera, stream: u64, settings: &RenderSettings, progress: &(dyn Fn(u64) + Sync)) -> Image {
+        let frame = self.render(camera, stream, settings, &RadianceAccumulator(self.lights), progress);
+        Image { width: frame.width, height: frame.height, rgb: frame.pixels, alpha: Some(frame.coverage) }
+    }
+
+    /// Depth, normal and albedo at pixel centres (one ray per pixel, no randomness).
+    pub fn aovs(&self, camera: &Camera) -> Aovs {
+        let settings = RenderSettings::preview();
+        let tracer = self.tracer(&settings);
+        let (w, h) = (camera.width, camera.height);
+        let hits: Vec<Option<(f32, Vec3, Vec3)>> = (0..w * h)
+            .into_par_iter()
+            .map(|i| {
+                let c = Vec2::new((i % w) as f32 + 0.5, (i / w) as f32 + 0.5);
+                tracer.first_hit(camera.origin_world, camera.ray_dir_world(c.x, c.y))
+            })
+            .collect();
+        let make = |f: &dyn Fn(&(f32, Vec3, Vec3)) -> Vec3| Image {
+            width: w,
+            height: h,
+            rgb: hits.iter().map(|hit| hit.as_ref().map_or(Vec3::ZERO, f)).collect(),
+            alpha: None,
+        };
+        Aovs { depth: make(&|h| Vec3::splat(h.0)), normal: make(&|h| h.1), albedo: make(&|h| h.2) }
+    }
+}
+
+/// Fixed tiles (x0, y0, x1, y1) covering a w × h image, row by row.
+fn tiles(w: u32, h: u32) -> Vec<(u32, u32, u32, u32)> {
+    let mut out = Vec::new();
+    for y0 in (0..h).step_by(TILE as usize) {
+        for x0 in (0..w).step_by(TILE as usize) {
+            out.push((x0, y0, (x0 + TILE).min(w), (y0 + TILE).min(h)));
+        }
+    }
+    out
+}

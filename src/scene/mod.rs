@@ -1,0 +1,352 @@
+//! The scene: world-space triangles with Lambertian materials, the cameras to render from, and
+//! the reference sphere lights, loaded from a glTF 2.0 file plus a RON sidecar.
+//!
+//! Conventions (glTF's): right-handed, +Y up, metres, linear RGB. Every triangle is stored in
+//! world space (the node hierarchy is multiplied out at load time). Surfaces are two-sided.
+//!
+//! ```no_run
+//! let scene = lightprobe::scene::Scene::load(std::path::Path::new("scenes/tabletop/tabletop.ron"))?;
+//! println!("{} triangles, {} views", scene.mesh.triangle_count(), scene.cameras.len());
+//! # Ok::<(), lightprobe::Error>(())
+//! ```
+
+mod camera;
+mod gltf;
+pub mod sidecar;
+
+use std::path::{Path, PathBuf};
+
+use glam::{Vec2, Vec3};
+
+pub use camera::Camera;
+pub use sidecar::Sidecar;
+
+use crate::error::{Error, Result};
+
+/// A texture of linear RGB albedo, looked up bilinearly with repeat wrapping. Texture
+/// coordinates follow glTF: (0, 0) is the image's top-left corner, v grows down.
+#[derive(Debug, Clone)]
+pub struct Texture {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major texels, row 0 at the top, linear RGB.
+    pub texels: Vec<Vec3>,
+}
+
+impl Texture {
+    /// Decodes 8-bit sRGB-encoded texels (`channels` = 1..=4 interleaved; alpha ignored).
+    pub fn from_srgb8(width: u32, height: u32, channels: usize, bytes: &[u8]) -> Texture {
+        let lut: Vec<f32> = (0..256).map(|i| srgb_to_linear(i as f32 / 255.0)).collect();
+        let texels = bytes
+            .chunks_exact(channels)
+            .map(|c| match channels {
+                1 | 2 => Vec3::splat(lut[c[0] as usize]),
+                _ => Vec3::new(lut[c[0] as usize], lut[c[1] as usize], lut[c[2] as usize]),
+            })
+            .collect();
+        Texture { width, height, texels }
+    }
+
+    /// Bilinear lookup at glTF texture coordinates, repeat wrapping.
+    pub fn sample(&self, uv: Vec2) -> Vec3 {
+        let (w, h) = (self.width as i64, self.height as i64);
+        let x = uv.x * self.width as f32 - 0.5;
+        let y = uv.y * self.height as f32 - 0.5;
+        if !(x.is_finite() && y.is_finite()) {
+            return self.texels[0];
+        }
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let at = |i: i64, j: i64| self.texels[(j.rem_euclid(h) * w + i.rem_euclid(w)) as usize];
+        let (i, j) = (x0 as i64, y0 as i64);
+        let top = at(i, j) * (1.0 - fx) + at(i + 1, j) * fx;
+        let bottom = at(i, j + 1) * (1.0 - fx) + at(i + 1, j + 1) * fx;
+        top * (1.0 - fy) + bottom * fy
+    }
+
+    /// The mean texel (what a uniform lookup averages to).
+    pub fn mean(&self) -> Vec3 {
+        self.texels.iter().copied().sum::<Vec3>() / self.texels.len().max(1) as f32
+    }
+}
+
+/// The sRGB transfer function's inverse (encoded [0, 1] → linear).
+pub fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+}
+
+/// Where a material's albedo comes from.
+#[derive(Debug, Clone)]
+pub enum Albedo {
+    /// Constant linear RGB.
+    Constant(Vec3),
+    /// A texture times a factor (glTF baseColorTexture × baseColorFactor).
+    Texture { texture: std::sync::Arc<Texture>, factor: Vec3 },
+}
+
+/// A two-sided Lambertian material.
+#[derive(Debug, Clone)]
+pub struct Material {
+    /// The glTF material name (what sidecar overrides refer to).
+    pub name: String,
+    pub albedo: Albedo,
+}
+
+impl Material {
+    /// The albedo at texture coordinates `uv`, clamped to [0, 1].
+    #[inline]
+    pub fn albedo_at(&self, uv: Vec2) -> Vec3 {
+        match &self.albedo {
+            Albedo::Constant(c) => *c,
+            Albedo::Texture { texture, factor } => (texture.sample(uv) * *factor).clamp(Vec3::ZERO, Vec3::ONE),
+        }
+    }
+}
+
+/// A spherical area light emitting uniform radiance from its whole surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SphereLight {
+    /// Centre, world space (metres).
+    pub center: Vec3,
+    /// Radius in metres (> 0).
+    pub radius: f32,
+    /// Emitted radiance, linear RGB.
+    pub radiance: Vec3,
+}
+
+/// World-space triangles with per-vertex normals and texture coordinates.
+///
+/// Triangles of meshes without normals are stored unshared with their face normal on each
+/// vertex, so they shade flat, as glTF requires.
+#[derive(Debug, Clone, Default)]
+pub struct Mesh {
+    pub positions: Vec<Vec3>,
+    /// Unit shading normals, world space (zero where a file gave a degenerate one).
+    pub normals: Vec<Vec3>,
+    pub uvs: Vec<Vec2>,
+    pub triangles: Vec<[u32; 3]>,
+    /// Material index of each triangle.
+    pub triangle_material: Vec<u32>,
+}
+
+impl Mesh {
+    pub fn triangle_count(&self) -> usize {
+        self.triangles.len()
+    }
+
+    /// The three corners of triangle `t`.
+    #[inline]
+    pub fn corners(&self, t: usize) -> [Vec3; 3] {
+        let [a, b, c] = self.triangles[t];
+        [self.positions[a as usize], self.positions[b as usize], self.positions[c as usize]]
+    }
+
+    /// Appends triangles (world space). Without `normals` they shade flat; without `uvs`
+    /// texture coordinates are (0, 0). `indices` must be in range (checked by the caller).
+    pub fn push(&mut self, positions: &[Vec3], normals: Option<&[Vec3]>, uvs: Option<&[Vec2]>, indices: &[u32], material: u32) {
+        debug_assert!(indices.len() % 3 == 0);
+        let uv = |i: u32| uvs.map_or(Vec2::ZERO, |u| u[i as usize]);
+        match normals {
+            Some(normals) => {
+                let base = self.positions.len() as u32;
+                self.positions.extend_from_slice(positions);
+                self.normals.extend(normals.iter().map(|n| n.normalize_or_zero()));
+                self.uvs.extend((0..positions.len() as u32).map(uv));
+                for t in indices.chunks_exact(3) {
+                    self.triangles.push([base + t[0], base + t[1], base + t[2]]);
+                    self.triangle_material.push(material);
+                }
+            }
+            None => {
+                for t in indices.chunks_exact(3) {
+                    let p = [positions[t[0] as usize], positions[t[1] as usize], positions[t[2] as usize]];
+                    let n = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero();
+                    let base = self.positions.len() as u32;
+                    for (k, &i) in t.iter().enumerate() {
+                        self.positions.push(p[k]);
+                        self.normals.push(n);
+                        self.uvs.push(uv(i));
+                    }
+                    self.triangles.push([base, base + 1, base + 2]);
+                    self.triangle_material.push(material);
+                }
+            }
+        }
+    }
+
+    /// Axis-aligned bounds (min, max), world space.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for t in 0..self.triangles.len() {
+            for p in self.corners(t) {
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        (lo, hi)
+    }
+
+    /// Total surface area, m².
+    pub fn surface_area(&self) -> f64 {
+        (0..self.triangles.len())
+            .map(|t| {
+                let [a, b, c] = self.corners(t);
+                0.5 * (b - a).as_dvec3().cross((c - a).as_dvec3()).length()
+            })
+            .sum()
+    }
+}
+
+/// Render settings from the sidecar.
+#[derive(Debug, Clone, Copy)]
+pub struct SceneSettings {
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    pub max_bounces: u32,
+    pub seed: u64,
+    pub rings: u32,
+}
+
+/// A loaded scene, ready to build an acceleration structure over and render.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    pub mesh: Mesh,
+    pub materials: Vec<Material>,
+    /// The views, in the sidecar's order.
+    pub cameras: Vec<Camera>,
+    /// The reference illumination.
+    pub lights: Vec<SphereLight>,
+    pub settings: SceneSettings,
+    /// The sidecar this came from (empty for scenes built in code).
+    pub source: PathBuf,
+}
+
+impl Scene {
+    /// Loads a sidecar and the glTF it names, applies albedo overrides and selects the views.
+    pub fn load(sidecar_path: &Path) -> Result<Scene> {
+        let sidecar = Sidecar::load(sidecar_path)?;
+        let base = Sidecar::base_dir(sidecar_path);
+        let gltf_path = base.join(&sidecar.gltf);
+        let (w, h) = (sidecar.image.width.0, sidecar.image.height.0);
+        let loaded = gltf::load(&gltf_path, w, h)?;
+
+        let mut materials = loaded.materials;
+        for (name, source) in &sidecar.albedo {
+            let Some(m) = materials.iter_mut().find(|m| &m.name == name) else {
+                return Err(Error::file(
+                    sidecar_path,
+                    format!("albedo override names material {name:?}, which {} does not have", gltf_path.display()),
+                ));
+            };
+            m.albedo = match source {
+                sidecar::AlbedoSource::Constant(c) => Albedo::Constant(Vec3::new(c.0.0, c.0.1, c.0.2)),
+                sidecar::AlbedoSource::Map(p) => Albedo::Texture {
+                    texture: std::sync::Arc::new(load_albedo_map(&base.join(p))?),
+                    factor: Vec3::ONE,
+                },
+            };
+        }
+
+        let cameras = if sidecar.views.is_empty() {
+            if loaded.cameras.is_empty() {
+                return Err(Error::file(&gltf_path, "has no perspective camera to render from"));
+            }
+            loaded.cameras
+        } else {
+            let mut picked = Vec::new();
+            for v in &sidecar.views {
+                let Some(c) = loaded.cameras.iter().find(|c| &c.name == v) else {
+                    let names: Vec<_> = loaded.cameras.iter().map(|c| c.name.as_str()).collect();
+                    return Err(Error::file(
+                        sidecar_path,
+                        format!("view {v:?} is not a perspective camera node of {} (it has {names:?})", gltf_path.display()),
+                    ));
+                };
+                picked.push(c.clone());
+            }
+            picked
+        };
+
+        let lights = sidecar
+            .lights
+            .iter()
+            .map(|l| match l {
+                sidecar::LightDesc::Sphere { center, radius, radiance } => SphereLight {
+                    center: Vec3::new(center.0.0, center.0.1, center.0.2),
+                    radius: radius.0,
+                    radiance: Vec3::new(radiance.0.0, radiance.0.1, radiance.0.2),
+                },
+            })
+            .collect();
+
+        Ok(Scene {
+            mesh: loaded.mesh,
+            materials,
+            cameras,
+            lights,
+            settings: SceneSettings {
+                width: w,
+                height: h,
+                spp: sidecar.render.spp.0,
+                max_bounces: sidecar.render.max_bounces.0,
+                seed: sidecar.render.seed,
+                rings: sidecar.envmap.rings.0,
+            },
+            source: sidecar_path.to_path_buf(),
+        })
+    }
+
+    /// The centre of the geometry's bounding box (the "scene centre" of light directions).
+    pub fn center(&self) -> Vec3 {
+        let (lo, hi) = self.mesh.bounds();
+        0.5 * (lo + hi)
+    }
+}
+
+/// Loads an sRGB-encoded albedo image (PNG or JPEG) as linear RGB.
+pub fn load_albedo_map(path: &Path) -> Result<Texture> {
+    let img = image::open(path).map_err(|e| match e {
+        image::ImageError::IoError(io) => Error::io(path, io),
+        other => Error::file(path, format!("cannot decode albedo map: {other}")),
+    })?;
+    let rgb = img.to_rgb8();
+    Ok(Texture::from_srgb8(rgb.width(), rgb.height(), 3, rgb.as_raw()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn srgb_decoding_endpoints_and_midpoint() {
+        assert_eq!(srgb_to_linear(0.0), 0.0);
+        assert!((srgb_to_linear(1.0) - 1.0).abs() < 1e-6);
+        assert!((srgb_to_linear(0.5) - 0.214_041).abs() < 1e-5);
+    }
+
+    #[test]
+    fn texture_bilinear_and_wrap() {
+        // 2×1: left texel black, right white (linear 1.0 from sRGB 255).
+        let t = Texture::from_srgb8(2, 1, 3, &[0, 0, 0, 255, 255, 255]);
+        assert!((t.sample(Vec2::new(0.25, 0.5)).x - 0.0).abs() < 1e-6);
+        assert!((t.sample(Vec2::new(0.75, 0.5)).x - 1.0).abs() < 1e-6);
+        assert!((t.sample(Vec2::new(0.5, 0.5)).x - 0.5).abs() < 1e-6);
+        // Repeat: u = 1.25 is u = 0.25.
+        assert!((t.sample(Vec2::new(1.25, 0.5)) - t.sample(Vec2::new(0.25, 0.5))).length() < 1e-6);
+        // Wrapping across the seam blends the two edge texels.
+        assert!((t.sample(Vec2::new(0.0, 0.5)).x - 0.5).abs() < 1e-6);
+    }
+
+    #[test]
+    fn flat_meshes_are_unshared_with_face_normals() {
+        let mut m = Mesh::default();
+        let p = [Vec3::ZERO, Vec3::X, Vec3::Z, Vec3::new(1.0, 0.0, 1.0)];
+        m.push(&p, None, None, &[0, 2, 1, 1, 2, 3], 0);
+        assert_eq!(m.positions.len(), 6);
+        assert!(m.normals.iter().all(|n| (n.abs() - Vec3::Y).length() < 1e-6));
+        assert!((m.surface_area() - 1.0).abs() < 1e-9);
+        assert_eq!(m.bounds(), (Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0)));
+    }
+}
