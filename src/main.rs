@@ -1,1 +1,378 @@
-fn main() {}
+//! The `lightprobe` command: a thin layer over the library. Parses flags, checks them, calls
+//! the library, prints. Errors print once, as one line, with a non-zero exit code.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+use lightprobe::imageio::{self, Image};
+use lightprobe::metrics;
+use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
+use lightprobe::scene::{Scene, sidecar};
+
+#[derive(Parser)]
+#[command(name = "lightprobe", version, about = "Estimate the lighting of a 3D scene from images of it.", long_about = None)]
+struct Cli {
+    /// Worker threads (default: all cores; RAYON_NUM_THREADS also works). Results do not
+    /// depend on it.
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Path-trace reference images of a scene under its sphere lights: one linear f32 EXR per
+    /// view (alpha = fraction of samples that saw geometry), a PNG preview and render.json.
+    RenderReference(RenderArgs),
+    /// Photometric error of an image against a reference (relMAE, MAE, RMSE, relMSE, PSNR),
+    /// over the pixels where the reference's alpha is > 0 (its geometry mask).
+    Compare(CompareArgs),
+    /// Print what lightprobe loaded from a scene as JSON: triangle count, bounds, surface
+    /// area, materials, cameras (pose, field of view), lights and settings.
+    Info {
+        /// The scene sidecar (.ron).
+        scene: PathBuf,
+    },
+    /// Print the JSON Schema of the scene sidecar (RON).
+    Schema,
+}
+
+#[derive(clap::Args)]
+struct RenderArgs {
+    /// The scene sidecar (.ron), which names the glTF file.
+    scene: PathBuf,
+    /// Output folder (created if missing).
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Samples per pixel (default: the sidecar's).
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Random seed (default: the sidecar's).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Scattering events per path, 1 = direct light only (default: the sidecar's).
+    #[arg(long)]
+    max_bounces: Option<u32>,
+    /// Light transport estimator.
+    #[arg(long, value_enum, default_value_t = Strategy::Mis)]
+    strategy: Strategy,
+    /// Show emitters seen directly by the camera (default: black, like Mitsuba's hide_emitters).
+    #[arg(long)]
+    show_emitters: bool,
+    /// Only these views (comma-separated camera node names; default: the sidecar's).
+    #[arg(long, value_delimiter = ',')]
+    views: Vec<String>,
+    /// Also write geometry buffers at pixel centres: depth (metres), normal (world), albedo.
+    #[arg(long, value_delimiter = ',', value_parser = ["depth", "normal", "albedo"])]
+    aov: Vec<String>,
+    /// Print render.json to stdout instead of a summary.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+#[derive(clap::Args)]
+struct CompareArgs {
+    /// The image to judge (EXR).
+    image: PathBuf,
+    /// The reference (EXR); its alpha, if any, masks out background pixels.
+    reference: PathBuf,
+    /// Write a per-pixel error heat map (PNG) with a colour bar.
+    #[arg(long)]
+    heatmap: Option<PathBuf>,
+    /// Top of the heat map's colour scale (default: 99th percentile of the error).
+    #[arg(long)]
+    scale: Option<f32>,
+    /// Compare every pixel, ignoring the reference's alpha mask.
+    #[arg(long)]
+    no_mask: bool,
+    /// Print the metrics as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lightprobe: error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<()> {
+    if let Some(n) = cli.threads {
+        if n == 0 {
+            bail!("--threads must be at least 1");
+        }
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("cannot start the thread pool")?;
+    }
+    match cli.command {
+        Command::RenderReference(args) => render_reference(args),
+        Command::Compare(args) => compare(args),
+        Command::Info { scene } => info(&scene),
+        Command::Schema => {
+            print!("{}", sidecar::json_schema());
+            Ok(())
+        }
+    }
+}
+
+/// Creates `dir` and proves it writable before any long work starts.
+fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| lightprobe::Error::io(dir, e))?;
+    let probe = dir.join(format!(".lightprobe-write-test.{}", std::process::id()));
+    std::fs::write(&probe, b"").map_err(|e| lightprobe::Error::file(dir, format!("output folder is not writable: {e}")))?;
+    let _ = std::fs::remove_file(&probe);
+    Ok(())
+}
+
+fn progress_bar(total: u64, quiet: bool, what: &str) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(total);
+    bar.set_style(
+        ProgressStyle::with_template("{msg:>12} [{bar:40}] {percent:>3}% {elapsed_precise} eta {eta}")
+            .expect("a valid template")
+            .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
+    let t_load = Instant::now();
+    let mut scene = Scene::load(&a.scene)?;
+    let mut settings = RenderSettings::from_scene(&scene.settings);
+    if let Some(spp) = a.spp {
+        if !(1..=sidecar::MAX_SPP).contains(&spp) {
+            bail!("--spp must be between 1 and {}", sidecar::MAX_SPP);
+        }
+        settings.spp = spp;
+    }
+    if let Some(b) = a.max_bounces {
+        if !(1..=sidecar::MAX_BOUNCES).contains(&b) {
+            bail!("--max-bounces must be between 1 and {}", sidecar::MAX_BOUNCES);
+        }
+        settings.max_bounces = b;
+    }
+    if let Some(seed) = a.seed {
+        settings.seed = seed;
+    }
+    settings.strategy = a.strategy;
+    settings.hide_emitters = !a.show_emitters;
+    if !a.views.is_empty() {
+        let mut picked = Vec::new();
+        for v in &a.views {
+            let cam = scene.cameras.iter().find(|c| &c.name == v);
+            picked.push(cam.with_context(|| format!("--views: {v:?} is not a view of {}", a.scene.display()))?.clone());
+        }
+        scene.cameras = picked;
+    }
+    prepare_out_dir(&a.out)?;
+    let load_s = t_load.elapsed().as_secs_f64();
+
+    let lights = Lights::new(scene.lights.clone());
+    let t_bvh = Instant::now();
+    let renderer = Renderer::new(&scene, &lights);
+    let bvh_s = t_bvh.elapsed().as_secs_f64();
+
+    let pixels_per_view = (scene.settings.width * scene.settings.height) as u64;
+    let bar = progress_bar(pixels_per_view * scene.cameras.len() as u64, a.quiet, "rendering");
+    let mut views = Vec::new();
+    let t_all = Instant::now();
+    for (i, cam) in scene.cameras.iter().enumerate() {
+        let t = Instant::now();
+        let img = renderer.render_radiance(cam, i as u64, &settings, &|n| bar.inc(n));
+        let secs = t.elapsed().as_secs_f64();
+        if img.rgb.iter().any(|c| !c.is_finite()) {
+            bail!("view {:?}: the render produced non-finite pixels (a bug; please report it)", cam.name);
+        }
+        let exr = a.out.join(format!("{}.exr", cam.name));
+        imageio::write_exr(&exr, &img)?;
+        let png = a.out.join(format!("{}.png", cam.name));
+        imageio::write_png(&png, &img, imageio::auto_exposure(&img))?;
+        let mut aov_files = serde_json::Map::new();
+        if !a.aov.is_empty() {
+            let aovs = renderer.aovs(cam);
+            for name in &a.aov {
+                let (image, file): (&Image, PathBuf) = match name.as_str() {
+                    "depth" => (&aovs.depth, a.out.join(format!("{}.depth.exr", cam.name))),
+                    "normal" => (&aovs.normal, a.out.join(format!("{}.normal.exr", cam.name))),
+                    _ => (&aovs.albedo, a.out.join(format!("{}.albedo.exr", cam.name))),
+                };
+                imageio::write_exr(&file, image)?;
+                aov_files.insert(name.clone(), json!(file));
+            }
+        }
+        let samples = pixels_per_view as f64 * settings.spp as f64;
+        let coverage = img.alpha.as_ref().map_or(1.0, |al| al.iter().map(|&v| v as f64).sum::<f64>() / al.len() as f64);
+        views.push(json!({
+            "view": cam.name,
+            "exr": exr,
+            "png": png,
+            "aov": aov_files,
+            "mean_rgb": img.mean().to_array(),
+            "coverage": coverage,
+            "seconds": secs,
+            "samples_per_second": samples / secs,
+        }));
+    }
+    bar.finish_and_clear();
+    let total_s = t_all.elapsed().as_secs_f64();
+    let total_samples = pixels_per_view as f64 * settings.spp as f64 * scene.cameras.len() as f64;
+    let report = json!({
+        "lightprobe_version": lightprobe::VERSION,
+        "scene": a.scene,
+        "triangles": scene.mesh.triangle_count(),
+        "image": { "width": scene.settings.width, "height": scene.settings.height },
+        "lights": scene.lights.iter().map(|l| json!({
+            "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })).collect::<Vec<_>>(),
+        "settings": settings,
+        "threads": rayon::current_num_threads(),
+        "timings": { "load_seconds": load_s, "bvh_seconds": bvh_s, "render_seconds": total_s },
+        "samples_per_second": total_samples / total_s,
+        "views": views,
+    });
+    let text = serde_json::to_string_pretty(&report)? + "\n";
+    imageio::write_bytes(&a.out.join("render.json"), text.as_bytes())?;
+    if a.json {
+        print!("{text}");
+    } else {
+        for v in report["views"].as_array().into_iter().flatten() {
+            println!(
+                "{:<12} {}  mean {:.4?}  coverage {:.0}%  {:.2} s",
+                v["view"].as_str().unwrap_or(""),
+                v["exr"].as_str().unwrap_or(""),
+                v["mean_rgb"].as_array().map(|m| m.iter().filter_map(|x| x.as_f64()).collect::<Vec<_>>()).unwrap_or_default(),
+                100.0 * v["coverage"].as_f64().unwrap_or(0.0),
+                v["seconds"].as_f64().unwrap_or(0.0),
+            );
+        }
+        println!(
+            "{} triangles, {} spp, {} bounces: {:.2} s, {:.2} M samples/s on {} threads",
+            scene.mesh.triangle_count(),
+            settings.spp,
+            settings.max_bounces,
+            total_s,
+            total_samples / total_s / 1e6,
+            rayon::current_num_threads()
+        );
+    }
+    Ok(())
+}
+
+fn compare(a: CompareArgs) -> anyhow::Result<()> {
+    let image = imageio::read_exr(&a.image)?;
+    let reference = imageio::read_exr(&a.reference)?;
+    if (image.width, image.height) != (reference.width, reference.height) {
+        bail!(
+            "{}: image is {}×{} but the reference {} is {}×{}",
+            a.image.display(),
+            image.width,
+            image.height,
+            a.reference.display(),
+            reference.width,
+            reference.height
+        );
+    }
+    for (img, path) in [(&image, &a.image), (&reference, &a.reference)] {
+        if let Some(i) = img.rgb.iter().position(|c| !c.is_finite()) {
+            bail!("{}: pixel ({}, {}) is not finite", path.display(), i as u32 % img.width, i as u32 / img.width);
+        }
+    }
+    if let Some(s) = a.scale
+        && !(s.is_finite() && s > 0.0)
+    {
+        bail!("--scale must be a finite number > 0");
+    }
+    let mask = if a.no_mask { vec![true; reference.rgb.len()] } else { metrics::mask_of(&reference) };
+    let m = metrics::compare(&image, &reference, &mask)?;
+    let scale = match &a.heatmap {
+        Some(p) => Some(metrics::write_heatmap(p, &image, &reference, &mask, a.scale)?),
+        None => None,
+    };
+    if a.json {
+        let mut v = serde_json::to_value(m)?;
+        v["image"] = json!(a.image);
+        v["reference"] = json!(a.reference);
+        if let (Some(p), Some(s)) = (&a.heatmap, scale) {
+            v["heatmap"] = json!({ "path": p, "scale": s });
+        }
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("relMAE  {:.5}  ({:.2}%)", m.rel_mae, 100.0 * m.rel_mae);
+        println!("MAE     {:.6}", m.mae);
+        println!("RMSE    {:.6}", m.rmse);
+        println!("relMSE  {:.6}", m.rel_mse);
+        println!("PSNR    {:.2} dB", m.psnr);
+        println!("pixels  {} compared, {} masked out (background)", m.pixels, m.masked_out);
+        if let (Some(p), Some(s)) = (&a.heatmap, scale) {
+            println!("heatmap {} (scale 0..{s:.4})", p.display());
+        }
+    }
+    Ok(())
+}
+
+fn info(path: &Path) -> anyhow::Result<()> {
+    use lightprobe::scene::Albedo;
+    let scene = Scene::load(path)?;
+    let (lo, hi) = scene.mesh.bounds();
+    let materials: Vec<_> = scene
+        .materials
+        .iter()
+        .map(|m| match &m.albedo {
+            Albedo::Constant(c) => json!({ "name": m.name, "albedo": c.to_array() }),
+            Albedo::Texture { texture, factor } => json!({
+                "name": m.name,
+                "albedo_factor": factor.to_array(),
+                "texture": { "width": texture.width, "height": texture.height, "mean_linear": texture.mean().to_array() },
+            }),
+        })
+        .collect();
+    let cameras: Vec<_> = scene
+        .cameras
+        .iter()
+        .map(|c| {
+            json!({
+                "name": c.name,
+                "origin": c.origin_world.to_array(),
+                "right": c.world_from_camera.x_axis.to_array(),
+                "up": c.world_from_camera.y_axis.to_array(),
+                "forward": (-c.world_from_camera.z_axis).to_array(),
+                "yfov": c.yfov,
+                "width": c.width,
+                "height": c.height,
+            })
+        })
+        .collect();
+    let out = json!({
+        "scene": path,
+        "triangles": scene.mesh.triangle_count(),
+        "vertices": scene.mesh.positions.len(),
+        "bounds": { "min": lo.to_array(), "max": hi.to_array() },
+        "surface_area": scene.mesh.surface_area(),
+        "materials": materials,
+        "cameras": cameras,
+        "lights": scene.lights.iter().map(|l| json!({
+            "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })).collect::<Vec<_>>(),
+        "settings": {
+            "width": scene.settings.width, "height": scene.settings.height, "spp": scene.settings.spp,
+            "max_bounces": scene.settings.max_bounces, "seed": scene.settings.seed, "rings": scene.settings.rings,
+        },
+    });
+    println!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}
