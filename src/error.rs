@@ -32,7 +32,12 @@ impl Error {
     }
 
     /// An error about `path` at a 1-based (line, column).
-    pub fn file_at(path: impl AsRef<Path>, line: usize, col: usize, message: impl Into<String>) -> Self {
+    pub fn file_at(
+        path: impl AsRef<Path>,
+        line: usize,
+        col: usize,
+        message: impl Into<String>,
+    ) -> Self {
         Error::File {
             path: path.as_ref().to_path_buf(),
             at: Some((line, col)),
@@ -54,10 +59,18 @@ impl Error {
 impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Error::File { path, at: Some((line, col)), message } => {
+            Error::File {
+                path,
+                at: Some((line, col)),
+                message,
+            } => {
                 write!(f, "{}:{line}:{col}: {message}", path.display())
             }
-            Error::File { path, at: None, message } => write!(f, "{}: {message}", path.display()),
+            Error::File {
+                path,
+                at: None,
+                message,
+            } => write!(f, "{}: {message}", path.display()),
             Error::Invalid(message) => f.write_str(message),
         }
     }

@@ -23,12 +23,20 @@ pub struct Image {
 impl Image {
     /// A black image without alpha.
     pub fn new(width: u32, height: u32) -> Image {
-        Image { width, height, rgb: vec![Vec3::ZERO; (width * height) as usize], alpha: None }
+        Image {
+            width,
+            height,
+            rgb: vec![Vec3::ZERO; (width * height) as usize],
+            alpha: None,
+        }
     }
 
     /// Mean of each channel over all pixels.
     pub fn mean(&self) -> Vec3 {
-        let s = self.rgb.iter().fold(glam::DVec3::ZERO, |a, p| a + p.as_dvec3());
+        let s = self
+            .rgb
+            .iter()
+            .fold(glam::DVec3::ZERO, |a, p| a + p.as_dvec3());
         (s / self.rgb.len().max(1) as f64).as_vec3()
     }
 }
@@ -36,9 +44,16 @@ impl Image {
 /// Runs `write` on a temporary path beside `path`, then renames it into place. On failure the
 /// temporary file is removed and `path` is untouched.
 pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    let name = path.file_name().ok_or_else(|| Error::file(path, "is not a file path"))?;
-    let tmp: PathBuf = path.with_file_name(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));
-    let result = write(&tmp).and_then(|()| std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e)));
+    let name = path
+        .file_name()
+        .ok_or_else(|| Error::file(path, "is not a file path"))?;
+    let tmp: PathBuf = path.with_file_name(format!(
+        ".{}.{}.tmp",
+        name.to_string_lossy(),
+        std::process::id()
+    ));
+    let result =
+        write(&tmp).and_then(|()| std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e)));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
@@ -47,7 +62,9 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Res
 
 /// Writes bytes atomically.
 pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
-    write_atomic(path, |tmp| std::fs::write(tmp, bytes).map_err(|e| Error::io(path, e)))
+    write_atomic(path, |tmp| {
+        std::fs::write(tmp, bytes).map_err(|e| Error::io(path, e))
+    })
 }
 
 /// Writes a linear f32 EXR (RGB, plus A when the image has alpha), losslessly compressed.
@@ -59,7 +76,9 @@ pub fn write_exr(path: &Path, img: &Image) -> Result<()> {
 pub fn write_exr_with(path: &Path, img: &Image, attributes: x::LayerAttributes) -> Result<()> {
     let (w, h) = (img.width as usize, img.height as usize);
     if img.rgb.len() != w * h || img.alpha.as_ref().is_some_and(|a| a.len() != w * h) {
-        return Err(Error::Invalid(format!("image buffer does not match {w}×{h}")));
+        return Err(Error::Invalid(format!(
+            "image buffer does not match {w}×{h}"
+        )));
     }
     let at = |p: x::Vec2<usize>| p.y() * w + p.x();
     write_atomic(path, |tmp| {
@@ -69,7 +88,8 @@ pub fn write_exr_with(path: &Path, img: &Image, attributes: x::LayerAttributes) 
                     let c = img.rgb[at(p)];
                     (c.x, c.y, c.z, alpha[at(p)])
                 });
-                let layer = x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
+                let layer =
+                    x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
                 x::Image::from_layer(layer).write().to_file(tmp)
             }
             None => {
@@ -77,7 +97,8 @@ pub fn write_exr_with(path: &Path, img: &Image, attributes: x::LayerAttributes) 
                     let c = img.rgb[at(p)];
                     (c.x, c.y, c.z)
                 });
-                let layer = x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
+                let layer =
+                    x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
                 x::Image::from_layer(layer).write().to_file(tmp)
             }
         };
@@ -113,17 +134,31 @@ pub fn read_exr(path: &Path) -> Result<Image> {
     .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
     let size = img.layer_data.size;
     let buf = img.layer_data.channel_data.pixels;
-    Ok(Image { width: size.width() as u32, height: size.height() as u32, rgb: buf.rgb, alpha: buf.alpha })
+    Ok(Image {
+        width: size.width() as u32,
+        height: size.height() as u32,
+        rgb: buf.rgb,
+        alpha: buf.alpha,
+    })
 }
 
 /// The sRGB transfer function (linear [0, 1] → encoded).
 pub fn linear_to_srgb(c: f32) -> f32 {
-    if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 }
+    if c <= 0.003_130_8 {
+        12.92 * c
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    }
 }
 
 /// An exposure that maps the 99th percentile of luminance to 1 (for previews).
 pub fn auto_exposure(img: &Image) -> f32 {
-    let mut lum: Vec<f32> = img.rgb.iter().map(|c| luminance(*c)).filter(|l| l.is_finite() && *l > 0.0).collect();
+    let mut lum: Vec<f32> = img
+        .rgb
+        .iter()
+        .map(|c| luminance(*c))
+        .filter(|l| l.is_finite() && *l > 0.0)
+        .collect();
     if lum.is_empty() {
         return 1.0;
     }
@@ -144,7 +179,14 @@ pub fn write_png(path: &Path, img: &Image, exposure: f32) -> Result<()> {
         .rgb
         .iter()
         .flat_map(|c| (*c * exposure).to_array())
-        .map(|v| (linear_to_srgb(if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 }) * 255.0 + 0.5) as u8)
+        .map(|v| {
+            (linear_to_srgb(if v.is_finite() {
+                v.clamp(0.0, 1.0)
+            } else {
+                0.0
+            }) * 255.0
+                + 0.5) as u8
+        })
         .collect();
     write_rgb8_png(path, img.width, img.height, bytes)
 }
@@ -165,8 +207,15 @@ mod tests {
 
     fn sample(alpha: bool) -> Image {
         let (w, h) = (7u32, 5u32);
-        let rgb = (0..w * h).map(|i| Vec3::new(i as f32 * 0.5, -(i as f32), 1e-7 * i as f32)).collect();
-        Image { width: w, height: h, rgb, alpha: alpha.then(|| (0..w * h).map(|i| i as f32 / 35.0).collect()) }
+        let rgb = (0..w * h)
+            .map(|i| Vec3::new(i as f32 * 0.5, -(i as f32), 1e-7 * i as f32))
+            .collect();
+        Image {
+            width: w,
+            height: h,
+            rgb,
+            alpha: alpha.then(|| (0..w * h).map(|i| i as f32 / 35.0).collect()),
+        }
     }
 
     #[test]

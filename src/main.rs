@@ -116,7 +116,10 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         if n == 0 {
             bail!("--threads must be at least 1");
         }
-        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("cannot start the thread pool")?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global()
+            .context("cannot start the thread pool")?;
     }
     match cli.command {
         Command::RenderReference(args) => render_reference(args),
@@ -133,7 +136,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
 fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| lightprobe::Error::io(dir, e))?;
     let probe = dir.join(format!(".lightprobe-write-test.{}", std::process::id()));
-    std::fs::write(&probe, b"").map_err(|e| lightprobe::Error::file(dir, format!("output folder is not writable: {e}")))?;
+    std::fs::write(&probe, b"")
+        .map_err(|e| lightprobe::Error::file(dir, format!("output folder is not writable: {e}")))?;
     let _ = std::fs::remove_file(&probe);
     Ok(())
 }
@@ -144,9 +148,11 @@ fn progress_bar(total: u64, quiet: bool, what: &str) -> ProgressBar {
     }
     let bar = ProgressBar::new(total);
     bar.set_style(
-        ProgressStyle::with_template("{msg:>12} [{bar:40}] {percent:>3}% {elapsed_precise} eta {eta}")
-            .expect("a valid template")
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{msg:>12} [{bar:40}] {percent:>3}% {elapsed_precise} eta {eta}",
+        )
+        .expect("a valid template")
+        .progress_chars("=> "),
     );
     bar.set_message(what.to_string());
     bar
@@ -164,7 +170,10 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
     }
     if let Some(b) = a.max_bounces {
         if !(1..=sidecar::MAX_BOUNCES).contains(&b) {
-            bail!("--max-bounces must be between 1 and {}", sidecar::MAX_BOUNCES);
+            bail!(
+                "--max-bounces must be between 1 and {}",
+                sidecar::MAX_BOUNCES
+            );
         }
         settings.max_bounces = b;
     }
@@ -177,7 +186,12 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
         let mut picked = Vec::new();
         for v in &a.views {
             let cam = scene.cameras.iter().find(|c| &c.name == v);
-            picked.push(cam.with_context(|| format!("--views: {v:?} is not a view of {}", a.scene.display()))?.clone());
+            picked.push(
+                cam.with_context(|| {
+                    format!("--views: {v:?} is not a view of {}", a.scene.display())
+                })?
+                .clone(),
+            );
         }
         scene.cameras = picked;
     }
@@ -190,7 +204,11 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
     let bvh_s = t_bvh.elapsed().as_secs_f64();
 
     let pixels_per_view = (scene.settings.width * scene.settings.height) as u64;
-    let bar = progress_bar(pixels_per_view * scene.cameras.len() as u64, a.quiet, "rendering");
+    let bar = progress_bar(
+        pixels_per_view * scene.cameras.len() as u64,
+        a.quiet,
+        "rendering",
+    );
     let mut views = Vec::new();
     let t_all = Instant::now();
     for (i, cam) in scene.cameras.iter().enumerate() {
@@ -198,7 +216,10 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
         let img = renderer.render_radiance(cam, i as u64, &settings, &|n| bar.inc(n));
         let secs = t.elapsed().as_secs_f64();
         if img.rgb.iter().any(|c| !c.is_finite()) {
-            bail!("view {:?}: the render produced non-finite pixels (a bug; please report it)", cam.name);
+            bail!(
+                "view {:?}: the render produced non-finite pixels (a bug; please report it)",
+                cam.name
+            );
         }
         let exr = a.out.join(format!("{}.exr", cam.name));
         imageio::write_exr(&exr, &img)?;
@@ -218,7 +239,9 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
             }
         }
         let samples = pixels_per_view as f64 * settings.spp as f64;
-        let coverage = img.alpha.as_ref().map_or(1.0, |al| al.iter().map(|&v| v as f64).sum::<f64>() / al.len() as f64);
+        let coverage = img.alpha.as_ref().map_or(1.0, |al| {
+            al.iter().map(|&v| v as f64).sum::<f64>() / al.len() as f64
+        });
         views.push(json!({
             "view": cam.name,
             "exr": exr,
@@ -256,7 +279,10 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
                 "{:<12} {}  mean {:.4?}  coverage {:.0}%  {:.2} s",
                 v["view"].as_str().unwrap_or(""),
                 v["exr"].as_str().unwrap_or(""),
-                v["mean_rgb"].as_array().map(|m| m.iter().filter_map(|x| x.as_f64()).collect::<Vec<_>>()).unwrap_or_default(),
+                v["mean_rgb"]
+                    .as_array()
+                    .map(|m| m.iter().filter_map(|x| x.as_f64()).collect::<Vec<_>>())
+                    .unwrap_or_default(),
                 100.0 * v["coverage"].as_f64().unwrap_or(0.0),
                 v["seconds"].as_f64().unwrap_or(0.0),
             );
@@ -290,7 +316,12 @@ fn compare(a: CompareArgs) -> anyhow::Result<()> {
     }
     for (img, path) in [(&image, &a.image), (&reference, &a.reference)] {
         if let Some(i) = img.rgb.iter().position(|c| !c.is_finite()) {
-            bail!("{}: pixel ({}, {}) is not finite", path.display(), i as u32 % img.width, i as u32 / img.width);
+            bail!(
+                "{}: pixel ({}, {}) is not finite",
+                path.display(),
+                i as u32 % img.width,
+                i as u32 / img.width
+            );
         }
     }
     if let Some(s) = a.scale
@@ -298,10 +329,16 @@ fn compare(a: CompareArgs) -> anyhow::Result<()> {
     {
         bail!("--scale must be a finite number > 0");
     }
-    let mask = if a.no_mask { vec![true; reference.rgb.len()] } else { metrics::mask_of(&reference) };
+    let mask = if a.no_mask {
+        vec![true; reference.rgb.len()]
+    } else {
+        metrics::mask_of(&reference)
+    };
     let m = metrics::compare(&image, &reference, &mask)?;
     let scale = match &a.heatmap {
-        Some(p) => Some(metrics::write_heatmap(p, &image, &reference, &mask, a.scale)?),
+        Some(p) => Some(metrics::write_heatmap(
+            p, &image, &reference, &mask, a.scale,
+        )?),
         None => None,
     };
     if a.json {
@@ -318,7 +355,10 @@ fn compare(a: CompareArgs) -> anyhow::Result<()> {
         println!("RMSE    {:.6}", m.rmse);
         println!("relMSE  {:.6}", m.rel_mse);
         println!("PSNR    {:.2} dB", m.psnr);
-        println!("pixels  {} compared, {} masked out (background)", m.pixels, m.masked_out);
+        println!(
+            "pixels  {} compared, {} masked out (background)",
+            m.pixels, m.masked_out
+        );
         if let (Some(p), Some(s)) = (&a.heatmap, scale) {
             println!("heatmap {} (scale 0..{s:.4})", p.display());
         }

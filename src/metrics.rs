@@ -67,11 +67,21 @@ pub fn compare(image: &Image, reference: &Image, mask: &[bool]) -> Result<Metric
         sum_r += r;
     }
     if pixels == 0 {
-        return Err(Error::Invalid("no pixel to compare: the reference's mask is empty".into()));
+        return Err(Error::Invalid(
+            "no pixel to compare: the reference's mask is empty".into(),
+        ));
     }
     let n = 3.0 * pixels as f64;
     let mse = sq / n;
-    let ratio = |a: f64, b: f64| if b > 0.0 { a / b } else if a == 0.0 { 0.0 } else { f64::INFINITY };
+    let ratio = |a: f64, b: f64| {
+        if b > 0.0 {
+            a / b
+        } else if a == 0.0 {
+            0.0
+        } else {
+            f64::INFINITY
+        }
+    };
     Ok(Metrics {
         pixels,
         masked_out: mask.len() - pixels,
@@ -79,7 +89,11 @@ pub fn compare(image: &Image, reference: &Image, mask: &[bool]) -> Result<Metric
         rmse: mse.sqrt(),
         rel_mae: ratio(abs, ref_abs),
         rel_mse: ratio(sq, ref_sq),
-        psnr: if mse > 0.0 && peak > 0.0 { 10.0 * (peak * peak / mse).log10() } else { f64::INFINITY },
+        psnr: if mse > 0.0 && peak > 0.0 {
+            10.0 * (peak * peak / mse).log10()
+        } else {
+            f64::INFINITY
+        },
         mean: (sum_x / pixels as f64).to_array(),
         mean_reference: (sum_r / pixels as f64).to_array(),
     })
@@ -92,17 +106,34 @@ pub fn error_map(image: &Image, reference: &Image, mask: &[bool]) -> Vec<f32> {
         .iter()
         .zip(&reference.rgb)
         .zip(mask)
-        .map(|((x, r), &m)| if m { (*x - *r).abs().element_sum() / 3.0 } else { 0.0 })
+        .map(|((x, r), &m)| {
+            if m {
+                (*x - *r).abs().element_sum() / 3.0
+            } else {
+                0.0
+            }
+        })
         .collect()
 }
 
 /// Writes the error heat map as a PNG: the per-pixel mean absolute error mapped through a
 /// perceptual colour map from 0 to `scale` (default: the 99th percentile of the error), with a
 /// colour bar labelled in the image's units. Masked-out pixels are grey. Returns the scale.
-pub fn write_heatmap(path: &Path, image: &Image, reference: &Image, mask: &[bool], scale: Option<f32>) -> Result<f32> {
+pub fn write_heatmap(
+    path: &Path,
+    image: &Image,
+    reference: &Image,
+    mask: &[bool],
+    scale: Option<f32>,
+) -> Result<f32> {
     let err = error_map(image, reference, mask);
     let scale = scale.unwrap_or_else(|| {
-        let mut v: Vec<f32> = err.iter().zip(mask).filter(|(_, m)| **m).map(|(e, _)| *e).collect();
+        let mut v: Vec<f32> = err
+            .iter()
+            .zip(mask)
+            .filter(|(_, m)| **m)
+            .map(|(e, _)| *e)
+            .collect();
         if v.is_empty() {
             return 1.0;
         }
@@ -119,7 +150,11 @@ pub fn write_heatmap(path: &Path, image: &Image, reference: &Image, mask: &[bool
     for y in 0..ih {
         for x in 0..iw {
             let i = (y / zoom) * w + x / zoom;
-            canvas[y * cw + x] = if mask[i] { colormap(err[i] / scale) } else { [96, 96, 96] };
+            canvas[y * cw + x] = if mask[i] {
+                colormap(err[i] / scale)
+            } else {
+                [96, 96, 96]
+            };
         }
     }
     // Colour bar: top = scale, bottom = 0.
@@ -131,7 +166,13 @@ pub fn write_heatmap(path: &Path, image: &Image, reference: &Image, mask: &[bool
         }
     }
     draw_text(&mut canvas, cw, bx + 20, by0 - 2, &fmt_label(scale));
-    draw_text(&mut canvas, cw, bx + 20, (by0 + by1) / 2 - 5, &fmt_label(scale / 2.0));
+    draw_text(
+        &mut canvas,
+        cw,
+        bx + 20,
+        (by0 + by1) / 2 - 5,
+        &fmt_label(scale / 2.0),
+    );
     draw_text(&mut canvas, cw, bx + 20, by1 - 10, "0");
     let bytes = canvas.into_iter().flatten().collect();
     write_rgb8_png(path, cw as u32, ch as u32, bytes)?;
@@ -139,7 +180,11 @@ pub fn write_heatmap(path: &Path, image: &Image, reference: &Image, mask: &[bool
 }
 
 fn fmt_label(v: f32) -> String {
-    if (0.01..1000.0).contains(&v) { format!("{v:.3}") } else { format!("{v:.1e}") }
+    if (0.01..1000.0).contains(&v) {
+        format!("{v:.3}")
+    } else {
+        format!("{v:.1e}")
+    }
 }
 
 /// A perceptual dark-to-bright colour map (inferno-like control points), t in [0, 1].
@@ -153,7 +198,11 @@ pub fn colormap(t: f32) -> [u8; 3] {
         Vec3::new(0.98, 0.58, 0.04),
         Vec3::new(0.99, 1.0, 0.64),
     ];
-    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 1.0 } * (STOPS.len() - 1) as f32;
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        1.0
+    } * (STOPS.len() - 1) as f32;
     let i = (t as usize).min(STOPS.len() - 2);
     let c = STOPS[i].lerp(STOPS[i + 1], t - i as f32);
     (c * 255.0 + 0.5).to_array().map(|v| v as u8)
@@ -203,7 +252,12 @@ mod tests {
     use super::*;
 
     fn img(values: &[f32], alpha: Option<Vec<f32>>) -> Image {
-        Image { width: values.len() as u32, height: 1, rgb: values.iter().map(|&v| Vec3::splat(v)).collect(), alpha }
+        Image {
+            width: values.len() as u32,
+            height: 1,
+            rgb: values.iter().map(|&v| Vec3::splat(v)).collect(),
+            alpha,
+        }
     }
 
     #[test]

@@ -12,35 +12,20 @@ use super::{Accumulator, RenderSettings, Strategy};
 use crate::accel::{Accel, Hit};
 use crate::scene::Scene;
 
-/// The random numbers of one camera sample: the first few 2D dimensions come from a
-/// per-pixel-rotated R2 sequence (stratified across the pixel's samples), the rest from PCG.
+/// The random numbers of one camera sample. The pixel jitter comes from a per-pixel-rotated
+/// R2 sequence (stratified across the pixel's samples); everything else from PCG. (Drawing
+/// further dimensions from the same R2 sequence would tie them to the pixel position: each
+/// pixel's estimate would then converge to a shifted, wrong integral.)
 pub(super) struct PathSampler {
     pub rng: Rng,
     pub index: u32,
-    pub offsets: [Vec2; 3],
-}
-
-/// Which 2D dimension of a sample is being drawn (low-discrepancy for the first vertex).
-#[derive(Clone, Copy)]
-enum Dim {
-    Pixel = 0,
-    FirstLight = 1,
-    FirstBsdf = 2,
+    pub pixel_offset: Vec2,
 }
 
 impl PathSampler {
     #[inline]
-    fn get(&mut self, dim: Dim, first_vertex: bool) -> Vec2 {
-        if first_vertex || matches!(dim, Dim::Pixel) {
-            r2(self.index, self.offsets[dim as usize])
-        } else {
-            self.rng.next_2d()
-        }
-    }
-
-    #[inline]
-    pub fn pixel_jitter(&mut self) -> Vec2 {
-        self.get(Dim::Pixel, true)
+    pub fn pixel_jitter(&self) -> Vec2 {
+        r2(self.index, self.pixel_offset)
     }
 }
 
@@ -92,7 +77,14 @@ pub(super) struct Tracer<'a> {
 impl Tracer<'_> {
     /// Traces one camera path from `origin` along unit `dir`, handing every emitter it reaches
     /// to `acc`. Returns whether the camera ray hit scene geometry (for the coverage mask).
-    pub fn trace<A: Accumulator>(&self, origin: Vec3, dir: Vec3, s: &mut PathSampler, acc: &A, px: &mut A::Pixel) -> bool {
+    pub fn trace<A: Accumulator>(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        s: &mut PathSampler,
+        acc: &A,
+        px: &mut A::Pixel,
+    ) -> bool {
         let (lights, st) = (self.lights, self.settings);
         let (use_light, use_bsdf) = match st.strategy {
             Strategy::Mis => (true, true),
@@ -117,7 +109,11 @@ impl Tracer<'_> {
                             acc.add(px, e, throughput);
                         }
                     } else if use_bsdf {
-                        let w = if mis { power_heuristic(prev_pdf_bsdf, lights.pdf(e, prev_p)) } else { 1.0 };
+                        let w = if mis {
+                            power_heuristic(prev_pdf_bsdf, lights.pdf(e, prev_p))
+                        } else {
+                            1.0
+                        };
                         acc.add(px, e, throughput * w);
                     }
                 }
@@ -130,23 +126,30 @@ impl Tracer<'_> {
                 break;
             }
             depth += 1;
-            let first = depth == 1;
             let sp = surface_point(self.scene, &hit, d);
             let f = sp.albedo * INV_PI;
 
             // ---- Emitter sampling ----
             if use_light {
                 let u_pick = s.rng.next_f32();
-                let u = s.get(Dim::FirstLight, first);
+                let u = s.rng.next_2d();
                 if let Some(ls) = lights.sample(sp.p, u_pick, u) {
                     let cos_s = ls.wi.dot(sp.ns);
                     if cos_s > 0.0 && ls.wi.dot(sp.ng) > 0.0 {
+                        // Aim from the offset origin at the sampled point on the emitter; the
+                        // emitter itself cannot block its own near side.
                         let o_shadow = offset(sp.p, sp.ng);
-                        let t_shadow = ls.dist * (1.0 - 1e-4);
-                        let blocked = self.accel.occluded(o_shadow, ls.wi, t_shadow)
-                            || lights.intersect(o_shadow, ls.wi, 0.0, t_shadow).is_some();
+                        let to_light = sp.p + ls.wi * ls.dist - o_shadow;
+                        let len = to_light.length();
+                        let (d_shadow, t_shadow) = (to_light / len, len * (1.0 - 1e-4));
+                        let blocked = self.accel.occluded(o_shadow, d_shadow, t_shadow)
+                            || lights.occludes(o_shadow, d_shadow, t_shadow, ls.emitter);
                         if !blocked {
-                            let w = if mis { power_heuristic(ls.pdf, cos_s * INV_PI) } else { 1.0 };
+                            let w = if mis {
+                                power_heuristic(ls.pdf, cos_s * INV_PI)
+                            } else {
+                                1.0
+                            };
                             acc.add(px, ls.emitter, throughput * f * (cos_s * w / ls.pdf));
                         }
                     }
@@ -154,7 +157,7 @@ impl Tracer<'_> {
             }
 
             // ---- BSDF sampling ----
-            let wi = cosine_hemisphere(sp.ns, s.get(Dim::FirstBsdf, first));
+            let wi = cosine_hemisphere(sp.ns, s.rng.next_2d());
             let pdf = wi.dot(sp.ns) * INV_PI;
             if wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 {
                 break;
@@ -174,7 +177,10 @@ impl Tracer<'_> {
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading
     /// normal facing the camera, albedo), or `None` if the ray sees no scene geometry.
     pub fn first_hit(&self, origin: Vec3, dir: Vec3) -> Option<(f32, Vec3, Vec3)> {
-        let t_light = self.lights.intersect(origin, dir, 0.0, f32::INFINITY).map_or(f32::INFINITY, |h| h.0);
+        let t_light = self
+            .lights
+            .intersect(origin, dir, 0.0, f32::INFINITY)
+            .map_or(f32::INFINITY, |h| h.0);
         let hit = self.accel.intersect(origin, dir, t_light)?;
         let sp = surface_point(self.scene, &hit, dir);
         Some((hit.t, sp.ns, sp.albedo))

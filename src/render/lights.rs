@@ -61,14 +61,21 @@ impl Lights {
         }
         let i = ((u_pick * n as f32) as usize).min(n - 1);
         let (wi, dist, pdf) = sample_sphere(&self.spheres[i], p, u)?;
-        Some(LightSample { emitter: Emitter::Sphere(i as u32), wi, dist, pdf: pdf / n as f32 })
+        Some(LightSample {
+            emitter: Emitter::Sphere(i as u32),
+            wi,
+            dist,
+            pdf: pdf / n as f32,
+        })
     }
 
     /// The pdf [`Lights::sample`] has for reaching `emitter` in direction `wi` from `p`.
     #[inline]
     pub fn pdf(&self, emitter: Emitter, p: Vec3) -> f32 {
         match emitter {
-            Emitter::Sphere(i) => cone_pdf(&self.spheres[i as usize], p) / self.spheres.len() as f32,
+            Emitter::Sphere(i) => {
+                cone_pdf(&self.spheres[i as usize], p) / self.spheres.len() as f32
+            }
         }
     }
 
@@ -84,6 +91,17 @@ impl Lights {
             }
         }
         best
+    }
+}
+
+impl Lights {
+    /// True if an emitter other than `except` lies on the unit ray within (0, t_max).
+    #[inline]
+    pub fn occludes(&self, o: Vec3, d: Vec3, t_max: f32, except: Emitter) -> bool {
+        self.spheres.iter().enumerate().any(|(i, s)| {
+            Emitter::Sphere(i as u32) != except
+                && intersect_sphere(s, o, d, 0.0).is_some_and(|t| t < t_max)
+        })
     }
 }
 
@@ -148,7 +166,11 @@ mod tests {
     use crate::render::sampling::Rng;
 
     fn light() -> SphereLight {
-        SphereLight { center: Vec3::new(0.3, 2.0, -0.5), radius: 0.4, radiance: Vec3::ONE }
+        SphereLight {
+            center: Vec3::new(0.3, 2.0, -0.5),
+            radius: 0.4,
+            radiance: Vec3::ONE,
+        }
     }
 
     #[test]
@@ -170,7 +192,10 @@ mod tests {
     fn cone_pdf_integrates_to_one_over_the_sphere_silhouette() {
         // Monte Carlo over uniform directions: ∫ pdf · 1[hits] dω = 1. A large sphere, so that
         // ~6% of directions hit it and the 2% bound is about 3σ.
-        let s = SphereLight { radius: 1.0, ..light() };
+        let s = SphereLight {
+            radius: 1.0,
+            ..light()
+        };
         let p = Vec3::new(0.1, 0.0, 0.2);
         let mut r = Rng::new(2);
         let n = 400_000;
@@ -193,7 +218,11 @@ mod tests {
 
     #[test]
     fn tiny_far_sphere_keeps_precision() {
-        let s = SphereLight { center: Vec3::new(0.0, 1000.0, 0.0), radius: 0.01, radiance: Vec3::ONE };
+        let s = SphereLight {
+            center: Vec3::new(0.0, 1000.0, 0.0),
+            radius: 0.01,
+            radiance: Vec3::ONE,
+        };
         let omc = one_minus_cos_max(&s, Vec3::ZERO).unwrap();
         // 1 − cos θ ≈ θ²/2 with θ = 1e-5.
         assert!((omc / 5e-11 - 1.0).abs() < 1e-3, "{omc}");

@@ -63,12 +63,24 @@ pub struct RenderSettings {
 impl RenderSettings {
     /// The sidecar's settings, with MIS and hidden emitters.
     pub fn from_scene(s: &SceneSettings) -> Self {
-        RenderSettings { spp: s.spp, max_bounces: s.max_bounces, seed: s.seed, strategy: Strategy::Mis, hide_emitters: true }
+        RenderSettings {
+            spp: s.spp,
+            max_bounces: s.max_bounces,
+            seed: s.seed,
+            strategy: Strategy::Mis,
+            hide_emitters: true,
+        }
     }
 
     /// A quick, noisy preset for looking at a scene.
     pub fn preview() -> Self {
-        RenderSettings { spp: 16, max_bounces: 2, seed: 1, strategy: Strategy::Mis, hide_emitters: true }
+        RenderSettings {
+            spp: 16,
+            max_bounces: 2,
+            seed: 1,
+            strategy: Strategy::Mis,
+            hide_emitters: true,
+        }
     }
 }
 
@@ -120,7 +132,9 @@ pub struct Aovs {
 
 /// Builds the ray-query structure over a scene's triangles.
 pub fn build_accel(scene: &Scene) -> Accel {
-    let tris: Vec<[Vec3; 3]> = (0..scene.mesh.triangle_count()).map(|t| scene.mesh.corners(t)).collect();
+    let tris: Vec<[Vec3; 3]> = (0..scene.mesh.triangle_count())
+        .map(|t| scene.mesh.corners(t))
+        .collect();
     Accel::build(&tris)
 }
 
@@ -134,11 +148,20 @@ pub struct Renderer<'a> {
 impl<'a> Renderer<'a> {
     /// Builds the BVH.
     pub fn new(scene: &'a Scene, lights: &'a Lights) -> Self {
-        Renderer { scene, lights, accel: build_accel(scene) }
+        Renderer {
+            scene,
+            lights,
+            accel: build_accel(scene),
+        }
     }
 
     fn tracer<'s>(&'s self, settings: &'s RenderSettings) -> Tracer<'s> {
-        Tracer { scene: self.scene, accel: &self.accel, lights: self.lights, settings }
+        Tracer {
+            scene: self.scene,
+            accel: &self.accel,
+            lights: self.lights,
+            settings,
+        }
     }
 
     /// Renders `camera` with `acc`. `stream` separates the random streams of renders that
@@ -164,15 +187,19 @@ impl<'a> Renderer<'a> {
                     for x in x0..x1 {
                         let index = y * w + x;
                         let pixel_key = mix64(key ^ index as u64);
-                        let mut offsets_rng = Rng::new(pixel_key);
-                        let offsets = [offsets_rng.next_2d(), offsets_rng.next_2d(), offsets_rng.next_2d()];
+                        let pixel_offset = Rng::new(pixel_key).next_2d();
                         let mut px = acc.new_pixel();
                         let mut hits = 0u32;
                         for i in 0..settings.spp {
-                            let mut s = PathSampler { rng: Rng::new(pixel_key.wrapping_add(mix64(i as u64 + 1))), index: i, offsets };
+                            let mut s = PathSampler {
+                                rng: Rng::new(pixel_key.wrapping_add(mix64(i as u64 + 1))),
+                                index: i,
+                                pixel_offset,
+                            };
                             let j = s.pixel_jitter();
                             let dir = camera.ray_dir_world(x as f32 + j.x, y as f32 + j.y);
-                            hits += tracer.trace(camera.origin_world, dir, &mut s, acc, &mut px) as u32;
+                            hits +=
+                                tracer.trace(camera.origin_world, dir, &mut s, acc, &mut px) as u32;
                         }
                         acc.finish(&mut px, settings.spp);
                         out.push((index, px, hits as f32 / settings.spp as f32));
@@ -190,14 +217,39 @@ impl<'a> Renderer<'a> {
             slots[index as usize] = Some(px);
             coverage[index as usize] = cov;
         }
-        let pixels = slots.into_iter().map(|p| p.expect("every pixel belongs to one tile")).collect();
-        Frame { width: w, height: h, pixels, coverage }
+        let pixels = slots
+            .into_iter()
+            .map(|p| p.expect("every pixel belongs to one tile"))
+            .collect();
+        Frame {
+            width: w,
+            height: h,
+            pixels,
+            coverage,
+        }
     }
 
     /// Renders radiance; the coverage becomes the image's alpha.
-    pub fn render_radiance(&self, camera: &Camera, stream: u64, settings: &RenderSettings, progress: &(dyn Fn(u64) + Sync)) -> Image {
-        let frame = self.render(camera, stream, settings, &RadianceAccumulator(self.lights), progress);
-        Image { width: frame.width, height: frame.height, rgb: frame.pixels, alpha: Some(frame.coverage) }
+    pub fn render_radiance(
+        &self,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Image {
+        let frame = self.render(
+            camera,
+            stream,
+            settings,
+            &RadianceAccumulator(self.lights),
+            progress,
+        );
+        Image {
+            width: frame.width,
+            height: frame.height,
+            rgb: frame.pixels,
+            alpha: Some(frame.coverage),
+        }
     }
 
     /// Depth, normal and albedo at pixel centres (one ray per pixel, no randomness).
@@ -215,10 +267,17 @@ impl<'a> Renderer<'a> {
         let make = |f: &dyn Fn(&(f32, Vec3, Vec3)) -> Vec3| Image {
             width: w,
             height: h,
-            rgb: hits.iter().map(|hit| hit.as_ref().map_or(Vec3::ZERO, f)).collect(),
+            rgb: hits
+                .iter()
+                .map(|hit| hit.as_ref().map_or(Vec3::ZERO, f))
+                .collect(),
             alpha: None,
         };
-        Aovs { depth: make(&|h| Vec3::splat(h.0)), normal: make(&|h| h.1), albedo: make(&|h| h.2) }
+        Aovs {
+            depth: make(&|h| Vec3::splat(h.0)),
+            normal: make(&|h| h.1),
+            albedo: make(&|h| h.2),
+        }
     }
 }
 

@@ -25,7 +25,10 @@ impl Rng {
     /// A stream determined by `key` (hash several counters into it with [`mix64`]).
     #[inline]
     pub fn new(key: u64) -> Rng {
-        let mut r = Rng { state: 0, inc: (mix64(key ^ 0x5851_F42D_4C95_7F2D) << 1) | 1 };
+        let mut r = Rng {
+            state: 0,
+            inc: (mix64(key ^ 0x5851_F42D_4C95_7F2D) << 1) | 1,
+        };
         r.next_u32();
         r.state = r.state.wrapping_add(mix64(key));
         r.next_u32();
@@ -35,7 +38,9 @@ impl Rng {
     #[inline]
     pub fn next_u32(&mut self) -> u32 {
         let old = self.state;
-        self.state = old.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(self.inc);
+        self.state = old
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(self.inc);
         let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
         let rot = (old >> 59) as u32;
         xorshifted.rotate_right(rot)
@@ -119,7 +124,13 @@ pub fn uniform_sphere(u: Vec2) -> Vec3 {
 #[inline]
 pub fn power_heuristic(pdf_a: f32, pdf_b: f32) -> f32 {
     let (a2, b2) = (pdf_a * pdf_a, pdf_b * pdf_b);
-    if a2 + b2 > 0.0 && (a2 + b2).is_finite() { a2 / (a2 + b2) } else if pdf_a > pdf_b { 1.0 } else { 0.0 }
+    if a2 + b2 > 0.0 && (a2 + b2).is_finite() {
+        a2 / (a2 + b2)
+    } else if pdf_a > pdf_b {
+        1.0
+    } else {
+        0.0
+    }
 }
 
 /// 1 / π.
@@ -151,7 +162,14 @@ mod tests {
 
     #[test]
     fn frame_is_orthonormal_everywhere() {
-        for n in [Vec3::X, Vec3::Y, Vec3::Z, -Vec3::Z, Vec3::new(0.3, -0.9, 0.1).normalize(), Vec3::new(0.0, 0.0, -0.999_999_9).normalize()] {
+        for n in [
+            Vec3::X,
+            Vec3::Y,
+            Vec3::Z,
+            -Vec3::Z,
+            Vec3::new(0.3, -0.9, 0.1).normalize(),
+            Vec3::new(0.0, 0.0, -0.999_999_9).normalize(),
+        ] {
             let (t, b) = frame(n);
             assert!((t.length() - 1.0).abs() < 1e-5 && (b.length() - 1.0).abs() < 1e-5);
             assert!(t.dot(b).abs() < 1e-5 && t.dot(n).abs() < 1e-5 && b.dot(n).abs() < 1e-5);
@@ -164,7 +182,10 @@ mod tests {
         let n = Vec3::new(1.0, 2.0, -0.5).normalize();
         let mut r = Rng::new(3);
         let m = 100_000;
-        let mean: f64 = (0..m).map(|_| cosine_hemisphere(n, r.next_2d()).dot(n) as f64).sum::<f64>() / m as f64;
+        let mean: f64 = (0..m)
+            .map(|_| cosine_hemisphere(n, r.next_2d()).dot(n) as f64)
+            .sum::<f64>()
+            / m as f64;
         assert!((mean - 2.0 / 3.0).abs() < 0.003, "{mean}");
     }
 

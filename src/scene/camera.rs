@@ -23,7 +23,13 @@ pub struct Camera {
 
 impl Camera {
     /// A camera from a node's world transform; scale and shear are removed (a camera is rigid).
-    pub fn from_node(name: String, world_from_node: Mat4, yfov: f32, width: u32, height: u32) -> Self {
+    pub fn from_node(
+        name: String,
+        world_from_node: Mat4,
+        yfov: f32,
+        width: u32,
+        height: u32,
+    ) -> Self {
         let (_, rotation, translation) = world_from_node.to_scale_rotation_translation();
         Camera {
             name,
@@ -36,7 +42,14 @@ impl Camera {
     }
 
     /// A camera at `eye` looking at `target`, world +Y up (for tests and tools).
-    pub fn look_at(name: &str, eye: Vec3, target: Vec3, yfov: f32, width: u32, height: u32) -> Self {
+    pub fn look_at(
+        name: &str,
+        eye: Vec3,
+        target: Vec3,
+        yfov: f32,
+        width: u32,
+        height: u32,
+    ) -> Self {
         let back = (eye - target).normalize();
         let right = Vec3::Y.cross(back).normalize();
         let up = back.cross(right);
@@ -83,7 +96,14 @@ mod tests {
 
     #[test]
     fn from_node_matches_look_at() {
-        let a = Camera::look_at("c", Vec3::new(1.0, 2.0, 3.0), Vec3::new(0.0, 0.5, 0.0), 0.7, 64, 48);
+        let a = Camera::look_at(
+            "c",
+            Vec3::new(1.0, 2.0, 3.0),
+            Vec3::new(0.0, 0.5, 0.0),
+            0.7,
+            64,
+            48,
+        );
         let m = Mat4::from_mat3(a.world_from_camera * 2.0).mul_mat4(&Mat4::IDENTITY);
         let m = Mat4::from_translation(a.origin_world) * m;
         let b = Camera::from_node("c".into(), m, 0.7, 64, 48);

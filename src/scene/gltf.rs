@@ -26,16 +26,25 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
         other => Error::file(path, format!("not a valid glTF 2.0 file: {other}")),
     })?;
 
-    let textures: Vec<Arc<Texture>> = images.iter().map(|img| Arc::new(decode_image(img))).collect();
+    let textures: Vec<Arc<Texture>> = images
+        .iter()
+        .map(|img| Arc::new(decode_image(img)))
+        .collect();
 
     // Material 0 is glTF's default material (white), used by primitives without one.
-    let mut materials = vec![Material { name: String::new(), albedo: Albedo::Constant(Vec3::ONE) }];
+    let mut materials = vec![Material {
+        name: String::new(),
+        albedo: Albedo::Constant(Vec3::ONE),
+    }];
     let mut texcoord_set = vec![0u32];
     for m in doc.materials() {
         let pbr = m.pbr_metallic_roughness();
         let [r, g, b, _] = pbr.base_color_factor();
         let factor = Vec3::new(r, g, b).clamp(Vec3::ZERO, Vec3::ONE);
-        let name = m.name().map(str::to_string).unwrap_or_else(|| format!("material{}", materials.len() - 1));
+        let name = m
+            .name()
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("material{}", materials.len() - 1));
         let albedo = match pbr.base_color_texture() {
             Some(info) => {
                 texcoord_set.push(info.tex_coord());
@@ -55,22 +64,43 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
         .or_else(|| doc.scenes().next())
         .ok_or_else(|| Error::file(path, "has no scene"))?;
 
-    let mut out = Loaded { mesh: Mesh::default(), materials, cameras: Vec::new() };
-    let mut stack: Vec<(gltf::Node, Mat4, usize)> = scene.nodes().map(|n| (n, Mat4::IDENTITY, 0)).collect();
+    let mut out = Loaded {
+        mesh: Mesh::default(),
+        materials,
+        cameras: Vec::new(),
+    };
+    let mut stack: Vec<(gltf::Node, Mat4, usize)> =
+        scene.nodes().map(|n| (n, Mat4::IDENTITY, 0)).collect();
     stack.reverse();
     while let Some((node, parent, depth)) = stack.pop() {
         if depth > MAX_NODE_DEPTH {
-            return Err(Error::file(path, "node hierarchy is deeper than 256 levels (a cycle?)"));
+            return Err(Error::file(
+                path,
+                "node hierarchy is deeper than 256 levels (a cycle?)",
+            ));
         }
         let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
         if !world.is_finite() {
-            return Err(Error::file(path, format!("node {} has a non-finite transform", node_name(&node))));
+            return Err(Error::file(
+                path,
+                format!("node {} has a non-finite transform", node_name(&node)),
+            ));
         }
         if let Some(mesh) = node.mesh() {
             for (pi, prim) in mesh.primitives().enumerate() {
                 let what = format!("mesh {:?} primitive {pi}", mesh.name().unwrap_or(""));
                 let material = prim.material().index().map_or(0, |i| i + 1);
-                load_primitive(path, &what, &prim, &buffers, world, material as u32, texcoord_set[material], &out.materials[material], &mut out.mesh)?;
+                load_primitive(
+                    path,
+                    &what,
+                    &prim,
+                    &buffers,
+                    world,
+                    material as u32,
+                    texcoord_set[material],
+                    &out.materials[material],
+                    &mut out.mesh,
+                )?;
             }
         }
         if let Some(cam) = node.camera()
@@ -78,10 +108,17 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
         {
             let yfov = p.yfov();
             if !(yfov.is_finite() && yfov > 0.0 && yfov < std::f32::consts::PI) {
-                return Err(Error::file(path, format!("camera node {} has yfov {yfov}, outside (0, π)", node_name(&node))));
+                return Err(Error::file(
+                    path,
+                    format!(
+                        "camera node {} has yfov {yfov}, outside (0, π)",
+                        node_name(&node)
+                    ),
+                ));
             }
             let name = node.name().or(cam.name()).unwrap_or("").to_string();
-            out.cameras.push(Camera::from_node(name, world, yfov, width, height));
+            out.cameras
+                .push(Camera::from_node(name, world, yfov, width, height));
         }
         let mut children: Vec<_> = node.children().map(|c| (c, world, depth + 1)).collect();
         children.reverse();
@@ -110,7 +147,13 @@ fn load_primitive(
     mesh: &mut Mesh,
 ) -> Result<()> {
     if prim.mode() != Mode::Triangles {
-        return Err(Error::file(path, format!("{what} has mode {:?}; only triangle lists are supported", prim.mode())));
+        return Err(Error::file(
+            path,
+            format!(
+                "{what} has mode {:?}; only triangle lists are supported",
+                prim.mode()
+            ),
+        ));
     }
     let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
     let positions: Vec<Vec3> = reader
@@ -120,50 +163,86 @@ fn load_primitive(
         .collect();
     let n = positions.len();
     if positions.iter().any(|p| !p.is_finite()) {
-        return Err(Error::file(path, format!("{what} has non-finite vertex positions")));
+        return Err(Error::file(
+            path,
+            format!("{what} has non-finite vertex positions"),
+        ));
     }
     let indices: Vec<u32> = match reader.read_indices() {
         Some(ix) => ix.into_u32().collect(),
         None => (0..n as u32).collect(),
     };
-    if indices.len() % 3 != 0 {
-        return Err(Error::file(path, format!("{what} has {} indices, not a multiple of 3", indices.len())));
+    if !indices.len().is_multiple_of(3) {
+        return Err(Error::file(
+            path,
+            format!("{what} has {} indices, not a multiple of 3", indices.len()),
+        ));
     }
     if let Some(&bad) = indices.iter().find(|&&i| i as usize >= n) {
-        return Err(Error::file(path, format!("{what} has index {bad} but only {n} vertices")));
+        return Err(Error::file(
+            path,
+            format!("{what} has index {bad} but only {n} vertices"),
+        ));
     }
     let normals: Option<Vec<Vec3>> = reader.read_normals().map(|it| it.map(Vec3::from).collect());
     if let Some(ns) = &normals
         && ns.len() != n
     {
-        return Err(Error::file(path, format!("{what} has {} normals for {n} vertices", ns.len())));
+        return Err(Error::file(
+            path,
+            format!("{what} has {} normals for {n} vertices", ns.len()),
+        ));
     }
     let needs_uv = matches!(mat.albedo, Albedo::Texture { .. });
-    let uvs: Option<Vec<Vec2>> = reader.read_tex_coords(texcoord_set).map(|t| t.into_f32().map(Vec2::from).collect());
+    let uvs: Option<Vec<Vec2>> = reader
+        .read_tex_coords(texcoord_set)
+        .map(|t| t.into_f32().map(Vec2::from).collect());
     match &uvs {
         Some(u) if u.len() != n => {
-            return Err(Error::file(path, format!("{what} has {} texture coordinates for {n} vertices", u.len())));
+            return Err(Error::file(
+                path,
+                format!(
+                    "{what} has {} texture coordinates for {n} vertices",
+                    u.len()
+                ),
+            ));
         }
         None if needs_uv => {
             return Err(Error::file(
                 path,
-                format!("{what} uses textured material {:?} but has no TEXCOORD_{texcoord_set}", mat.name),
+                format!(
+                    "{what} uses textured material {:?} but has no TEXCOORD_{texcoord_set}",
+                    mat.name
+                ),
             ));
         }
         _ => {}
     }
 
-    let world_positions: Vec<Vec3> = positions.iter().map(|&p| world.transform_point3(p)).collect();
+    let world_positions: Vec<Vec3> = positions
+        .iter()
+        .map(|&p| world.transform_point3(p))
+        .collect();
     let normal_from_local = Mat3::from_mat4(world).inverse().transpose();
     let world_normals = normals.map(|ns| {
         ns.iter()
             .map(|&nl| {
                 let nw = normal_from_local * nl;
-                if nw.is_finite() { nw.normalize_or_zero() } else { Vec3::ZERO }
+                if nw.is_finite() {
+                    nw.normalize_or_zero()
+                } else {
+                    Vec3::ZERO
+                }
             })
             .collect::<Vec<_>>()
     });
-    mesh.push(&world_positions, world_normals.as_deref(), uvs.as_deref(), &indices, material);
+    mesh.push(
+        &world_positions,
+        world_normals.as_deref(),
+        uvs.as_deref(),
+        &indices,
+        material,
+    );
     Ok(())
 }
 
@@ -191,7 +270,8 @@ fn decode_image(img: &gltf::image::Data) -> Texture {
                 .chunks_exact(bytes_per)
                 .map(|c| match bytes_per {
                     2 => (u16::from_le_bytes([c[0], c[1]]) >> 8) as u8,
-                    _ => (f32::from_le_bytes([c[0], c[1], c[2], c[3]]).clamp(0.0, 1.0) * 255.0).round() as u8,
+                    _ => (f32::from_le_bytes([c[0], c[1], c[2], c[3]]).clamp(0.0, 1.0) * 255.0)
+                        .round() as u8,
                 })
                 .collect();
             Texture::from_srgb8(w, h, channels, &bytes)

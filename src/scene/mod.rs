@@ -44,7 +44,11 @@ impl Texture {
                 _ => Vec3::new(lut[c[0] as usize], lut[c[1] as usize], lut[c[2] as usize]),
             })
             .collect();
-        Texture { width, height, texels }
+        Texture {
+            width,
+            height,
+            texels,
+        }
     }
 
     /// Bilinear lookup at glTF texture coordinates, repeat wrapping.
@@ -72,7 +76,11 @@ impl Texture {
 
 /// The sRGB transfer function's inverse (encoded [0, 1] → linear).
 pub fn srgb_to_linear(c: f32) -> f32 {
-    if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
 }
 
 /// Where a material's albedo comes from.
@@ -81,7 +89,10 @@ pub enum Albedo {
     /// Constant linear RGB.
     Constant(Vec3),
     /// A texture times a factor (glTF baseColorTexture × baseColorFactor).
-    Texture { texture: std::sync::Arc<Texture>, factor: Vec3 },
+    Texture {
+        texture: std::sync::Arc<Texture>,
+        factor: Vec3,
+    },
 }
 
 /// A two-sided Lambertian material.
@@ -98,7 +109,9 @@ impl Material {
     pub fn albedo_at(&self, uv: Vec2) -> Vec3 {
         match &self.albedo {
             Albedo::Constant(c) => *c,
-            Albedo::Texture { texture, factor } => (texture.sample(uv) * *factor).clamp(Vec3::ZERO, Vec3::ONE),
+            Albedo::Texture { texture, factor } => {
+                (texture.sample(uv) * *factor).clamp(Vec3::ZERO, Vec3::ONE)
+            }
         }
     }
 }
@@ -138,19 +151,31 @@ impl Mesh {
     #[inline]
     pub fn corners(&self, t: usize) -> [Vec3; 3] {
         let [a, b, c] = self.triangles[t];
-        [self.positions[a as usize], self.positions[b as usize], self.positions[c as usize]]
+        [
+            self.positions[a as usize],
+            self.positions[b as usize],
+            self.positions[c as usize],
+        ]
     }
 
     /// Appends triangles (world space). Without `normals` they shade flat; without `uvs`
     /// texture coordinates are (0, 0). `indices` must be in range (checked by the caller).
-    pub fn push(&mut self, positions: &[Vec3], normals: Option<&[Vec3]>, uvs: Option<&[Vec2]>, indices: &[u32], material: u32) {
-        debug_assert!(indices.len() % 3 == 0);
+    pub fn push(
+        &mut self,
+        positions: &[Vec3],
+        normals: Option<&[Vec3]>,
+        uvs: Option<&[Vec2]>,
+        indices: &[u32],
+        material: u32,
+    ) {
+        debug_assert!(indices.len().is_multiple_of(3));
         let uv = |i: u32| uvs.map_or(Vec2::ZERO, |u| u[i as usize]);
         match normals {
             Some(normals) => {
                 let base = self.positions.len() as u32;
                 self.positions.extend_from_slice(positions);
-                self.normals.extend(normals.iter().map(|n| n.normalize_or_zero()));
+                self.normals
+                    .extend(normals.iter().map(|n| n.normalize_or_zero()));
                 self.uvs.extend((0..positions.len() as u32).map(uv));
                 for t in indices.chunks_exact(3) {
                     self.triangles.push([base + t[0], base + t[1], base + t[2]]);
@@ -159,7 +184,11 @@ impl Mesh {
             }
             None => {
                 for t in indices.chunks_exact(3) {
-                    let p = [positions[t[0] as usize], positions[t[1] as usize], positions[t[2] as usize]];
+                    let p = [
+                        positions[t[0] as usize],
+                        positions[t[1] as usize],
+                        positions[t[2] as usize],
+                    ];
                     let n = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero();
                     let base = self.positions.len() as u32;
                     for (k, &i) in t.iter().enumerate() {
@@ -237,11 +266,16 @@ impl Scene {
             let Some(m) = materials.iter_mut().find(|m| &m.name == name) else {
                 return Err(Error::file(
                     sidecar_path,
-                    format!("albedo override names material {name:?}, which {} does not have", gltf_path.display()),
+                    format!(
+                        "albedo override names material {name:?}, which {} does not have",
+                        gltf_path.display()
+                    ),
                 ));
             };
             m.albedo = match source {
-                sidecar::AlbedoSource::Constant(c) => Albedo::Constant(Vec3::new(c.0.0, c.0.1, c.0.2)),
+                sidecar::AlbedoSource::Constant(c) => {
+                    Albedo::Constant(Vec3::new(c.0.0, c.0.1, c.0.2))
+                }
                 sidecar::AlbedoSource::Map(p) => Albedo::Texture {
                     texture: std::sync::Arc::new(load_albedo_map(&base.join(p))?),
                     factor: Vec3::ONE,
@@ -251,7 +285,10 @@ impl Scene {
 
         let cameras = if sidecar.views.is_empty() {
             if loaded.cameras.is_empty() {
-                return Err(Error::file(&gltf_path, "has no perspective camera to render from"));
+                return Err(Error::file(
+                    &gltf_path,
+                    "has no perspective camera to render from",
+                ));
             }
             loaded.cameras
         } else {
@@ -261,7 +298,10 @@ impl Scene {
                     let names: Vec<_> = loaded.cameras.iter().map(|c| c.name.as_str()).collect();
                     return Err(Error::file(
                         sidecar_path,
-                        format!("view {v:?} is not a perspective camera node of {} (it has {names:?})", gltf_path.display()),
+                        format!(
+                            "view {v:?} is not a perspective camera node of {} (it has {names:?})",
+                            gltf_path.display()
+                        ),
                     ));
                 };
                 picked.push(c.clone());
@@ -273,7 +313,11 @@ impl Scene {
             .lights
             .iter()
             .map(|l| match l {
-                sidecar::LightDesc::Sphere { center, radius, radiance } => SphereLight {
+                sidecar::LightDesc::Sphere {
+                    center,
+                    radius,
+                    radiance,
+                } => SphereLight {
                     center: Vec3::new(center.0.0, center.0.1, center.0.2),
                     radius: radius.0,
                     radiance: Vec3::new(radiance.0.0, radiance.0.1, radiance.0.2),
@@ -312,7 +356,12 @@ pub fn load_albedo_map(path: &Path) -> Result<Texture> {
         other => Error::file(path, format!("cannot decode albedo map: {other}")),
     })?;
     let rgb = img.to_rgb8();
-    Ok(Texture::from_srgb8(rgb.width(), rgb.height(), 3, rgb.as_raw()))
+    Ok(Texture::from_srgb8(
+        rgb.width(),
+        rgb.height(),
+        3,
+        rgb.as_raw(),
+    ))
 }
 
 #[cfg(test)]
@@ -345,7 +394,11 @@ mod tests {
         let p = [Vec3::ZERO, Vec3::X, Vec3::Z, Vec3::new(1.0, 0.0, 1.0)];
         m.push(&p, None, None, &[0, 2, 1, 1, 2, 3], 0);
         assert_eq!(m.positions.len(), 6);
-        assert!(m.normals.iter().all(|n| (n.abs() - Vec3::Y).length() < 1e-6));
+        assert!(
+            m.normals
+                .iter()
+                .all(|n| (n.abs() - Vec3::Y).length() < 1e-6)
+        );
         assert!((m.surface_area() - 1.0).abs() < 1e-9);
         assert_eq!(m.bounds(), (Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0)));
     }

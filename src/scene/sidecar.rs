@@ -138,7 +138,11 @@ fn default_seed() -> u64 {
 
 impl Default for RenderDesc {
     fn default() -> Self {
-        RenderDesc { spp: default_spp(), max_bounces: default_bounces(), seed: default_seed() }
+        RenderDesc {
+            spp: default_spp(),
+            max_bounces: default_bounces(),
+            seed: default_seed(),
+        }
     }
 }
 
@@ -214,10 +218,12 @@ impl Sidecar {
 
     /// Parses sidecar text; `path` is only used in error messages.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
-        ron::Options::default().from_str::<Sidecar>(text).map_err(|e| {
-            let p = e.span.start;
-            Error::file_at(path, p.line, p.col, e.code.to_string())
-        })
+        ron::Options::default()
+            .from_str::<Sidecar>(text)
+            .map_err(|e| {
+                let p = e.span.start;
+                Error::file_at(path, p.line, p.col, e.code.to_string())
+            })
     }
 
     /// The sidecar's folder, against which its relative paths resolve.
@@ -297,11 +303,26 @@ mod tests {
     #[test]
     fn rejects_bad_values() {
         for (text, needle) in [
-            (r#"Scene(gltf: "a.glb", image: (width: 0, height: 3))"#, "image side"),
-            (r#"Scene(gltf: "a.glb", image: (width: 4, height: 99999))"#, "image side"),
-            (r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), render: (spp: 0))"#, "spp"),
-            (r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), envmap: (rings: 0))"#, "rings"),
-            (r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), envmap: (rings: 5000))"#, "rings"),
+            (
+                r#"Scene(gltf: "a.glb", image: (width: 0, height: 3))"#,
+                "image side",
+            ),
+            (
+                r#"Scene(gltf: "a.glb", image: (width: 4, height: 99999))"#,
+                "image side",
+            ),
+            (
+                r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), render: (spp: 0))"#,
+                "spp",
+            ),
+            (
+                r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), envmap: (rings: 0))"#,
+                "rings",
+            ),
+            (
+                r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), envmap: (rings: 5000))"#,
+                "rings",
+            ),
             (
                 r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), lights: [Sphere(center: (0,0,0), radius: NaN, radiance: (1,1,1))])"#,
                 "> 0",
@@ -319,7 +340,10 @@ mod tests {
                 "albedo",
             ),
             (r#"Scene(gltf: "a.glb")"#, "image"),
-            (r#"Scene(gltf: "a.glb", image: (width: 4, height: 3)"#, "test.ron:1:"),
+            (
+                r#"Scene(gltf: "a.glb", image: (width: 4, height: 3)"#,
+                "test.ron:1:",
+            ),
         ] {
             let e = err(text);
             assert!(e.contains(needle), "{text}\n-> {e}");
@@ -330,7 +354,18 @@ mod tests {
     #[test]
     fn schema_mentions_every_field() {
         let s = json_schema();
-        for f in ["gltf", "views", "image", "albedo", "lights", "envmap", "render", "spp", "max_bounces", "radius"] {
+        for f in [
+            "gltf",
+            "views",
+            "image",
+            "albedo",
+            "lights",
+            "envmap",
+            "render",
+            "spp",
+            "max_bounces",
+            "radius",
+        ] {
             assert!(s.contains(&format!("\"{f}\"")), "{f}");
         }
     }
