@@ -2,7 +2,7 @@
 
 use std::f64::consts::PI;
 
-use glam::{Vec2, Vec3};
+use glam::Vec3;
 use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
 use lightprobe::scene::{Albedo, Camera, Material, Mesh, Scene, SceneSettings, SphereLight};
 
@@ -186,12 +186,7 @@ fn mis_light_only_and_bsdf_only_agree() {
         &ball.positions,
         Some(&ball.normals),
         None,
-        &ball
-            .triangles
-            .iter()
-            .flatten()
-            .map(|&i| i)
-            .collect::<Vec<_>>(),
+        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
         0,
     );
     let sc = scene(mesh, Vec3::splat(0.7), cam.clone(), vec![light]);
@@ -298,12 +293,7 @@ fn same_image_at_any_thread_count() {
         &ball.positions,
         Some(&ball.normals),
         None,
-        &ball
-            .triangles
-            .iter()
-            .flatten()
-            .map(|&i| i)
-            .collect::<Vec<_>>(),
+        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
         0,
     );
     let sc = scene(mesh, Vec3::splat(0.5), cam.clone(), vec![light]);
@@ -353,5 +343,4 @@ fn depth_aov_is_exact_on_a_plane() {
         assert!((aov.depth.rgb[i].x - want).abs() < 1e-5 * want);
         assert!((aov.normal.rgb[i] - Vec3::Y).length() < 1e-6);
     }
-    let _ = Vec2::ZERO;
 }

@@ -351,10 +351,9 @@ impl Scene {
 
 /// Loads an sRGB-encoded albedo image (PNG or JPEG) as linear RGB.
 pub fn load_albedo_map(path: &Path) -> Result<Texture> {
-    let img = image::open(path).map_err(|e| match e {
-        image::ImageError::IoError(io) => Error::io(path, io),
-        other => Error::file(path, format!("cannot decode albedo map: {other}")),
-    })?;
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let img = image::load_from_memory(&bytes)
+        .map_err(|e| Error::file(path, format!("cannot decode albedo map: {e}")))?;
     let rgb = img.to_rgb8();
     Ok(Texture::from_srgb8(
         rgb.width(),

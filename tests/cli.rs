@@ -1,0 +1,551 @@
+//! The real `lightprobe` binary, run in temporary folders: outputs, determinism, and a table of
+//! bad inputs that must each give one clear error line, a non-zero exit and no output files.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().expect("the binary runs")
+}
+
+fn bundled_glb() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/tabletop/tabletop.glb")
+}
+
+/// A small, fast variant of the bundled scene in `dir`, with `extra` fields appended.
+fn small_scene(dir: &Path, extra: &str) -> PathBuf {
+    let text = format!(
+        "Scene(\n    gltf: {:?},\n    image: (width: 32, height: 24),\n    lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))],\n    render: (spp: 4, max_bounces: 2, seed: 1),\n{extra})\n",
+        bundled_glb()
+    );
+    let p = dir.join("scene.ron");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn files_in(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = match std::fs::read_dir(dir) {
+        Ok(rd) => rd
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect(),
+        Err(_) => Vec::new(),
+    };
+    v.sort();
+    v
+}
+
+#[test]
+fn render_reference_writes_images_aovs_and_report() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    let out = tmp.path().join("out");
+    let o = run(&[
+        "render-reference",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--aov",
+        "depth,normal,albedo",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let want = [
+        "cam_front.albedo.exr",
+        "cam_front.depth.exr",
+        "cam_front.exr",
+        "cam_front.normal.exr",
+        "cam_front.png",
+        "cam_side.albedo.exr",
+        "cam_side.depth.exr",
+        "cam_side.exr",
+        "cam_side.normal.exr",
+        "cam_side.png",
+        "render.json",
+    ];
+    assert_eq!(files_in(&out), want, "exactly these files, no temporaries");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("render.json")).unwrap()).unwrap();
+    assert_eq!(report["views"].as_array().unwrap().len(), 2);
+    assert_eq!(report["settings"]["spp"], 4);
+    assert_eq!(report["triangles"], 95780);
+    let img = lightprobe::imageio::read_exr(&out.join("cam_front.exr")).unwrap();
+    assert_eq!((img.width, img.height), (32, 24));
+    let mean = img.mean();
+    assert!(mean.min_element() > 0.0 && mean.is_finite());
+    assert_eq!(
+        report["views"][0]["mean_rgb"][0].as_f64().unwrap() as f32,
+        mean.x
+    );
+}
+
+#[test]
+fn same_bytes_at_one_and_two_threads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    let mut outputs = Vec::new();
+    for threads in ["1", "2"] {
+        let out = tmp.path().join(format!("t{threads}"));
+        let o = bin()
+            .args([
+                "render-reference",
+                scene.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--quiet",
+            ])
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .unwrap();
+        assert!(o.status.success());
+        outputs.push((
+            std::fs::read(out.join("cam_front.exr")).unwrap(),
+            std::fs::read(out.join("cam_side.exr")).unwrap(),
+        ));
+    }
+    assert!(
+        outputs[0] == outputs[1],
+        "EXR bytes differ between 1 and 2 threads"
+    );
+}
+
+#[test]
+fn compare_reports_metrics_and_heatmap() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    let s = scene.to_str().unwrap();
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    assert!(
+        run(&[
+            "render-reference",
+            s,
+            "--out",
+            a.to_str().unwrap(),
+            "--quiet"
+        ])
+        .status
+        .success()
+    );
+    assert!(
+        run(&[
+            "render-reference",
+            s,
+            "--out",
+            b.to_str().unwrap(),
+            "--quiet",
+            "--seed",
+            "2"
+        ])
+        .status
+        .success()
+    );
+    let (fa, fb) = (a.join("cam_front.exr"), b.join("cam_front.exr"));
+    let heat = tmp.path().join("heat.png");
+    let o = run(&[
+        "compare",
+        fb.to_str().unwrap(),
+        fa.to_str().unwrap(),
+        "--json",
+        "--heatmap",
+        heat.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let m: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let rel = m["rel_mae"].as_f64().unwrap();
+    assert!(
+        rel > 0.0 && rel < 0.5,
+        "two seeds differ by noise only: {rel}"
+    );
+    assert!(
+        m["masked_out"].as_u64().unwrap() > 0,
+        "the background is masked"
+    );
+    assert!(heat.exists());
+    let o = run(&[
+        "compare",
+        fa.to_str().unwrap(),
+        fa.to_str().unwrap(),
+        "--json",
+    ]);
+    let m: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(m["rel_mae"].as_f64().unwrap(), 0.0);
+}
+
+#[test]
+fn help_is_available_for_every_command() {
+    for cmd in [
+        &["--help"][..],
+        &["render-reference", "--help"],
+        &["compare", "--help"],
+        &["info", "--help"],
+        &["schema", "--help"],
+    ] {
+        let o = run(cmd);
+        assert!(o.status.success());
+        assert!(String::from_utf8_lossy(&o.stdout).contains("Usage"));
+    }
+}
+
+#[test]
+fn committed_schema_is_up_to_date() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("schemas/scene.schema.json");
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    let o = run(&["schema"]);
+    assert!(o.status.success());
+    assert!(
+        committed == String::from_utf8(o.stdout).unwrap(),
+        "schemas/scene.schema.json is stale: run `cargo run -- schema > schemas/scene.schema.json`"
+    );
+}
+
+/// One bad-input case: files to create (name → content), arguments (with `{d}` for the
+/// temporary folder), and a fragment the error line must contain.
+struct Case {
+    name: &'static str,
+    files: Vec<(&'static str, Vec<u8>)>,
+    args: Vec<&'static str>,
+    expect: &'static str,
+}
+
+fn sidecar(extra_fields: &str, lights: &str) -> Vec<u8> {
+    format!(
+        "Scene(\n  gltf: {:?},\n  image: (width: 16, height: 12),\n  lights: [{lights}],\n  render: (spp: 2),\n{extra_fields})\n",
+        bundled_glb()
+    )
+    .into_bytes()
+}
+
+const LIGHT: &str = "Sphere(center: (0, 3, 0), radius: 0.2, radiance: (10, 10, 10))";
+
+fn cases() -> Vec<Case> {
+    let glb = std::fs::read(bundled_glb()).unwrap();
+    let render = vec![
+        "render-reference",
+        "{d}/scene.ron",
+        "--out",
+        "{d}/out",
+        "--quiet",
+    ];
+    let c = |name, files, args: &Vec<&'static str>, expect| Case {
+        name,
+        files,
+        args: args.clone(),
+        expect,
+    };
+    vec![
+        c(
+            "missing sidecar",
+            vec![],
+            &render,
+            "scene.ron: no such file",
+        ),
+        c(
+            "unknown field",
+            vec![("scene.ron", sidecar("  colour: 3,\n", LIGHT))],
+            &render,
+            "scene.ron:6:",
+        ),
+        c(
+            "nan radius",
+            vec![(
+                "scene.ron",
+                sidecar(
+                    "",
+                    "Sphere(center: (0, 3, 0), radius: NaN, radiance: (1, 1, 1))",
+                ),
+            )],
+            &render,
+            "scene.ron:4:",
+        ),
+        c(
+            "negative radius",
+            vec![(
+                "scene.ron",
+                sidecar(
+                    "",
+                    "Sphere(center: (0, 3, 0), radius: -1, radiance: (1, 1, 1))",
+                ),
+            )],
+            &render,
+            "must be a finite number > 0",
+        ),
+        c(
+            "negative radiance",
+            vec![(
+                "scene.ron",
+                sidecar(
+                    "",
+                    "Sphere(center: (0, 3, 0), radius: 1, radiance: (1, -1, 1))",
+                ),
+            )],
+            &render,
+            "radiance must be",
+        ),
+        c(
+            "zero image size",
+            vec![(
+                "scene.ron",
+                format!(
+                    "Scene(gltf: {:?}, image: (width: 0, height: 12))",
+                    bundled_glb()
+                )
+                .into_bytes(),
+            )],
+            &render,
+            "image side",
+        ),
+        c(
+            "syntax error",
+            vec![(
+                "scene.ron",
+                b"Scene(gltf: \"a.glb\", image: (width: 4 height: 3))".to_vec(),
+            )],
+            &render,
+            "scene.ron:1:",
+        ),
+        c(
+            "wrong type",
+            vec![(
+                "scene.ron",
+                b"Scene(gltf: 5, image: (width: 4, height: 3))".to_vec(),
+            )],
+            &render,
+            "scene.ron:1:",
+        ),
+        c(
+            "spp zero in sidecar",
+            vec![(
+                "scene.ron",
+                sidecar("  envmap: (rings: 3),\n", LIGHT)
+                    .iter()
+                    .copied()
+                    .collect::<Vec<u8>>()
+                    .replace_spp(),
+            )],
+            &render,
+            "spp",
+        ),
+        c(
+            "missing glb",
+            vec![(
+                "scene.ron",
+                b"Scene(gltf: \"nope.glb\", image: (width: 4, height: 3))".to_vec(),
+            )],
+            &render,
+            "nope.glb: no such file",
+        ),
+        c(
+            "garbage glb",
+            vec![
+                ("bad.glb", b"glTF\x02\x00\x00\x00garbage-garbage".to_vec()),
+                (
+                    "scene.ron",
+                    b"Scene(gltf: \"bad.glb\", image: (width: 4, height: 3))".to_vec(),
+                ),
+            ],
+            &render,
+            "bad.glb: not a valid glTF",
+        ),
+        c(
+            "truncated glb",
+            vec![
+                ("cut.glb", glb[..4096].to_vec()),
+                (
+                    "scene.ron",
+                    b"Scene(gltf: \"cut.glb\", image: (width: 4, height: 3))".to_vec(),
+                ),
+            ],
+            &render,
+            "cut.glb:",
+        ),
+        c(
+            "gltf that is not json",
+            vec![
+                ("x.gltf", b"{ this is not json".to_vec()),
+                (
+                    "scene.ron",
+                    b"Scene(gltf: \"x.gltf\", image: (width: 4, height: 3))".to_vec(),
+                ),
+            ],
+            &render,
+            "x.gltf: not a valid glTF",
+        ),
+        c(
+            "gltf with no scene content",
+            vec![
+                (
+                    "empty.gltf",
+                    br#"{"asset":{"version":"2.0"},"scenes":[{"nodes":[]}],"scene":0}"#.to_vec(),
+                ),
+                (
+                    "scene.ron",
+                    b"Scene(gltf: \"empty.gltf\", image: (width: 4, height: 3))".to_vec(),
+                ),
+            ],
+            &render,
+            "empty.gltf: has no triangles",
+        ),
+        c(
+            "missing albedo map",
+            vec![(
+                "scene.ron",
+                sidecar("  albedo: { \"table\": Map(\"nope.png\") },\n", LIGHT),
+            )],
+            &render,
+            "nope.png: no such file",
+        ),
+        c(
+            "undecodable albedo map",
+            vec![
+                ("bad.png", b"\x89PNG\r\n\x1a\nnope".to_vec()),
+                (
+                    "scene.ron",
+                    sidecar("  albedo: { \"table\": Map(\"bad.png\") },\n", LIGHT),
+                ),
+            ],
+            &render,
+            "bad.png: cannot decode",
+        ),
+        c(
+            "albedo of unknown material",
+            vec![(
+                "scene.ron",
+                sidecar(
+                    "  albedo: { \"tabel\": Constant((0.5, 0.5, 0.5)) },\n",
+                    LIGHT,
+                ),
+            )],
+            &render,
+            "\"tabel\"",
+        ),
+        c(
+            "unknown view",
+            vec![("scene.ron", sidecar("  views: [\"cam_top\"],\n", LIGHT))],
+            &render,
+            "\"cam_top\"",
+        ),
+        c(
+            "output is a file",
+            vec![
+                ("scene.ron", sidecar("", LIGHT)),
+                ("out", b"i am a file".to_vec()),
+            ],
+            &[
+                "render-reference",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out/sub",
+                "--quiet",
+            ]
+            .to_vec(),
+            "out/sub",
+        ),
+        c(
+            "spp zero flag",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "render-reference",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--spp",
+                "0",
+            ]
+            .to_vec(),
+            "--spp",
+        ),
+        c(
+            "compare missing image",
+            vec![],
+            &["compare", "{d}/a.exr", "{d}/b.exr"].to_vec(),
+            "a.exr: no such file",
+        ),
+        c(
+            "compare garbage exr",
+            vec![
+                ("a.exr", b"v/1\x01 garbage".to_vec()),
+                ("b.exr", b"x".to_vec()),
+            ],
+            &["compare", "{d}/a.exr", "{d}/b.exr"].to_vec(),
+            "a.exr: cannot read",
+        ),
+        c(
+            "info missing sidecar",
+            vec![],
+            &["info", "{d}/scene.ron"].to_vec(),
+            "scene.ron: no such file",
+        ),
+    ]
+}
+
+trait ReplaceSpp {
+    fn replace_spp(self) -> Vec<u8>;
+}
+
+impl ReplaceSpp for Vec<u8> {
+    fn replace_spp(self) -> Vec<u8> {
+        String::from_utf8(self)
+            .unwrap()
+            .replace("spp: 2", "spp: 0")
+            .into_bytes()
+    }
+}
+
+#[test]
+fn bad_inputs_fail_cleanly() {
+    let mut failures = Vec::new();
+    for case in cases() {
+        let tmp = tempfile::tempdir().unwrap();
+        let d = tmp.path();
+        for (name, content) in &case.files {
+            std::fs::write(d.join(name), content).unwrap();
+        }
+        let before = files_in(d);
+        let args: Vec<String> = case
+            .args
+            .iter()
+            .map(|a| a.replace("{d}", d.to_str().unwrap()))
+            .collect();
+        let o = bin().args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).into_owned();
+        let mut why = Vec::new();
+        if o.status.success() {
+            why.push("exited 0".to_string());
+        }
+        if err.contains("panicked") || err.contains("RUST_BACKTRACE") {
+            why.push("panicked".into());
+        }
+        if err.trim().lines().count() != 1 {
+            why.push(format!("{} lines of error", err.trim().lines().count()));
+        }
+        if !err.contains(case.expect) {
+            why.push(format!("no {:?}", case.expect));
+        }
+        let out = d.join("out");
+        if out.is_dir() && !files_in(&out).is_empty() {
+            why.push(format!("left output files {:?}", files_in(&out)));
+        }
+        let after: Vec<String> = files_in(d).into_iter().filter(|f| f != "out").collect();
+        let before: Vec<String> = before.into_iter().filter(|f| f != "out").collect();
+        if after != before {
+            why.push(format!("left files {after:?}"));
+        }
+        if !why.is_empty() {
+            failures.push(format!(
+                "{}: {} — stderr: {}",
+                case.name,
+                why.join(", "),
+                err.trim()
+            ));
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "{} bad-input cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+}
