@@ -71,7 +71,8 @@ PERTURBATIONS = {
     "mirror": "camera mirrored horizontally (image flipped left-right)",
     "lights_rot30": "light positions rotated 30 deg about +Y",
     "flip_v": "texture V flipped (bottom-left UV origin instead of top-left)",
-    "flat_normals": "vertex normals ignored (flat face normals everywhere)",
+    "invented_normals": "smooth vertex normals invented for primitives without NORMAL "
+                        "(what trimesh's vertex_normals would give the boxes)",
     "albedo_srgb": "texture used without sRGB decoding (gamma bug)",
 }
 
@@ -269,11 +270,24 @@ def _bsdf_dict(md: MeshData, perturb: str | None) -> dict:
     return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": refl}}
 
 
+def smooth_normals(pos: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (as trimesh invents them)."""
+    f = faces.astype(np.int64)
+    fn = np.cross(pos[f[:, 1]] - pos[f[:, 0]], pos[f[:, 2]] - pos[f[:, 0]])
+    n = np.zeros_like(pos)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+
+
 def mitsuba_mesh(md: MeshData, perturb: str | None = None):
     import mitsuba as mi
     props = mi.Properties()
     props["bsdf"] = mi.load_dict(_bsdf_dict(md, perturb))
-    has_n = md.normals is not None and perturb != "flat_normals"
+    normals = md.normals
+    if normals is None and perturb == "invented_normals":
+        normals = smooth_normals(md.positions, md.faces)
+    has_n = normals is not None
     has_uv = md.uvs is not None
     m = mi.Mesh(md.name, len(md.positions), len(md.faces), props=props,
                 has_vertex_normals=has_n, has_vertex_texcoords=has_uv)
@@ -281,7 +295,7 @@ def mitsuba_mesh(md: MeshData, perturb: str | None = None):
     p["vertex_positions"] = mi.Float(md.positions.astype(np.float32).ravel())
     p["faces"] = mi.UInt32(md.faces.astype(np.uint32).ravel())
     if has_n:
-        p["vertex_normals"] = mi.Float(md.normals.astype(np.float32).ravel())
+        p["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
     if has_uv:
         p["vertex_texcoords"] = mi.Float(md.uvs.astype(np.float32).ravel())
     p.update()
