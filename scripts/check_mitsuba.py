@@ -23,7 +23,8 @@ roles, letting Mitsuba at --self-test-spp stand in for a correct renderer,
 and judges with the same function (1) an unperturbed Mitsuba render with a
 third seed (control, must PASS) and (2) Mitsuba scenes with one injected bug
 each (mirrored camera, lights rotated 30 deg about Y, texture V flipped,
-vertex normals ignored, texture not sRGB-decoded), each of which must FAIL.
+smooth normals invented where the glTF has no NORMAL, texture not
+sRGB-decoded), each of which must FAIL.
 The self-test does not involve lightprobe's shading, so it says whether the
 check is able to fail (and able to pass) independently of the real verdict.
 
@@ -48,32 +49,34 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import mitsuba_scene as ms  # noqa: E402
 
 # --------------------------------------------------------------------------
-# Thresholds (decided from measurements on the tabletop, 2 views, 128x96;
-# numbers are in the report of this script's author and re-printed by every
-# run so they can be re-checked):
+# Thresholds, decided from measurements (tabletop, 2 views, 128x96, Mitsuba
+# 3.9.1 llvm_ad_rgb; 3 independent Mitsuba-vs-Mitsuba controls per view and
+# spp, each with 4 seeds playing img/img2/ref/ref2):
 #
-# * BIAS_MAX = 1 % per channel. The masked mean of a 512-spp image averages
-#   ~2M samples per view; lp2-vs-lp1 measured |bias| <= 0.2 % (512 spp) and
-#   mi2-vs-mi <= 0.3 % (128 spp), so 1 % is > 3x the statistical error,
-#   while a real modelling error (light position, gamma, normals) moves the
-#   mean by several %.
+# * BIAS_MAX = 1 % per channel. The masked mean averages 0.5-3.5M samples
+#   per view. Controls: max |bias| 0.25 % at 128 spp, 0.13 % at 512 spp;
+#   lightprobe seed 2 vs seed 1 at 512 spp: <= 0.24 %. So 1 % is 4-8x the
+#   statistical error, while real modelling errors move the mean by more
+#   (self-test: lights rotated 30 deg 3-6 %, no sRGB decode 30-80 %, smooth
+#   normals invented for the NORMAL-less blue box -1.2..-1.5 % in blue).
 # * Ratios are judged against the ratio expected from noise alone. With
 #   independent, unbiased renderers of per-pixel noise sigma_lp and sigma_mi,
 #   E|mi - lp| scales as sqrt(sigma_lp^2 + sigma_mi^2), so with the floors
 #   f_lp = relMAE(lp2, lp1) and f_mi = relMAE(mi2, mi) the expected ratio is
-#   sqrt((1 + (f_mi/f_lp)^2) / 2) (= 1 for equal noise). relMAE over ~10k
-#   pixel-channels is a very stable statistic: Mitsuba-vs-Mitsuba controls
-#   measured ratio/expected within 1.00 +- 0.03 for pixels and 0.93-1.10 for
-#   blocks (192 blocks, so the block statistic is noisier). Thresholds:
-#     pixel relMAE ratio / expected  < PIXEL_RATIO_MAX = 1.15
-#     block relMAE ratio / expected  < BLOCK_RATIO_MAX = 1.5
-#   The brief suggested ratio < ~1.5 for the pixel ratio; normalising by the
-#   expected ratio lets us be stricter without false alarms.
-# * BLOCK_RELMAE_MAX = 2 % absolute cap on block relMAE at the sidecar's spp
-#   (measured block floors: ~0.6-1.2 % at 512 spp); only applied when
-#   spp >= 256, because at low spp the block floor itself approaches 2 %.
+#   sqrt((1 + (f_mi/f_lp)^2) / 2) (= 1 for equal noise; lightprobe's pixel
+#   noise measured ~10-15 % above Mitsuba's, expected ratio ~0.94-0.97).
+#   Controls: pixel ratio/expected 0.966-1.019 (sd ~0.015), block
+#   ratio/expected 0.945-1.21 (sd ~0.08; 192 blocks, a noisier statistic).
+#     pixel relMAE ratio / expected  < PIXEL_RATIO_MAX = 1.15  (~9 sd)
+#     block relMAE ratio / expected  < BLOCK_RATIO_MAX = 1.5   (~6 sd)
+#   (The brief suggested a raw pixel ratio < ~1.5; normalising by the
+#   expected ratio makes a stricter threshold safe.)
+# * BLOCK_RELMAE_MAX = 2 %: absolute cap on the block relMAE, applied at
+#   >= 256 spp only (block floors measured 0.4-0.7 % at 512 spp, but
+#   0.9-1.4 % at 128 spp).
 # A view PASSES iff every criterion holds. Do not loosen these to make a
-# disagreement go away: find out which renderer is wrong.
+# disagreement go away: find out which renderer is wrong (the self-test shows
+# the thresholds pass an unbiased render).
 # --------------------------------------------------------------------------
 BIAS_MAX = 0.01
 PIXEL_RATIO_MAX = 1.15
@@ -234,7 +237,7 @@ def main() -> int:
     ap.add_argument("--no-self-test", dest="self_test", action="store_false")
     ap.add_argument("--self-test", dest="self_test", action="store_true", default=True,
                     help="run the self-test after the check (default)")
-    ap.add_argument("--self-test-spp", type=int, default=128)
+    ap.add_argument("--self-test-spp", type=int, default=256)
     ap.add_argument("--scalar", action="store_true", help="force Mitsuba's scalar_rgb")
     args = ap.parse_args()
     t_start = time.time()
@@ -336,7 +339,7 @@ def self_test(args, info, meshes, masks, work) -> bool:
             m = judge(img, ref[v][0], ref[v][1], img2, masks[v], spp)
             if label != "control":
                 side_by_side(work / f"selftest_{label}_{v}.png", ref[v][0], img, masks[v])
-            print(f"  {label:13s} {v:10s} bias {fmt_pct(m['bias'])} pixel ratio/exp "
+            print(f"  {label:16s} {v:10s} bias {fmt_pct(m['bias'])} pixel ratio/exp "
                   f"{m['ratio'] / m['ratio_expected']:.3f} block ratio/exp "
                   f"{m['block_ratio'] / m['block_ratio_expected']:.3f} block relMAE "
                   f"{m['block']:.4f} -> {'PASS' if m['pass'] else 'FAIL'}")

@@ -1,0 +1,279 @@
+//! The ring grid of the authors' code (`EnvironmentLight::UpdateOffsets`): `N` rings of
+//! constant polar angle θ (from +Y), poles included, `Δ = π/(N−1)`, `θ_i = iΔ`. The pole rings
+//! hold one point each; ring i in between holds `4·round(((N−1)/2)·sin θ_i)` points at
+//! azimuths `φ_ij = 2πj/n_i`. `N = 1` is one cell covering the sphere (constant ambient light).
+//!
+//! Each point owns a cell: its band `[θ_i − Δ/2, θ_i + Δ/2] ∩ [0, π]` times its sector
+//! `[φ_ij − π/n_i, φ_ij + π/n_i)`. Lookup rounds θ to the nearest ring, then φ to the nearest
+//! point of that ring — O(1), and the cells tile the sphere exactly.
+//!
+//! Azimuth: `φ = atan2(d.x, −d.z)` wrapped to [0, 2π): φ = 0 is −Z, φ = π/2 is +X. This is
+//! Mitsuba 3's lat-long `u = φ/2π`, so the default export is a plain resampling.
+//! Cells are numbered ring by ring from +Y (ring 0, the north pole), by increasing φ.
+
+use std::f64::consts::{PI, TAU};
+
+use glam::{DVec3, Vec2, Vec3};
+
+/// The cell layout of an `N`-ring envmap.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RingGrid {
+    rings: u32,
+    /// Points (cells) per ring.
+    counts: Vec<u32>,
+    /// Index of each ring's first cell; `first[rings]` is the cell count.
+    first: Vec<u32>,
+}
+
+/// Where a cell lies: its polar band and azimuth sector, radians.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CellBounds {
+    pub theta_min: f64,
+    pub theta_max: f64,
+    /// Sector start (may be negative: the sector of φ = 0 straddles the seam).
+    pub phi_min: f64,
+    pub phi_max: f64,
+}
+
+impl CellBounds {
+    /// Solid angle, steradians.
+    pub fn solid_angle(&self) -> f64 {
+        (self.theta_min.cos() - self.theta_max.cos()) * (self.phi_max - self.phi_min)
+    }
+}
+
+/// Unit direction from polar angle θ (from +Y) and azimuth φ (see the module doc).
+#[inline]
+pub fn direction(theta: f64, phi: f64) -> DVec3 {
+    let (st, ct) = theta.sin_cos();
+    DVec3::new(st * phi.sin(), ct, -st * phi.cos())
+}
+
+/// (θ, φ) of a unit direction, θ in [0, π], φ in [0, 2π).
+#[inline]
+pub fn angles(d: Vec3) -> (f64, f64) {
+    let d = d.as_dvec3();
+    let theta = d.y.clamp(-1.0, 1.0).acos();
+    let mut phi = d.x.atan2(-d.z);
+    if phi < 0.0 {
+        phi += TAU;
+    }
+    if phi >= TAU {
+        phi = 0.0;
+    }
+    (theta, phi)
+}
+
+impl RingGrid {
+    /// The grid of `rings` rings (≥ 1).
+    pub fn new(rings: u32) -> RingGrid {
+        assert!(rings >= 1, "a ring grid has at least one ring");
+        let counts: Vec<u32> = if rings == 1 {
+            vec![1]
+        } else {
+            let delta = PI / (rings - 1) as f64;
+            (0..rings)
+                .map(|i| {
+                    if i == 0 || i == rings - 1 {
+                        1
+                    } else {
+                        let x = 0.5 * (rings - 1) as f64 * (i as f64 * delta).sin();
+                        // Round ties up, identically on both hemispheres (see DESIGN.md).
+                        4 * (x + 0.5 + 1e-9).floor() as u32
+                    }
+                })
+                .collect()
+        };
+        let mut first = Vec::with_capacity(counts.len() + 1);
+        let mut acc = 0;
+        for &c in &counts {
+            first.push(acc);
+            acc += c;
+        }
+        first.push(acc);
+        RingGrid { rings, counts, first }
+    }
+
+    pub fn rings(&self) -> u32 {
+        self.rings
+    }
+
+    pub fn cell_count(&self) -> usize {
+        self.first[self.rings as usize] as usize
+    }
+
+    /// Points in ring `i`.
+    pub fn ring_len(&self, ring: u32) -> u32 {
+        self.counts[ring as usize]
+    }
+
+    /// Index of ring `i`'s first cell.
+    pub fn ring_start(&self, ring: u32) -> u32 {
+        self.first[ring as usize]
+    }
+
+    /// The ring of a cell and its index within the ring.
+    pub fn ring_of(&self, cell: u32) -> (u32, u32) {
+        let ring = self.first.partition_point(|&f| f <= cell) as u32 - 1;
+        (ring, cell - self.first[ring as usize])
+    }
+
+    fn delta(&self) -> f64 {
+        if self.rings == 1 { PI } else { PI / (self.rings - 1) as f64 }
+    }
+
+    /// The cell containing direction (θ, φ).
+    #[inline]
+    pub fn lookup_angles(&self, theta: f64, phi: f64) -> u32 {
+        if self.rings == 1 {
+            return 0;
+        }
+        let ring = ((theta / self.delta()).round() as u32).min(self.rings - 1);
+        let n = self.counts[ring as usize];
+        let j = (phi * n as f64 / TAU).round() as u32 % n;
+        self.first[ring as usize] + j
+    }
+
+    /// The cell containing unit direction `d`.
+    #[inline]
+    pub fn lookup(&self, d: Vec3) -> u32 {
+        let (t, p) = angles(d);
+        self.lookup_angles(t, p)
+    }
+
+    /// A cell's band and sector.
+    pub fn bounds(&self, cell: u32) -> CellBounds {
+        let (ring, j) = self.ring_of(cell);
+        let n = self.counts[ring as usize] as f64;
+        if self.rings == 1 {
+            return CellBounds { theta_min: 0.0, theta_max: PI, phi_min: 0.0, phi_max: TAU };
+        }
+        let (d, theta) = (self.delta(), ring as f64 * self.delta());
+        let half = PI / n;
+        let phi = TAU * j as f64 / n;
+        CellBounds {
+            theta_min: (theta - 0.5 * d).max(0.0),
+            theta_max: (theta + 0.5 * d).min(PI),
+            phi_min: phi - half,
+            phi_max: phi + half,
+        }
+    }
+
+    /// The direction of a cell's grid point (its ring's θ, its φ). Inverse of [`Self::lookup`]:
+    /// `lookup(center(c)) == c`.
+    pub fn center(&self, cell: u32) -> Vec3 {
+        if self.rings == 1 {
+            return Vec3::Y;
+        }
+        let (ring, j) = self.ring_of(cell);
+        let n = self.counts[ring as usize] as f64;
+        direction(ring as f64 * self.delta(), TAU * j as f64 / n).as_vec3()
+    }
+
+    /// Solid angle of a cell, steradians.
+    pub fn solid_angle(&self, cell: u32) -> f64 {
+        self.bounds(cell).solid_angle()
+    }
+
+    /// A direction uniformly distributed (per solid angle) over the cell, from `u` ∈ [0,1)².
+    #[inline]
+    pub fn sample_in_cell(&self, cell: u32, u: Vec2) -> Vec3 {
+        let b = self.bounds(cell);
+        let (c0, c1) = (b.theta_min.cos(), b.theta_max.cos());
+        let cos_t = c0 + (c1 - c0) * u.x as f64;
+        let theta = cos_t.clamp(-1.0, 1.0).acos();
+        let phi = b.phi_min + (b.phi_max - b.phi_min) * u.y as f64;
+        direction(theta, phi).as_vec3()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::sampling::{Rng, uniform_sphere};
+
+    #[test]
+    fn counts_match_the_authors_table() {
+        let want = [
+            1, 2, 6, 10, 18, 26, 54, 66, 90, 106, 134, 154, 186, 210, 246, 282, 330, 370, 422, 466, 522, 562, 622, 666, 738,
+        ];
+        for (n, &w) in (1..=25).zip(&want) {
+            assert_eq!(RingGrid::new(n).cell_count(), w, "N = {n}");
+        }
+    }
+
+    #[test]
+    fn hemispheres_are_symmetric_even_at_ties() {
+        for n in 2..=60 {
+            let g = RingGrid::new(n);
+            for i in 0..n {
+                assert_eq!(g.ring_len(i), g.ring_len(n - 1 - i), "N = {n}, ring {i}");
+            }
+        }
+    }
+
+    #[test]
+    fn solid_angles_sum_to_four_pi() {
+        for n in [1, 2, 3, 7, 9, 19, 21, 25, 100] {
+            let g = RingGrid::new(n);
+            let total: f64 = (0..g.cell_count() as u32).map(|c| g.solid_angle(c)).sum();
+            assert!((total - 4.0 * PI).abs() < 1e-9, "N = {n}: {total}");
+        }
+    }
+
+    #[test]
+    fn every_centre_looks_up_to_itself() {
+        for n in [1, 2, 3, 5, 9, 19, 21, 40] {
+            let g = RingGrid::new(n);
+            for c in 0..g.cell_count() as u32 {
+                assert_eq!(g.lookup(g.center(c)), c, "N = {n}");
+            }
+        }
+    }
+
+    #[test]
+    fn random_directions_fall_inside_their_cell() {
+        let mut r = Rng::new(11);
+        for n in [2, 3, 9, 21] {
+            let g = RingGrid::new(n);
+            for _ in 0..20_000 {
+                let d = uniform_sphere(r.next_2d());
+                let (t, mut p) = angles(d);
+                let b = g.bounds(g.lookup(d));
+                assert!(t >= b.theta_min - 1e-9 && t <= b.theta_max + 1e-9);
+                if p >= b.phi_max {
+                    p -= TAU; // the seam sector [−π/n, π/n)
+                }
+                assert!(p >= b.phi_min - 1e-9 && p < b.phi_max + 1e-9, "N={n} φ={p} {b:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn cell_samples_stay_in_their_cell() {
+        let g = RingGrid::new(9);
+        let mut r = Rng::new(3);
+        for c in 0..g.cell_count() as u32 {
+            for _ in 0..200 {
+                assert_eq!(g.lookup(g.sample_in_cell(c, r.next_2d())), c);
+            }
+        }
+    }
+
+    #[test]
+    fn azimuth_convention_is_pinned() {
+        // φ = 0 is −Z, φ = π/2 is +X; poles are rings 0 (+Y) and N−1 (−Y).
+        let (_, p) = angles(Vec3::NEG_Z);
+        assert!(p.abs() < 1e-12);
+        let (_, p) = angles(Vec3::X);
+        assert!((p - PI / 2.0).abs() < 1e-12);
+        let g = RingGrid::new(5);
+        assert_eq!(g.lookup(Vec3::Y), 0);
+        assert_eq!(g.lookup(-Vec3::Y) as usize, g.cell_count() - 1);
+        // Just either side of the seam (φ ≈ 0 from above and from below 2π) is the same cell.
+        let a = g.lookup(direction(PI / 2.0, 1e-6).as_vec3());
+        let b = g.lookup(direction(PI / 2.0, TAU - 1e-6).as_vec3());
+        assert_eq!(a, b);
+        assert_eq!(g.ring_of(a), (2, 0));
+    }
+}

@@ -1,0 +1,210 @@
+//! Lat-long (equirectangular) images of an envmap, in the conventions other renderers load.
+//!
+//! | target | up | pixel (column j, row i) → direction (glTF frame) |
+//! | --- | --- | --- |
+//! | `mitsuba` (default) | +Y | `u = (j+½)/W`, φ = 2πu = atan2(x, −z); row i at θ = iπ/(H−1): the first and last rows are the poles |
+//! | `blender` | +Z (after the glTF importer's (x, y, z) → (x, −z, y)) | `u = (j+½)/W = ½ + atan2(z, x)/2π`, θ = (i+½)π/H from +Y |
+//! | `pbrt-v3` | +Z (same axis change) | `u = (j+½)/W`, φ_pbrt = 2πu = atan2(−z, x), θ = (i+½)π/H from +Y |
+//!
+//! The Mitsuba and Blender mappings were measured in those renderers (../shared/CRATES.md);
+//! the Mitsuba one is checked by a cross-render in `scripts/`. `box` export point-samples the
+//! cell under each pixel centre (so export → import of the same grid is exact); `smooth`
+//! interpolates between the grid points (bilinear in θ and φ along the rings).
+
+use std::f64::consts::{PI, TAU};
+
+use glam::{DVec3, Vec3};
+
+use super::Envmap;
+use super::grid::{angles, direction};
+use crate::imageio::Image;
+
+/// Which renderer's lat-long convention to write.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Target {
+    Mitsuba,
+    Blender,
+    PbrtV3,
+}
+
+/// How pixels sample the piecewise-constant map.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Filter {
+    /// The cell under the pixel centre (exact round trip).
+    Box,
+    /// Interpolated between grid points (no visible cell edges).
+    Smooth,
+}
+
+/// The glTF-frame direction of a pixel centre.
+pub fn pixel_direction(target: Target, width: u32, height: u32, col: u32, row: u32) -> DVec3 {
+    let u = (col as f64 + 0.5) / width as f64;
+    match target {
+        Target::Mitsuba => {
+            let theta = if height > 1 { row as f64 * PI / (height - 1) as f64 } else { PI / 2.0 };
+            direction(theta, TAU * u)
+        }
+        Target::Blender => {
+            let theta = (row as f64 + 0.5) * PI / height as f64;
+            let a = TAU * (u - 0.5); // atan2(z, x)
+            let (st, ct) = theta.sin_cos();
+            DVec3::new(st * a.cos(), ct, st * a.sin())
+        }
+        Target::PbrtV3 => {
+            let theta = (row as f64 + 0.5) * PI / height as f64;
+            let a = TAU * u; // atan2(−z, x)
+            let (st, ct) = theta.sin_cos();
+            DVec3::new(st * a.cos(), ct, -st * a.sin())
+        }
+    }
+}
+
+/// The solid angle a pixel row stands for (per pixel), for area-weighted averages.
+fn pixel_solid_angle(target: Target, width: u32, height: u32, row: u32) -> f64 {
+    let (lo, hi) = match target {
+        Target::Mitsuba => {
+            let d = PI / (height - 1).max(1) as f64;
+            let t = row as f64 * d;
+            ((t - 0.5 * d).max(0.0), (t + 0.5 * d).min(PI))
+        }
+        _ => (row as f64 * PI / height as f64, (row + 1) as f64 * PI / height as f64),
+    };
+    (lo.cos() - hi.cos()) * TAU / width as f64
+}
+
+/// Renders the envmap as a `width × width/2` lat-long image.
+pub fn export(env: &Envmap, target: Target, filter: Filter, width: u32) -> Image {
+    let height = (width / 2).max(2);
+    let mut img = Image::new(width, height);
+    for row in 0..height {
+        for col in 0..width {
+            let d = pixel_direction(target, width, height, col, row).as_vec3();
+            img.rgb[(row * width + col) as usize] = match filter {
+                Filter::Box => env.eval(d).1,
+                Filter::Smooth => smooth(env, d),
+            };
+        }
+    }
+    img
+}
+
+/// Bilinear interpolation between grid points: along each of the two nearest rings in φ, then
+/// between the rings in θ.
+fn smooth(env: &Envmap, d: Vec3) -> Vec3 {
+    let g = &env.grid;
+    if g.rings() == 1 {
+        return env.radiance()[0];
+    }
+    let (theta, phi) = angles(d);
+    let delta = PI / (g.rings() - 1) as f64;
+    let x = theta / delta;
+    let r0 = (x.floor() as u32).min(g.rings() - 2);
+    let t = (x - r0 as f64).clamp(0.0, 1.0) as f32;
+    let along = |ring: u32| {
+        let n = g.ring_len(ring);
+        let start = g.ring_start(ring);
+        let y = phi * n as f64 / TAU;
+        let j0 = y.floor() as u32 % n;
+        let s = (y - y.floor()) as f32;
+        let a = env.radiance()[(start + j0) as usize];
+        let b = env.radiance()[(start + (j0 + 1) % n) as usize];
+        a * (1.0 - s) + b * s
+    };
+    along(r0) * (1.0 - t) + along(r0 + 1) * t
+}
+
+/// Averages a lat-long image over each cell of an `rings`-ring grid (weighted by pixel solid
+/// angle). Errors if the image is too coarse for some cell to contain a pixel centre.
+pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<Envmap, String> {
+    let grid = super::RingGrid::new(rings);
+    let n = grid.cell_count();
+    let mut sum = vec![DVec3::ZERO; n];
+    let mut weight = vec![0f64; n];
+    for row in 0..img.height {
+        let w = pixel_solid_angle(target, img.width, img.height, row);
+        for col in 0..img.width {
+            let c = img.rgb[(row * img.width + col) as usize];
+            if !(c.is_finite() && c.min_element() >= 0.0) {
+                return Err(format!("pixel ({col}, {row}) is {:?}; radiance must be finite and >= 0", c.to_array()));
+            }
+            let cell = grid.lookup(pixel_direction(target, img.width, img.height, col, row).as_vec3()) as usize;
+            sum[cell] += c.as_dvec3() * w;
+            weight[cell] += w;
+        }
+    }
+    if let Some(cell) = weight.iter().position(|&w| w == 0.0) {
+        return Err(format!(
+            "a {}×{} image is too coarse for {rings} rings (cell {cell} contains no pixel centre); use fewer rings or a larger image",
+            img.width, img.height
+        ));
+    }
+    let radiance = sum.iter().zip(&weight).map(|(s, w)| (*s / *w).as_vec3()).collect();
+    Envmap::new(rings, radiance)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn varied(rings: u32) -> Envmap {
+        let g = super::super::RingGrid::new(rings);
+        let radiance = (0..g.cell_count() as u32).map(|c| Vec3::new(c as f32, 1.0 + (c % 5) as f32, 0.5 * g.center(c).y + 0.5)).collect();
+        Envmap::new(rings, radiance).unwrap()
+    }
+
+    #[test]
+    fn export_then_import_gives_back_the_cells() {
+        for target in [Target::Mitsuba, Target::Blender, Target::PbrtV3] {
+            for rings in [1, 2, 5, 9, 21] {
+                let env = varied(rings);
+                let img = export(&env, target, Filter::Box, 512);
+                let back = import(&img, target, rings).unwrap();
+                assert_eq!(back.radiance(), env.radiance(), "{target:?} {rings}");
+            }
+        }
+    }
+
+    #[test]
+    fn mitsuba_rows_are_poles_and_columns_follow_u() {
+        let (w, h) = (64, 32);
+        assert!((pixel_direction(Target::Mitsuba, w, h, 5, 0) - DVec3::Y).length() < 1e-12);
+        assert!((pixel_direction(Target::Mitsuba, w, h, 5, h - 1) + DVec3::Y).length() < 1e-12);
+        // u = atan2(x, −z) / 2π: the column at u = 0.25 (+X) on the horizon row.
+        let hd = Target::Mitsuba;
+        let d = pixel_direction(hd, 4, 3, 1, 1); // u = 0.375, θ = π/2
+        let u = d.x.atan2(-d.z) / TAU;
+        assert!((u - 0.375).abs() < 1e-12 && d.y.abs() < 1e-12);
+    }
+
+    #[test]
+    fn blender_convention_matches_measurement() {
+        // Measured in Blender: u = ½ + atan2(g.z, g.x)/2π, v = acos(g.y)/π, both pixel-centred.
+        let (w, h) = (16, 8);
+        for (col, row) in [(0, 0), (3, 5), (15, 7)] {
+            let d = pixel_direction(Target::Blender, w, h, col, row);
+            let u = 0.5 + d.z.atan2(d.x) / TAU;
+            let v = d.y.acos() / PI;
+            assert!((u - (col as f64 + 0.5) / w as f64).abs() < 1e-12);
+            assert!((v - (row as f64 + 0.5) / h as f64).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn smooth_filter_keeps_constants_and_stays_in_range() {
+        let env = Envmap::constant(9, Vec3::splat(2.0));
+        let img = export(&env, Target::Mitsuba, Filter::Smooth, 64);
+        assert!(img.rgb.iter().all(|c| (*c - Vec3::splat(2.0)).abs().max_element() < 1e-5));
+        let env = varied(9);
+        let img = export(&env, Target::Mitsuba, Filter::Smooth, 64);
+        let hi = env.radiance().iter().fold(Vec3::ZERO, |a, b| a.max(*b));
+        assert!(img.rgb.iter().all(|c| c.cmple(hi + 1e-4).all()));
+    }
+
+    #[test]
+    fn too_coarse_import_is_an_error() {
+        let img = export(&varied(3), Target::Mitsuba, Filter::Box, 8);
+        assert!(import(&img, Target::Mitsuba, 40).unwrap_err().contains("too coarse"));
+    }
+}
