@@ -292,12 +292,14 @@ def mitsuba_mesh(md: MeshData, perturb: str | None = None):
     m = mi.Mesh(md.name, len(md.positions), len(md.faces), props=props,
                 has_vertex_normals=has_n, has_vertex_texcoords=has_uv)
     p = mi.traverse(m)
-    p["vertex_positions"] = mi.Float(md.positions.astype(np.float32).ravel())
-    p["faces"] = mi.UInt32(md.faces.astype(np.uint32).ravel())
+    # the buffers' own types: mi.Float/UInt32 in JIT variants, dr.scalar.ArrayX* in scalar ones
+    put = lambda key, a: p.__setitem__(key, type(p[key])(np.ascontiguousarray(a).ravel()))  # noqa: E731
+    put("vertex_positions", md.positions.astype(np.float32))
+    put("faces", md.faces.astype(np.uint32))
     if has_n:
-        p["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
+        put("vertex_normals", normals.astype(np.float32))
     if has_uv:
-        p["vertex_texcoords"] = mi.Float(md.uvs.astype(np.float32).ravel())
+        put("vertex_texcoords", md.uvs.astype(np.float32))
     p.update()
     return m
 
@@ -360,6 +362,42 @@ def integrator_dict(max_depth: int) -> dict:
             "hide_emitters": True}
 
 
+def apply_info_materials(meshes: list[MeshData], info: dict) -> list[MeshData]:
+    """Cross-check each mesh's albedo with what lightprobe loaded (`info`
+    materials, by glTF material name), which includes the sidecar's albedo
+    overrides: a Constant override replaces the glTF albedo here too; an
+    image (Map) override is not supported and raises."""
+    import dataclasses
+    by_name = {m["name"]: m for m in info.get("materials", [])}
+    out = []
+    for md in meshes:
+        im = by_name.get(md.extra.get("material", ""))
+        if im is None:
+            out.append(md)
+            continue
+        if "texture" in im:
+            if md.texture_srgb8 is None:
+                raise NotImplementedError(f"{md.name}: lightprobe uses a texture (sidecar Map "
+                                          "override?) that the glTF does not have")
+            ours = srgb_to_linear(md.texture_srgb8 / 255.0).mean(axis=(0, 1))
+            if not np.allclose(ours, im["texture"]["mean_linear"], atol=1e-3):
+                raise NotImplementedError(f"{md.name}: lightprobe's texture (mean "
+                                          f"{im['texture']['mean_linear']}) differs from the "
+                                          f"glTF's (mean {ours.tolist()}): Map override?")
+            if not np.allclose(md.albedo, im.get("albedo_factor", md.albedo), atol=1e-6):
+                raise ValueError(f"{md.name}: albedo factor {md.albedo} != lightprobe's "
+                                 f"{im['albedo_factor']}")
+            out.append(md)
+        else:
+            a = np.asarray(im["albedo"], dtype=np.float64)
+            if md.texture_srgb8 is not None or not np.allclose(a, md.albedo, atol=1e-6):
+                print(f"note: {md.name}: using lightprobe's albedo {a.tolist()} (sidecar "
+                      f"override) instead of the glTF's {md.albedo.tolist()}")
+                md = dataclasses.replace(md, albedo=a, texture_srgb8=None, uvs=None)
+            out.append(md)
+    return out
+
+
 @dataclass
 class MitsubaScene:
     scene: object                      # mi.Scene
@@ -392,6 +430,7 @@ def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BI
     spp = int(spp or settings["spp"])
     max_depth = int(max_depth or settings["max_bounces"] + 1)
     meshes = meshes if meshes is not None else load_meshes(sidecar_gltf(sidecar))
+    meshes = apply_info_materials(meshes, info)
     d = {"type": "scene", "integrator": integrator_dict(max_depth)}
     for i, md in enumerate(meshes):
         d[f"mesh_{i}_{md.name}"] = mitsuba_mesh(md, perturb)

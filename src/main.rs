@@ -10,6 +10,8 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
+use lightprobe::envmap::Envmap;
+use lightprobe::envmap::latlong::{self, Filter, Target};
 use lightprobe::imageio::{self, Image};
 use lightprobe::metrics;
 use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
@@ -34,6 +36,12 @@ enum Command {
     /// Photometric error of an image against a reference (relMAE, MAE, RMSE, relMSE, PSNR),
     /// over the pixels where the reference's alpha is > 0 (its geometry mask).
     Compare(CompareArgs),
+    /// Write a ring envmap (envmap.ron) as a lat-long OpenEXR that another renderer loads the
+    /// right way up (default: Mitsuba 3's `envmap`, +Y up, poles on the first and last rows).
+    ExportEnvmap(ExportArgs),
+    /// Average a lat-long OpenEXR environment over the cells of an N-ring grid (envmap.ron),
+    /// e.g. to use any HDR environment as ground-truth lighting.
+    ImportEnvmap(ImportArgs),
     /// Print what lightprobe loaded from a scene as JSON: triangle count, bounds, surface
     /// area, materials, cameras (pose, field of view), lights and settings.
     Info {
@@ -66,6 +74,12 @@ struct RenderArgs {
     /// Show emitters seen directly by the camera (default: black, like Mitsuba's hide_emitters).
     #[arg(long)]
     show_emitters: bool,
+    /// Also light the scene with this ring envmap (envmap.ron); escaping rays see it.
+    #[arg(long)]
+    envmap: Option<PathBuf>,
+    /// Leave out the sidecar's sphere lights (e.g. to light with --envmap alone).
+    #[arg(long)]
+    no_sphere_lights: bool,
     /// Only these views (comma-separated camera node names; default: the sidecar's).
     #[arg(long, value_delimiter = ',')]
     views: Vec<String>,
@@ -100,6 +114,39 @@ struct CompareArgs {
     json: bool,
 }
 
+#[derive(clap::Args)]
+struct ExportArgs {
+    /// The ring envmap (envmap.ron).
+    envmap: PathBuf,
+    /// Output lat-long EXR.
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Image width in pixels (height = width / 2), 8..=16384.
+    #[arg(long, default_value_t = 1024)]
+    width: u32,
+    /// Whose lat-long convention to write.
+    #[arg(long, value_enum, default_value_t = Target::Mitsuba)]
+    target: Target,
+    /// `box`: the cell under each pixel (exact); `smooth`: interpolated between grid points.
+    #[arg(long, value_enum, default_value_t = Filter::Box)]
+    filter: Filter,
+}
+
+#[derive(clap::Args)]
+struct ImportArgs {
+    /// A lat-long RGB OpenEXR.
+    image: PathBuf,
+    /// Ring count of the grid to average onto (1..=1000).
+    #[arg(long)]
+    rings: u32,
+    /// Output envmap.ron.
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Whose lat-long convention the image follows.
+    #[arg(long, value_enum, default_value_t = Target::Mitsuba)]
+    target: Target,
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     match run(cli) {
@@ -124,6 +171,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::RenderReference(args) => render_reference(args),
         Command::Compare(args) => compare(args),
+        Command::ExportEnvmap(args) => export_envmap(args),
+        Command::ImportEnvmap(args) => import_envmap(args),
         Command::Info { scene } => info(&scene),
         Command::Schema => {
             print!("{}", sidecar::json_schema());
@@ -195,10 +244,23 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
         }
         scene.cameras = picked;
     }
+    let mut lights = Lights::new(if a.no_sphere_lights {
+        Vec::new()
+    } else {
+        scene.lights.clone()
+    });
+    if let Some(p) = &a.envmap {
+        lights.env = Some(Envmap::load(p)?);
+    }
+    if lights.is_empty() {
+        bail!(
+            "{}: nothing lights the scene (no sphere lights and no --envmap)",
+            a.scene.display()
+        );
+    }
     prepare_out_dir(&a.out)?;
     let load_s = t_load.elapsed().as_secs_f64();
 
-    let lights = Lights::new(scene.lights.clone());
     let t_bvh = Instant::now();
     let renderer = Renderer::new(&scene, &lights);
     let bvh_s = t_bvh.elapsed().as_secs_f64();
@@ -261,8 +323,9 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
         "scene": a.scene,
         "triangles": scene.mesh.triangle_count(),
         "image": { "width": scene.settings.width, "height": scene.settings.height },
-        "lights": scene.lights.iter().map(|l| json!({
+        "lights": lights.spheres.iter().map(|l| json!({
             "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })).collect::<Vec<_>>(),
+        "envmap": a.envmap.as_ref().map(|p| json!({ "file": p, "rings": lights.env.as_ref().map(|e| e.grid.rings()) })),
         "settings": settings,
         "threads": rayon::current_num_threads(),
         "timings": { "load_seconds": load_s, "bvh_seconds": bvh_s, "render_seconds": total_s },
@@ -414,5 +477,56 @@ fn info(path: &Path) -> anyhow::Result<()> {
         },
     });
     println!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}
+
+fn export_envmap(a: ExportArgs) -> anyhow::Result<()> {
+    if !(8..=16384).contains(&a.width) {
+        bail!(
+            "--width must be between 8 and 16384 pixels, got {}",
+            a.width
+        );
+    }
+    let env = Envmap::load(&a.envmap)?;
+    let img = latlong::export(&env, a.target, a.filter, a.width);
+    let attributes = exr::meta::header::LayerAttributes {
+        environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
+        ..Default::default()
+    };
+    imageio::write_exr_with(&a.out, &img, attributes)?;
+    println!(
+        "{}: {}×{} lat-long ({:?}, {:?} filter) of {} rings / {} cells",
+        a.out.display(),
+        img.width,
+        img.height,
+        a.target,
+        a.filter,
+        env.grid.rings(),
+        env.grid.cell_count()
+    );
+    Ok(())
+}
+
+fn import_envmap(a: ImportArgs) -> anyhow::Result<()> {
+    if !(1..=sidecar::MAX_RINGS).contains(&a.rings) {
+        bail!(
+            "--rings must be between 1 and {}, got {}",
+            sidecar::MAX_RINGS,
+            a.rings
+        );
+    }
+    let img = imageio::read_exr(&a.image)?;
+    let env = latlong::import(&img, a.target, a.rings)
+        .map_err(|m| lightprobe::Error::file(&a.image, m))?;
+    env.save(&a.out)?;
+    println!(
+        "{}: {} rings / {} cells from {}×{} {}",
+        a.out.display(),
+        a.rings,
+        env.grid.cell_count(),
+        img.width,
+        img.height,
+        a.image.display()
+    );
     Ok(())
 }

@@ -344,3 +344,172 @@ fn depth_aov_is_exact_on_a_plane() {
         assert!((aov.normal.rgb[i] - Vec3::Y).length() < 1e-6);
     }
 }
+
+// ---- Environment map lighting ----
+
+use lightprobe::envmap::Envmap;
+
+fn render_env(
+    sc: &Scene,
+    env: Envmap,
+    cam: &Camera,
+    st: RenderSettings,
+) -> lightprobe::imageio::Image {
+    let lights = Lights::env(env);
+    Renderer::new(sc, &lights).render_radiance(cam, 0, &st, &|_| {})
+}
+
+#[test]
+fn constant_envmap_over_a_plane_gives_albedo_times_radiance() {
+    let cam = Camera::look_at("cam", Vec3::new(0.3, 1.5, 1.0), Vec3::ZERO, 0.6, 8, 8);
+    let sc = scene(
+        plane(100.0, 0.0),
+        Vec3::new(0.2, 0.5, 0.8),
+        cam.clone(),
+        vec![],
+    );
+    let img = render_env(
+        &sc,
+        Envmap::constant(9, Vec3::splat(1.5)),
+        &cam,
+        settings(1024, 1, Strategy::Mis),
+    );
+    let want = Vec3::new(0.2, 0.5, 0.8) * 1.5;
+    assert!(
+        ((img.mean() - want).abs() / want).max_element() < 0.005,
+        "mean {} vs {want}",
+        img.mean()
+    );
+    for c in &img.rgb {
+        assert!(
+            ((*c - want).abs() / want).max_element() < 0.03,
+            "pixel {c} vs {want}"
+        );
+    }
+}
+
+#[test]
+fn white_furnace_is_invisible() {
+    // Albedo 1 everywhere under a constant envmap: with enough bounces every surface has the
+    // envmap's radiance, whatever the geometry.
+    let cam = Camera::look_at(
+        "cam",
+        Vec3::new(0.0, 1.0, 2.5),
+        Vec3::new(0.0, 0.3, 0.0),
+        0.8,
+        12,
+        9,
+    );
+    let mut mesh = plane(20.0, 0.0);
+    let ball = icosphere(Vec3::new(0.0, 0.5, 0.0), 0.5, 3);
+    mesh.push(
+        &ball.positions,
+        Some(&ball.normals),
+        None,
+        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
+        0,
+    );
+    let sc = scene(mesh, Vec3::ONE, cam.clone(), vec![]);
+    let img = render_env(
+        &sc,
+        Envmap::constant(5, Vec3::splat(0.7)),
+        &cam,
+        settings(1024, 64, Strategy::Mis),
+    );
+    // Only pixels wholly on geometry (the background is black: emitters are hidden).
+    let covered: Vec<f32> = img
+        .rgb
+        .iter()
+        .zip(img.alpha.as_ref().unwrap())
+        .filter(|(_, a)| **a == 1.0)
+        .map(|(c, _)| c.x)
+        .collect();
+    assert!(covered.len() > 60, "{} covered pixels", covered.len());
+    let mean = covered.iter().map(|&v| v as f64).sum::<f64>() / covered.len() as f64;
+    assert!((mean / 0.7 - 1.0).abs() < 0.005, "{mean}");
+    for v in covered {
+        assert!((v / 0.7 - 1.0).abs() < 0.03, "pixel {v}");
+    }
+}
+
+#[test]
+fn single_bright_cell_gives_the_patch_irradiance() {
+    // One cell of radiance L above an upward plane: E = L ∫cos θ dω = L Δφ (sin²θ1 − sin²θ0) / 2.
+    let rings = 7;
+    let grid = lightprobe::envmap::RingGrid::new(rings);
+    let cam = Camera::look_at("cam", Vec3::new(0.0, 1.0, 0.01), Vec3::ZERO, 0.05, 4, 4);
+    let sc = scene(plane(100.0, 0.0), Vec3::splat(0.5), cam.clone(), vec![]);
+    for cell in [0u32, 3, grid.ring_start(2) + 5] {
+        let mut radiance = vec![Vec3::ZERO; grid.cell_count()];
+        radiance[cell as usize] = Vec3::splat(10.0);
+        let env = Envmap::new(rings, radiance).unwrap();
+        let b = grid.bounds(cell);
+        let e = 10.0
+            * (b.phi_max - b.phi_min)
+            * (b.theta_max.sin().powi(2) - b.theta_min.sin().powi(2))
+            / 2.0;
+        let want = 0.5 / PI * e;
+        for strategy in [Strategy::Mis, Strategy::LightOnly] {
+            let got = render_env(&sc, env.clone(), &cam, settings(4096, 1, strategy))
+                .mean()
+                .x as f64;
+            assert!(
+                (got / want - 1.0).abs() < 0.01,
+                "cell {cell} {strategy:?}: {got} vs {want}"
+            );
+        }
+    }
+}
+
+#[test]
+fn envmap_strategies_agree() {
+    let rings = 9;
+    let grid = lightprobe::envmap::RingGrid::new(rings);
+    let radiance = (0..grid.cell_count() as u32)
+        .map(|c| {
+            let d = grid.center(c);
+            Vec3::new(0.2, 0.3, 0.5)
+                + if d.y > 0.6 && d.x > 0.0 {
+                    Vec3::new(20.0, 15.0, 8.0)
+                } else {
+                    Vec3::ZERO
+                }
+        })
+        .collect();
+    let env = Envmap::new(rings, radiance).unwrap();
+    let cam = Camera::look_at("cam", Vec3::new(0.0, 1.0, 3.0), Vec3::ZERO, 0.9, 16, 12);
+    let mut mesh = plane(3.0, 0.0);
+    let ball = icosphere(Vec3::new(-0.4, 0.35, 0.3), 0.35, 3);
+    mesh.push(
+        &ball.positions,
+        Some(&ball.normals),
+        None,
+        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
+        0,
+    );
+    let sc = scene(mesh, Vec3::splat(0.6), cam.clone(), vec![]);
+    let means: Vec<Vec3> = [Strategy::Mis, Strategy::LightOnly, Strategy::BsdfOnly]
+        .iter()
+        .map(|&s| {
+            (0..4u64)
+                .map(|seed| {
+                    render_env(
+                        &sc,
+                        env.clone(),
+                        &cam,
+                        RenderSettings {
+                            seed,
+                            ..settings(512, 3, s)
+                        },
+                    )
+                    .mean()
+                })
+                .sum::<Vec3>()
+                / 4.0
+        })
+        .collect();
+    for m in &means[1..] {
+        let rel = ((*m - means[0]).abs() / means[0]).max_element();
+        assert!(rel < 0.01, "means differ by {rel}: {means:?}");
+    }
+}

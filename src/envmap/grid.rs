@@ -91,7 +91,11 @@ impl RingGrid {
             acc += c;
         }
         first.push(acc);
-        RingGrid { rings, counts, first }
+        RingGrid {
+            rings,
+            counts,
+            first,
+        }
     }
 
     pub fn rings(&self) -> u32 {
@@ -119,7 +123,11 @@ impl RingGrid {
     }
 
     fn delta(&self) -> f64 {
-        if self.rings == 1 { PI } else { PI / (self.rings - 1) as f64 }
+        if self.rings == 1 {
+            PI
+        } else {
+            PI / (self.rings - 1) as f64
+        }
     }
 
     /// The cell containing direction (θ, φ).
@@ -146,7 +154,12 @@ impl RingGrid {
         let (ring, j) = self.ring_of(cell);
         let n = self.counts[ring as usize] as f64;
         if self.rings == 1 {
-            return CellBounds { theta_min: 0.0, theta_max: PI, phi_min: 0.0, phi_max: TAU };
+            return CellBounds {
+                theta_min: 0.0,
+                theta_max: PI,
+                phi_min: 0.0,
+                phi_max: TAU,
+            };
         }
         let (d, theta) = (self.delta(), ring as f64 * self.delta());
         let half = PI / n;
@@ -195,7 +208,8 @@ mod tests {
     #[test]
     fn counts_match_the_authors_table() {
         let want = [
-            1, 2, 6, 10, 18, 26, 54, 66, 90, 106, 134, 154, 186, 210, 246, 282, 330, 370, 422, 466, 522, 562, 622, 666, 738,
+            1, 2, 6, 10, 18, 26, 54, 66, 90, 106, 134, 154, 186, 210, 246, 282, 330, 370, 422, 466,
+            522, 562, 622, 666, 738,
         ];
         for (n, &w) in (1..=25).zip(&want) {
             assert_eq!(RingGrid::new(n).cell_count(), w, "N = {n}");
@@ -244,7 +258,10 @@ mod tests {
                 if p >= b.phi_max {
                     p -= TAU; // the seam sector [−π/n, π/n)
                 }
-                assert!(p >= b.phi_min - 1e-9 && p < b.phi_max + 1e-9, "N={n} φ={p} {b:?}");
+                assert!(
+                    p >= b.phi_min - 1e-9 && p < b.phi_max + 1e-9,
+                    "N={n} φ={p} {b:?}"
+                );
             }
         }
     }

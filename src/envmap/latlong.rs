@@ -43,7 +43,11 @@ pub fn pixel_direction(target: Target, width: u32, height: u32, col: u32, row: u
     let u = (col as f64 + 0.5) / width as f64;
     match target {
         Target::Mitsuba => {
-            let theta = if height > 1 { row as f64 * PI / (height - 1) as f64 } else { PI / 2.0 };
+            let theta = if height > 1 {
+                row as f64 * PI / (height - 1) as f64
+            } else {
+                PI / 2.0
+            };
             direction(theta, TAU * u)
         }
         Target::Blender => {
@@ -69,7 +73,10 @@ fn pixel_solid_angle(target: Target, width: u32, height: u32, row: u32) -> f64 {
             let t = row as f64 * d;
             ((t - 0.5 * d).max(0.0), (t + 0.5 * d).min(PI))
         }
-        _ => (row as f64 * PI / height as f64, (row + 1) as f64 * PI / height as f64),
+        _ => (
+            row as f64 * PI / height as f64,
+            (row + 1) as f64 * PI / height as f64,
+        ),
     };
     (lo.cos() - hi.cos()) * TAU / width as f64
 }
@@ -127,9 +134,14 @@ pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<En
         for col in 0..img.width {
             let c = img.rgb[(row * img.width + col) as usize];
             if !(c.is_finite() && c.min_element() >= 0.0) {
-                return Err(format!("pixel ({col}, {row}) is {:?}; radiance must be finite and >= 0", c.to_array()));
+                return Err(format!(
+                    "pixel ({col}, {row}) is {:?}; radiance must be finite and >= 0",
+                    c.to_array()
+                ));
             }
-            let cell = grid.lookup(pixel_direction(target, img.width, img.height, col, row).as_vec3()) as usize;
+            let cell = grid
+                .lookup(pixel_direction(target, img.width, img.height, col, row).as_vec3())
+                as usize;
             sum[cell] += c.as_dvec3() * w;
             weight[cell] += w;
         }
@@ -140,7 +152,11 @@ pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<En
             img.width, img.height
         ));
     }
-    let radiance = sum.iter().zip(&weight).map(|(s, w)| (*s / *w).as_vec3()).collect();
+    let radiance = sum
+        .iter()
+        .zip(&weight)
+        .map(|(s, w)| (*s / *w).as_vec3())
+        .collect();
     Envmap::new(rings, radiance)
 }
 
@@ -150,7 +166,9 @@ mod tests {
 
     fn varied(rings: u32) -> Envmap {
         let g = super::super::RingGrid::new(rings);
-        let radiance = (0..g.cell_count() as u32).map(|c| Vec3::new(c as f32, 1.0 + (c % 5) as f32, 0.5 * g.center(c).y + 0.5)).collect();
+        let radiance = (0..g.cell_count() as u32)
+            .map(|c| Vec3::new(c as f32, 1.0 + (c % 5) as f32, 0.5 * g.center(c).y + 0.5))
+            .collect();
         Envmap::new(rings, radiance).unwrap()
     }
 
@@ -195,7 +213,11 @@ mod tests {
     fn smooth_filter_keeps_constants_and_stays_in_range() {
         let env = Envmap::constant(9, Vec3::splat(2.0));
         let img = export(&env, Target::Mitsuba, Filter::Smooth, 64);
-        assert!(img.rgb.iter().all(|c| (*c - Vec3::splat(2.0)).abs().max_element() < 1e-5));
+        assert!(
+            img.rgb
+                .iter()
+                .all(|c| (*c - Vec3::splat(2.0)).abs().max_element() < 1e-5)
+        );
         let env = varied(9);
         let img = export(&env, Target::Mitsuba, Filter::Smooth, 64);
         let hi = env.radiance().iter().fold(Vec3::ZERO, |a, b| a.max(*b));
@@ -205,6 +227,10 @@ mod tests {
     #[test]
     fn too_coarse_import_is_an_error() {
         let img = export(&varied(3), Target::Mitsuba, Filter::Box, 8);
-        assert!(import(&img, Target::Mitsuba, 40).unwrap_err().contains("too coarse"));
+        assert!(
+            import(&img, Target::Mitsuba, 40)
+                .unwrap_err()
+                .contains("too coarse")
+        );
     }
 }

@@ -56,17 +56,39 @@ impl Envmap {
     /// channel finite and ≥ 0).
     pub fn new(rings: u32, radiance: Vec<Vec3>) -> std::result::Result<Envmap, String> {
         if !(1..=crate::scene::sidecar::MAX_RINGS).contains(&rings) {
-            return Err(format!("rings must be between 1 and {}, got {rings}", crate::scene::sidecar::MAX_RINGS));
+            return Err(format!(
+                "rings must be between 1 and {}, got {rings}",
+                crate::scene::sidecar::MAX_RINGS
+            ));
         }
         let grid = RingGrid::new(rings);
         if radiance.len() != grid.cell_count() {
-            return Err(format!("{rings} rings have {} cells, but {} radiance values were given", grid.cell_count(), radiance.len()));
+            return Err(format!(
+                "{rings} rings have {} cells, but {} radiance values were given",
+                grid.cell_count(),
+                radiance.len()
+            ));
         }
-        if let Some(i) = radiance.iter().position(|c| !(c.is_finite() && c.min_element() >= 0.0)) {
-            return Err(format!("cell {i} has radiance {:?}; every channel must be finite and >= 0", radiance[i].to_array()));
+        if let Some(i) = radiance
+            .iter()
+            .position(|c| !(c.is_finite() && c.min_element() >= 0.0))
+        {
+            return Err(format!(
+                "cell {i} has radiance {:?}; every channel must be finite and >= 0",
+                radiance[i].to_array()
+            ));
         }
-        let solid_angle: Vec<f32> = (0..grid.cell_count() as u32).map(|c| grid.solid_angle(c) as f32).collect();
-        let mut env = Envmap { grid, radiance, solid_angle, ring_cdf: Vec::new(), cell_cdf: Vec::new(), pdf: Vec::new() };
+        let solid_angle: Vec<f32> = (0..grid.cell_count() as u32)
+            .map(|c| grid.solid_angle(c) as f32)
+            .collect();
+        let mut env = Envmap {
+            grid,
+            radiance,
+            solid_angle,
+            ring_cdf: Vec::new(),
+            cell_cdf: Vec::new(),
+            pdf: Vec::new(),
+        };
         env.build_distribution();
         Ok(env)
     }
@@ -80,11 +102,26 @@ impl Envmap {
     fn build_distribution(&mut self) {
         let g = &self.grid;
         let n = g.cell_count();
-        let lum: Vec<f64> = self.radiance.iter().map(|c| luminance(*c).max(0.0) as f64).collect();
+        let lum: Vec<f64> = self
+            .radiance
+            .iter()
+            .map(|c| luminance(*c).max(0.0) as f64)
+            .collect();
         let total_sa: f64 = self.solid_angle.iter().map(|&s| s as f64).sum();
-        let mean_lum = lum.iter().zip(&self.solid_angle).map(|(l, s)| l * *s as f64).sum::<f64>() / total_sa;
-        let floor = if mean_lum > 0.0 { FLOOR * mean_lum } else { 1.0 };
-        let weight: Vec<f64> = (0..n).map(|c| (lum[c] + floor) * self.solid_angle[c] as f64).collect();
+        let mean_lum = lum
+            .iter()
+            .zip(&self.solid_angle)
+            .map(|(l, s)| l * *s as f64)
+            .sum::<f64>()
+            / total_sa;
+        let floor = if mean_lum > 0.0 {
+            FLOOR * mean_lum
+        } else {
+            1.0
+        };
+        let weight: Vec<f64> = (0..n)
+            .map(|c| (lum[c] + floor) * self.solid_angle[c] as f64)
+            .collect();
         let total: f64 = weight.iter().sum();
 
         self.ring_cdf = Vec::with_capacity(g.rings() as usize + 1);
@@ -136,11 +173,27 @@ impl Envmap {
     #[inline]
     pub fn sample(&self, u_cell: f32, u: Vec2) -> (u32, Vec3, f32) {
         let u_cell = u_cell as f64;
-        let ring = (self.ring_cdf.partition_point(|&c| c <= u_cell).clamp(1, self.grid.rings() as usize) - 1) as u32;
-        let (lo, hi) = (self.ring_cdf[ring as usize], self.ring_cdf[ring as usize + 1]);
-        let v = if hi > lo { ((u_cell - lo) / (hi - lo)).clamp(0.0, 1.0) } else { 0.5 };
-        let (start, len) = (self.grid.ring_start(ring) as usize, self.grid.ring_len(ring) as usize);
-        let j = self.cell_cdf[start..start + len].partition_point(|&c| c <= v).min(len - 1);
+        let ring = (self
+            .ring_cdf
+            .partition_point(|&c| c <= u_cell)
+            .clamp(1, self.grid.rings() as usize)
+            - 1) as u32;
+        let (lo, hi) = (
+            self.ring_cdf[ring as usize],
+            self.ring_cdf[ring as usize + 1],
+        );
+        let v = if hi > lo {
+            ((u_cell - lo) / (hi - lo)).clamp(0.0, 1.0)
+        } else {
+            0.5
+        };
+        let (start, len) = (
+            self.grid.ring_start(ring) as usize,
+            self.grid.ring_len(ring) as usize,
+        );
+        let j = self.cell_cdf[start..start + len]
+            .partition_point(|&c| c <= v)
+            .min(len - 1);
         let cell = (start + j) as u32;
         (cell, self.grid.sample_in_cell(cell, u), self.pdf[start + j])
     }
@@ -148,7 +201,11 @@ impl Envmap {
     /// Total emitted power per unit area of a receiver facing everything, Σ λ·Ω (W/m² per
     /// channel): the irradiance-like scale of the map.
     pub fn integral(&self) -> Vec3 {
-        self.radiance.iter().zip(&self.solid_angle).map(|(l, &s)| *l * s).sum()
+        self.radiance
+            .iter()
+            .zip(&self.solid_angle)
+            .map(|(l, &s)| *l * s)
+            .sum()
     }
 
     /// Reads an `envmap.ron`. Errors name the file (and line:column for syntax errors).
@@ -160,10 +217,19 @@ impl Envmap {
             radiance: Vec<Rgb>,
         }
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let f: File = ron::Options::default()
-            .from_str(&text)
-            .map_err(|e| Error::file_at(path, e.span.start.line, e.span.start.col, e.code.to_string()))?;
-        let radiance = f.radiance.iter().map(|c| Vec3::new(c.0.0, c.0.1, c.0.2)).collect();
+        let f: File = ron::Options::default().from_str(&text).map_err(|e| {
+            Error::file_at(
+                path,
+                e.span.start.line,
+                e.span.start.col,
+                e.code.to_string(),
+            )
+        })?;
+        let radiance = f
+            .radiance
+            .iter()
+            .map(|c| Vec3::new(c.0.0, c.0.1, c.0.2))
+            .collect();
         Envmap::new(f.rings.0, radiance).map_err(|m| Error::file(path, m))
     }
 
@@ -179,7 +245,11 @@ impl Envmap {
         );
         for (c, l) in self.radiance.iter().enumerate() {
             let (ring, j) = g.ring_of(c as u32);
-            let _ = writeln!(s, "        ({:?}, {:?}, {:?}), // ring {ring} cell {j}", l.x, l.y, l.z);
+            let _ = writeln!(
+                s,
+                "        ({:?}, {:?}, {:?}), // ring {ring} cell {j}",
+                l.x, l.y, l.z
+            );
         }
         s.push_str("    ],\n)\n");
         s
@@ -201,7 +271,11 @@ mod tests {
         let radiance = (0..g.cell_count() as u32)
             .map(|c| {
                 let d = g.center(c);
-                Vec3::new(0.1 + d.y.max(0.0) * 5.0, 0.2 + (c % 3) as f32, if c == 7 { 100.0 } else { 0.05 })
+                Vec3::new(
+                    0.1 + d.y.max(0.0) * 5.0,
+                    0.2 + (c % 3) as f32,
+                    if c == 7 { 100.0 } else { 0.05 },
+                )
             })
             .collect();
         Envmap::new(rings, radiance).unwrap()
@@ -211,7 +285,9 @@ mod tests {
     fn pdf_integrates_to_one() {
         for rings in [1, 2, 5, 9, 21] {
             let e = varied(rings);
-            let total: f64 = (0..e.grid.cell_count() as u32).map(|c| e.pdf(c) as f64 * e.solid_angle(c) as f64).sum();
+            let total: f64 = (0..e.grid.cell_count() as u32)
+                .map(|c| e.pdf(c) as f64 * e.solid_angle(c) as f64)
+                .sum();
             assert!((total - 1.0).abs() < 1e-5, "{rings}: {total}");
         }
     }
@@ -256,13 +332,19 @@ mod tests {
         let e = varied(9);
         let n = e.grid.cell_count() as u32;
         let lum = |c: u32| luminance(e.radiance()[c as usize]) as f64;
-        let mean = (0..n).map(|c| lum(c) * e.solid_angle(c) as f64).sum::<f64>() / (4.0 * std::f64::consts::PI);
+        let mean = (0..n)
+            .map(|c| lum(c) * e.solid_angle(c) as f64)
+            .sum::<f64>()
+            / (4.0 * std::f64::consts::PI);
         let ratio = |c: u32| e.pdf(c) as f64 / (lum(c) + FLOOR * mean);
         assert!((0..n).all(|c| (ratio(c) / ratio(0) - 1.0).abs() < 1e-4));
         assert!(e.pdf(7) > e.pdf(8));
         assert!((0..n).all(|c| e.pdf(c) > 0.0));
         let black = Envmap::constant(5, Vec3::ZERO);
-        assert!((0..black.grid.cell_count() as u32).all(|c| (black.pdf(c) - 1.0 / (4.0 * std::f32::consts::PI)).abs() < 1e-5));
+        assert!(
+            (0..black.grid.cell_count() as u32)
+                .all(|c| (black.pdf(c) - 1.0 / (4.0 * std::f32::consts::PI)).abs() < 1e-5)
+        );
     }
 
     #[test]
@@ -279,7 +361,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("env.ron");
         for (text, needle) in [
-            ("Envmap(rings: 2, radiance: [(1, 1, 1)])", "2 rings have 2 cells"),
+            (
+                "Envmap(rings: 2, radiance: [(1, 1, 1)])",
+                "2 rings have 2 cells",
+            ),
             ("Envmap(rings: 0, radiance: [])", "rings"),
             ("Envmap(rings: 2000, radiance: [])", "rings"),
             ("Envmap(rings: 1, radiance: [(1, NaN, 1)])", "radiance"),

@@ -103,7 +103,7 @@ impl Tracer<'_> {
             let t_max = light_hit.map_or(f32::INFINITY, |h| h.0);
             let Some(hit) = self.accel.intersect(o, d, t_max) else {
                 // ---- An emitter seen directly, or through BSDF sampling ----
-                if let Some((_, e)) = light_hit {
+                if let Some(e) = light_hit.map(|h| h.1).or_else(|| lights.escape(d)) {
                     if depth == 0 {
                         if !st.hide_emitters {
                             acc.add(px, e, throughput);
@@ -131,17 +131,20 @@ impl Tracer<'_> {
 
             // ---- Emitter sampling ----
             if use_light {
-                let u_pick = s.rng.next_f32();
-                let u = s.rng.next_2d();
-                if let Some(ls) = lights.sample(sp.p, u_pick, u) {
+                let (u_light, u) = (s.rng.next_2d(), s.rng.next_2d());
+                if let Some(ls) = lights.sample(sp.p, u_light, u) {
                     let cos_s = ls.wi.dot(sp.ns);
                     if cos_s > 0.0 && ls.wi.dot(sp.ng) > 0.0 {
                         // Aim from the offset origin at the sampled point on the emitter; the
                         // emitter itself cannot block its own near side.
                         let o_shadow = offset(sp.p, sp.ng);
-                        let to_light = sp.p + ls.wi * ls.dist - o_shadow;
-                        let len = to_light.length();
-                        let (d_shadow, t_shadow) = (to_light / len, len * (1.0 - 1e-4));
+                        let (d_shadow, t_shadow) = if ls.dist.is_finite() {
+                            let to_light = sp.p + ls.wi * ls.dist - o_shadow;
+                            let len = to_light.length();
+                            (to_light / len, len * (1.0 - 1e-4))
+                        } else {
+                            (ls.wi, f32::INFINITY)
+                        };
                         let blocked = self.accel.occluded(o_shadow, d_shadow, t_shadow)
                             || lights.occludes(o_shadow, d_shadow, t_shadow, ls.emitter);
                         if !blocked {

@@ -1,20 +1,24 @@
-//! The lights a path can reach: spherical area lights (and, later, the environment map).
-//! Each light kind keeps sampling, pdf and evaluation side by side.
+//! The lights a path can reach: spherical area lights and the ring environment map. Each kind
+//! keeps sampling, pdf and evaluation side by side.
 //!
 //! Sphere lights are sampled uniformly in the cone they subtend (pbrt's "sample by solid
-//! angle"); pdfs are per unit solid angle at the shading point and include the probability of
-//! picking the light.
+//! angle"); the envmap by its cell distribution. A light is picked uniformly; pdfs are per unit
+//! solid angle at the shading point and include the probability of picking the light.
 
 use glam::{Vec2, Vec3};
 
 use super::sampling::uniform_cone;
+use crate::envmap::Envmap;
 use crate::scene::SphereLight;
 
 /// Which emitter a path reached. Transport is linear in each emitter's radiance, so
 /// accumulators receive this plus a weight per unit of emitted radiance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Emitter {
+    /// Sphere light `i` of [`Lights::spheres`].
     Sphere(u32),
+    /// Cell `c` of the environment map.
+    EnvCell(u32),
 }
 
 /// A sampled direction toward a light.
@@ -23,7 +27,7 @@ pub struct LightSample {
     pub emitter: Emitter,
     /// Unit direction from the shading point, world space.
     pub wi: Vec3,
-    /// Distance to the emitting surface, metres.
+    /// Distance to the emitting surface, metres (infinite for the envmap).
     pub dist: f32,
     /// Probability density per unit solid angle (including the choice of light).
     pub pdf: f32,
@@ -33,15 +37,30 @@ pub struct LightSample {
 #[derive(Debug, Clone, Default)]
 pub struct Lights {
     pub spheres: Vec<SphereLight>,
+    /// Light from infinitely far away; rays that escape the scene see it.
+    pub env: Option<Envmap>,
 }
 
 impl Lights {
+    /// Sphere lights only.
     pub fn new(spheres: Vec<SphereLight>) -> Lights {
-        Lights { spheres }
+        Lights { spheres, env: None }
+    }
+
+    /// An environment map only.
+    pub fn env(env: Envmap) -> Lights {
+        Lights {
+            spheres: Vec::new(),
+            env: Some(env),
+        }
+    }
+
+    fn count(&self) -> usize {
+        self.spheres.len() + self.env.is_some() as usize
     }
 
     pub fn is_empty(&self) -> bool {
-        self.spheres.is_empty()
+        self.count() == 0
     }
 
     /// Emitted radiance of `emitter` (linear RGB).
@@ -49,37 +68,61 @@ impl Lights {
     pub fn radiance(&self, emitter: Emitter) -> Vec3 {
         match emitter {
             Emitter::Sphere(i) => self.spheres[i as usize].radiance,
+            Emitter::EnvCell(c) => self
+                .env
+                .as_ref()
+                .map_or(Vec3::ZERO, |e| e.radiance()[c as usize]),
         }
     }
 
-    /// Picks a light uniformly with `u_pick` and samples a direction to it with `u`.
+    /// Picks a light uniformly with `u_light.x` (and an envmap cell with `u_light.y`), then a
+    /// direction to it with `u`.
     #[inline]
-    pub fn sample(&self, p: Vec3, u_pick: f32, u: Vec2) -> Option<LightSample> {
-        let n = self.spheres.len();
+    pub fn sample(&self, p: Vec3, u_light: Vec2, u: Vec2) -> Option<LightSample> {
+        let n = self.count();
         if n == 0 {
             return None;
         }
-        let i = ((u_pick * n as f32) as usize).min(n - 1);
-        let (wi, dist, pdf) = sample_sphere(&self.spheres[i], p, u)?;
+        let i = ((u_light.x * n as f32) as usize).min(n - 1);
+        if i < self.spheres.len() {
+            let (wi, dist, pdf) = sample_sphere(&self.spheres[i], p, u)?;
+            return Some(LightSample {
+                emitter: Emitter::Sphere(i as u32),
+                wi,
+                dist,
+                pdf: pdf / n as f32,
+            });
+        }
+        let env = self.env.as_ref()?;
+        let (cell, wi, pdf) = env.sample(u_light.y, u);
         Some(LightSample {
-            emitter: Emitter::Sphere(i as u32),
+            emitter: Emitter::EnvCell(cell),
             wi,
-            dist,
+            dist: f32::INFINITY,
             pdf: pdf / n as f32,
         })
     }
 
-    /// The pdf [`Lights::sample`] has for reaching `emitter` in direction `wi` from `p`.
+    /// The pdf [`Lights::sample`] has for reaching `emitter` (in a direction that does reach
+    /// it) from `p`.
     #[inline]
     pub fn pdf(&self, emitter: Emitter, p: Vec3) -> f32 {
+        let n = self.count() as f32;
         match emitter {
-            Emitter::Sphere(i) => {
-                cone_pdf(&self.spheres[i as usize], p) / self.spheres.len() as f32
-            }
+            Emitter::Sphere(i) => cone_pdf(&self.spheres[i as usize], p) / n,
+            Emitter::EnvCell(c) => self.env.as_ref().map_or(0.0, |e| e.pdf(c)) / n,
         }
     }
 
-    /// The closest emitter along a unit ray within (t_min, t_max).
+    /// The envmap cell a ray escaping in unit direction `d` sees, if there is an envmap.
+    #[inline]
+    pub fn escape(&self, d: Vec3) -> Option<Emitter> {
+        self.env
+            .as_ref()
+            .map(|e| Emitter::EnvCell(e.grid.lookup(d)))
+    }
+
+    /// The closest sphere light along a unit ray within (t_min, t_max).
     #[inline]
     pub fn intersect(&self, o: Vec3, d: Vec3, t_min: f32, t_max: f32) -> Option<(f32, Emitter)> {
         let mut best: Option<(f32, Emitter)> = None;
