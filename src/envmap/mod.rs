@@ -133,10 +133,16 @@ impl Envmap {
             let (start, len) = (g.ring_start(ring) as usize, g.ring_len(ring) as usize);
             let ring_w: f64 = weight[start..start + len].iter().sum();
             let mut in_ring = 0.0;
-            for c in start..start + len {
-                in_ring += weight[c];
-                self.cell_cdf[c] = in_ring / ring_w;
-                self.pdf[c] = (weight[c] / total / self.solid_angle[c] as f64) as f32;
+            let cells = start..start + len;
+            for (((w, cdf), pdf), sa) in weight[cells.clone()]
+                .iter()
+                .zip(&mut self.cell_cdf[cells.clone()])
+                .zip(&mut self.pdf[cells.clone()])
+                .zip(&self.solid_angle[cells])
+            {
+                in_ring += w;
+                *cdf = in_ring / ring_w;
+                *pdf = (w / total / *sa as f64) as f32;
             }
             self.cell_cdf[start + len - 1] = 1.0;
             acc += ring_w / total;
@@ -308,14 +314,14 @@ mod tests {
         // χ² over cells (expected counts ≥ 5 pooled); dof ≈ n − 1 ≤ 89. The 0.001 critical
         // value for 89 dof is ~137.
         let (mut chi2, mut dof, mut pool_o, mut pool_e) = (0.0f64, 0usize, 0.0f64, 0.0f64);
-        for c in 0..n {
+        for (c, &count) in counts.iter().enumerate() {
             let expected = e.pdf(c as u32) as f64 * e.solid_angle(c as u32) as f64 * draws as f64;
             if expected < 5.0 {
-                pool_o += counts[c] as f64;
+                pool_o += count as f64;
                 pool_e += expected;
                 continue;
             }
-            chi2 += (counts[c] as f64 - expected).powi(2) / expected;
+            chi2 += (count as f64 - expected).powi(2) / expected;
             dof += 1;
         }
         if pool_e > 0.0 {
