@@ -218,6 +218,8 @@ fn sidecar(extra_fields: &str, lights: &str) -> Vec<u8> {
     .into_bytes()
 }
 
+const ENV2: &str = "Envmap(rings: 2, radiance: [(1, 1, 1), (0.5, 0.5, 0.5)])";
+
 const LIGHT: &str = "Sphere(center: (0, 3, 0), radius: 0.2, radiance: (10, 10, 10))";
 
 fn cases() -> Vec<Case> {
@@ -477,6 +479,125 @@ fn cases() -> Vec<Case> {
             &["info", "{d}/scene.ron"].to_vec(),
             "scene.ron: no such file",
         ),
+        c(
+            "export width too small",
+            vec![("e.ron", ENV2.into())],
+            &[
+                "export-envmap",
+                "{d}/e.ron",
+                "--out",
+                "{d}/out/e.exr",
+                "--width",
+                "4",
+            ]
+            .to_vec(),
+            "--width",
+        ),
+        c(
+            "export width absurd",
+            vec![("e.ron", ENV2.into())],
+            &[
+                "export-envmap",
+                "{d}/e.ron",
+                "--out",
+                "{d}/out/e.exr",
+                "--width",
+                "100000",
+            ]
+            .to_vec(),
+            "--width",
+        ),
+        c(
+            "envmap wrong count",
+            vec![("e.ron", b"Envmap(rings: 2, radiance: [(1, 1, 1)])".to_vec())],
+            &["export-envmap", "{d}/e.ron", "--out", "{d}/out/e.exr"].to_vec(),
+            "e.ron: 2 rings have 2 cells",
+        ),
+        c(
+            "envmap zero rings",
+            vec![("e.ron", b"Envmap(rings: 0, radiance: [])".to_vec())],
+            &["export-envmap", "{d}/e.ron", "--out", "{d}/out/e.exr"].to_vec(),
+            "e.ron:1:",
+        ),
+        c(
+            "envmap too many rings",
+            vec![("e.ron", b"Envmap(rings: 1001, radiance: [])".to_vec())],
+            &["export-envmap", "{d}/e.ron", "--out", "{d}/out/e.exr"].to_vec(),
+            "rings",
+        ),
+        c(
+            "envmap nan",
+            vec![(
+                "e.ron",
+                b"Envmap(rings: 2, radiance: [(1, 1, 1), (NaN, 1, 1)])".to_vec(),
+            )],
+            &["export-envmap", "{d}/e.ron", "--out", "{d}/out/e.exr"].to_vec(),
+            "e.ron:1:",
+        ),
+        c(
+            "envmap negative",
+            vec![(
+                "e.ron",
+                b"Envmap(rings: 2, radiance: [(1, 1, 1), (1, -2, 1)])".to_vec(),
+            )],
+            &["export-envmap", "{d}/e.ron", "--out", "{d}/out/e.exr"].to_vec(),
+            "radiance must be",
+        ),
+        c(
+            "render with missing envmap",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "render-reference",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--envmap",
+                "{d}/nope.ron",
+            ]
+            .to_vec(),
+            "nope.ron: no such file",
+        ),
+        c(
+            "render with no light at all",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "render-reference",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--no-sphere-lights",
+            ]
+            .to_vec(),
+            "nothing lights the scene",
+        ),
+        c(
+            "import rings zero",
+            vec![],
+            &[
+                "import-envmap",
+                "{d}/x.exr",
+                "--rings",
+                "0",
+                "--out",
+                "{d}/out/e.ron",
+            ]
+            .to_vec(),
+            "--rings",
+        ),
+        c(
+            "import missing exr",
+            vec![],
+            &[
+                "import-envmap",
+                "{d}/x.exr",
+                "--rings",
+                "5",
+                "--out",
+                "{d}/out/e.ron",
+            ]
+            .to_vec(),
+            "x.exr: no such file",
+        ),
     ]
 }
 
@@ -534,4 +655,90 @@ fn bad_inputs_fail_cleanly() {
         failures.len(),
         failures.join("\n")
     );
+}
+
+#[test]
+fn envmap_export_import_round_trip_and_coarse_import_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let cells: Vec<String> = (0..26)
+        .map(|i| format!("({}, {}, 0.25)", i as f32 * 0.5, 26 - i))
+        .collect();
+    std::fs::write(
+        d.join("e.ron"),
+        format!("Envmap(rings: 6, radiance: [{}])", cells.join(", ")),
+    )
+    .unwrap();
+    let p = |f: &str| d.join(f).to_str().unwrap().to_string();
+    for target in ["mitsuba", "blender", "pbrt-v3"] {
+        let o = run(&[
+            "export-envmap",
+            &p("e.ron"),
+            "--out",
+            &p("e.exr"),
+            "--width",
+            "256",
+            "--target",
+            target,
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let o = run(&[
+            "import-envmap",
+            &p("e.exr"),
+            "--rings",
+            "6",
+            "--out",
+            &p("back.ron"),
+            "--target",
+            target,
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let a = lightprobe::envmap::Envmap::load(&d.join("e.ron")).unwrap();
+        let b = lightprobe::envmap::Envmap::load(&d.join("back.ron")).unwrap();
+        assert_eq!(a.radiance(), b.radiance(), "{target}");
+    }
+    let img = lightprobe::imageio::read_exr(&d.join("e.exr")).unwrap();
+    assert_eq!((img.width, img.height), (256, 128));
+    // Too coarse: a 256×128 image cannot fill 200 rings' cells.
+    let o = run(&[
+        "import-envmap",
+        &p("e.exr"),
+        "--rings",
+        "200",
+        "--out",
+        &p("x.ron"),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("too coarse"));
+    assert!(!d.join("x.ron").exists());
+}
+
+#[test]
+fn unknown_enum_values_are_usage_errors() {
+    for args in [
+        &[
+            "export-envmap",
+            "e.ron",
+            "--out",
+            "x.exr",
+            "--target",
+            "maya",
+        ][..],
+        &[
+            "export-envmap",
+            "e.ron",
+            "--out",
+            "x.exr",
+            "--filter",
+            "gauss",
+        ],
+    ] {
+        let o = run(args);
+        assert_eq!(o.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains("invalid value") && !err.contains("panicked"),
+            "{err}"
+        );
+    }
 }
