@@ -8,6 +8,7 @@
 pub mod accel;
 pub mod envmap;
 pub mod error;
+pub mod estimate;
 pub mod imageio;
 pub mod metrics;
 pub mod render;

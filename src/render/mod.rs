@@ -142,17 +142,22 @@ pub fn build_accel(scene: &Scene) -> Accel {
 pub struct Renderer<'a> {
     pub scene: &'a Scene,
     pub lights: &'a Lights,
-    pub accel: Accel,
+    /// Shared, so the same scene can be rendered under other lights without a rebuild.
+    pub accel: std::sync::Arc<Accel>,
 }
 
 impl<'a> Renderer<'a> {
     /// Builds the BVH.
     pub fn new(scene: &'a Scene, lights: &'a Lights) -> Self {
-        Renderer {
-            scene,
-            lights,
-            accel: build_accel(scene),
-        }
+        Renderer { scene, lights, accel: std::sync::Arc::new(build_accel(scene)) }
+    }
+
+    /// The same scene and BVH under other lights.
+    pub fn with_lights<'b>(&self, lights: &'b Lights) -> Renderer<'b>
+    where
+        'a: 'b,
+    {
+        Renderer { scene: self.scene, lights, accel: self.accel.clone() }
     }
 
     fn tracer<'s>(&'s self, settings: &'s RenderSettings) -> Tracer<'s> {
