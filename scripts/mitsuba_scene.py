@@ -35,7 +35,16 @@ Renderer model reproduced here (see lightprobe's docs):
     black occluder sphere just inside each light, because Mitsuba 3.9's
     hidden emitters are transparent to camera rays while lightprobe's occlude.
   * `path` integrator (MIS), max_depth = max_bounces + 1, Russian roulette
-    disabled (rr_depth > max_depth). No environment light.
+    disabled (rr_depth > max_depth). No environment light by default.
+  * Optional environment light (build_scene(envmap=...)): Mitsuba's `envmap`
+    emitter loading a lat-long EXR written by `lightprobe export-envmap`
+    (default target mitsuba) -- or an (H, W, 3) array -- with the default
+    to_world (identity: Mitsuba's envmap is +Y up, u = atan2(x, -z)/2pi,
+    column j at u = (j+0.5)/W, row i at theta = i*pi/(H-1), which is the
+    convention lightprobe exports; scripts/check_mitsuba_envmap.py verifies
+    it), never rotated to make a check pass. With hide_emitters, camera rays
+    that escape see black, as lightprobe's do. build_scene(sphere_lights=False)
+    leaves the sidecar's sphere lights out (render-reference --no-sphere-lights).
 """
 
 from __future__ import annotations
@@ -416,12 +425,27 @@ class MitsubaScene:
         return np.array(img, dtype=np.float32)
 
 
+def envmap_dict(envmap) -> dict:
+    """Mitsuba `envmap` emitter from a lat-long EXR path or an (H, W, 3)
+    float array (Mitsuba convention). Default to_world on purpose: the export
+    must be right as it is."""
+    import mitsuba as mi
+    if isinstance(envmap, (str, Path)):
+        return {"type": "envmap", "filename": str(envmap)}
+    a = np.ascontiguousarray(np.asarray(envmap, dtype=np.float32)[..., :3])
+    return {"type": "envmap", "bitmap": mi.Bitmap(a, mi.Bitmap.PixelFormat.RGB)}
+
+
 def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BIN,
                 spp: int | None = None, max_depth: int | None = None,
                 perturb: str | None = None, info: dict | None = None,
-                meshes: list | None = None) -> MitsubaScene:
+                meshes: list | None = None, envmap=None,
+                sphere_lights: bool = True) -> MitsubaScene:
     """Mitsuba scene + one sensor per view of a lightprobe sidecar. Call
-    set_variant() first. max_depth defaults to the sidecar's max_bounces + 1."""
+    set_variant() first. max_depth defaults to the sidecar's max_bounces + 1.
+    envmap: lat-long EXR path or (H, W, 3) array for an `envmap` emitter
+    (None: no environment light). sphere_lights=False leaves the sidecar's
+    sphere lights out."""
     import mitsuba as mi
     if perturb is not None and perturb not in PERTURBATIONS:
         raise ValueError(f"unknown perturbation {perturb!r}")
@@ -434,7 +458,10 @@ def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BI
     d = {"type": "scene", "integrator": integrator_dict(max_depth)}
     for i, md in enumerate(meshes):
         d[f"mesh_{i}_{md.name}"] = mitsuba_mesh(md, perturb)
-    d.update(light_dicts(info["lights"], perturb))
+    if sphere_lights:
+        d.update(light_dicts(info["lights"], perturb))
+    if envmap is not None:
+        d["envmap"] = envmap_dict(envmap)
     scene = mi.load_dict(d)
     sensors = {c["name"]: mi.load_dict(sensor_dict(c, spp, perturb)) for c in info["cameras"]}
     return MitsubaScene(scene, sensors, spp, max_depth, info, meshes, mi.variant())
