@@ -10,8 +10,9 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
-use lightprobe::envmap::Envmap;
 use lightprobe::envmap::latlong::{self, Filter, Target};
+use lightprobe::envmap::{Envmap, RingGrid};
+use lightprobe::estimate::{self, FitSettings, Solver};
 use lightprobe::imageio::{self, Image};
 use lightprobe::metrics;
 use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
@@ -36,6 +37,10 @@ enum Command {
     /// Photometric error of an image against a reference (relMAE, MAE, RMSE, relMSE, PSNR),
     /// over the pixels where the reference's alpha is > 0 (its geometry mask).
     Compare(CompareArgs),
+    /// Estimate the ring environment map that best explains reference images (rendered from
+    /// the sidecar's sphere lights, or given with --reference), re-render it with a fresh seed
+    /// and report the photometric error against the Monte Carlo noise floor.
+    Estimate(EstimateArgs),
     /// Write a ring envmap (envmap.ron) as a lat-long OpenEXR that another renderer loads the
     /// right way up (default: Mitsuba 3's `envmap`, +Y up, poles on the first and last rows).
     ExportEnvmap(ExportArgs),
@@ -115,19 +120,67 @@ struct CompareArgs {
 }
 
 #[derive(clap::Args)]
+struct EstimateArgs {
+    /// The scene sidecar (.ron).
+    scene: PathBuf,
+    /// Output folder (created if missing).
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Folder of reference EXRs named <view>.exr (default: render them from the sidecar's
+    /// sphere lights into OUT/reference/).
+    #[arg(long)]
+    reference: Option<PathBuf>,
+    /// Rings of the envmap (default: the sidecar's).
+    #[arg(long)]
+    rings: Option<u32>,
+    #[arg(long, value_enum, default_value_t = Solver::Nnls)]
+    solver: Solver,
+    /// Samples per pixel of the transport estimate (default: the sidecar's spp).
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Smoothness weight between neighbouring cells (relative; 0 = none).
+    #[arg(long, default_value_t = 0.0)]
+    smooth: f64,
+    /// Ridge weight pulling cells toward zero (relative to the mean diagonal of TᵀT): keeps
+    /// cells the views barely see from taking wild values. 0.01 shrinks a cell of average
+    /// visibility by about 1%.
+    #[arg(long, default_value_t = 1e-2)]
+    ridge: f64,
+    /// Transport rounds of the gradient solver.
+    #[arg(long, default_value_t = 3)]
+    rounds: u32,
+    /// Also compute the representation limit: the best envmap of this resolution, fitted to a
+    /// transport with 8× the samples (slower).
+    #[arg(long)]
+    oracle: bool,
+    /// Time budget per channel solve, seconds.
+    #[arg(long, default_value_t = 60.0)]
+    time_limit: f64,
+    /// Print report.json to stdout instead of a summary.
+    #[arg(long)]
+    json: bool,
+    /// No progress bars.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+#[derive(clap::Args)]
 struct ExportArgs {
     /// The ring envmap (envmap.ron).
     envmap: PathBuf,
     /// Output lat-long EXR.
     #[arg(long, short)]
     out: PathBuf,
-    /// Image width in pixels (height = width / 2), 8..=16384.
-    #[arg(long, default_value_t = 1024)]
+    /// Image width in pixels (height = width / 2), 8..=16384. Renderers interpolate between
+    /// pixels, which blurs cell edges by half a pixel: measured in Mitsuba, the worst cell
+    /// (a pole cap of 9 rings) loses 2.7% of its power at 1024 and 0.7% at 4096.
+    #[arg(long, default_value_t = 4096)]
     width: u32,
     /// Whose lat-long convention to write.
     #[arg(long, value_enum, default_value_t = Target::Mitsuba)]
     target: Target,
-    /// `box`: the cell under each pixel (exact); `smooth`: interpolated between grid points.
+    /// `box`: the cell under each pixel centre (import-envmap gives the cells back exactly);
+    /// `smooth`: interpolated between grid points.
     #[arg(long, value_enum, default_value_t = Filter::Box)]
     filter: Filter,
 }
@@ -171,6 +224,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::RenderReference(args) => render_reference(args),
         Command::Compare(args) => compare(args),
+        Command::Estimate(args) => estimate(args),
         Command::ExportEnvmap(args) => export_envmap(args),
         Command::ImportEnvmap(args) => import_envmap(args),
         Command::Info { scene } => info(&scene),
@@ -527,6 +581,384 @@ fn import_envmap(a: ImportArgs) -> anyhow::Result<()> {
         img.width,
         img.height,
         a.image.display()
+    );
+    Ok(())
+}
+
+/// Peak resident memory of this process, bytes (Linux; 0 elsewhere).
+fn peak_memory_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+/// Memory this machine can still give, bytes (Linux; None elsewhere).
+fn available_memory_bytes() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let kb: u64 = s
+        .lines()
+        .find(|l| l.starts_with("MemAvailable:"))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()?;
+    Some(kb * 1024)
+}
+
+fn metrics_json(m: &metrics::Metrics) -> serde_json::Value {
+    serde_json::to_value(m).unwrap_or_default()
+}
+
+fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
+    let t_all = Instant::now();
+    let scene = Scene::load(&a.scene)?;
+    let rings = a.rings.unwrap_or(scene.settings.rings);
+    if !(1..=sidecar::MAX_RINGS).contains(&rings) {
+        bail!(
+            "--rings must be between 1 and {}, got {rings}",
+            sidecar::MAX_RINGS
+        );
+    }
+    let spp = a.spp.unwrap_or(scene.settings.spp);
+    if !(1..=sidecar::MAX_SPP).contains(&spp) {
+        bail!("--spp must be between 1 and {}", sidecar::MAX_SPP);
+    }
+    if !(a.smooth.is_finite() && a.smooth >= 0.0) {
+        bail!("--smooth must be a finite number >= 0");
+    }
+    if !(a.ridge.is_finite() && a.ridge >= 0.0) {
+        bail!("--ridge must be a finite number >= 0");
+    }
+    if !(a.time_limit.is_finite() && a.time_limit > 0.0) {
+        bail!("--time-limit must be a positive number of seconds");
+    }
+    if a.rounds == 0 || a.rounds > 100 {
+        bail!("--rounds must be between 1 and 100");
+    }
+    if a.reference.is_none() && scene.lights.is_empty() {
+        bail!(
+            "{}: has no sphere lights to render references from; pass --reference DIR",
+            a.scene.display()
+        );
+    }
+    let (w, h) = (scene.settings.width, scene.settings.height);
+    let cells = estimate::transport::Transport::memory_needed(
+        (w * h) as usize * scene.cameras.len(),
+        RingGrid::new(rings).cell_count(),
+    );
+    // Transport rows, one channel's f64 copy for the Gram product, and the per-pixel
+    // accumulators of one view while it renders.
+    let n = RingGrid::new(rings).cell_count() as u64;
+    let need = cells as u64
+        + (w * h) as u64 * scene.cameras.len() as u64 * n * 8
+        + (w * h) as u64 * n * 12
+        + n * n * 16;
+    if let Some(avail) = available_memory_bytes()
+        && need > avail / 10 * 9
+    {
+        bail!(
+            "{rings} rings ({n} cells) at {w}×{h} × {} views would need about {:.1} GiB, but only {:.1} GiB is available; use fewer rings",
+            scene.cameras.len(),
+            need as f64 / (1u64 << 30) as f64,
+            avail as f64 / (1u64 << 30) as f64
+        );
+    }
+    prepare_out_dir(&a.out)?;
+    let settings = RenderSettings::from_scene(&scene.settings);
+    let true_lights = Lights::new(scene.lights.clone());
+    let renderer = Renderer::new(&scene, &true_lights);
+    let views: Vec<&lightprobe::scene::Camera> = scene.cameras.iter().collect();
+    let bar = |what: &str, passes: u64| {
+        progress_bar((w * h) as u64 * views.len() as u64 * passes, a.quiet, what)
+    };
+
+    // ---- References ----
+    let t = Instant::now();
+    let mut references = Vec::new();
+    match &a.reference {
+        Some(dir) => {
+            for cam in &views {
+                let p = dir.join(format!("{}.exr", cam.name));
+                let img = imageio::read_exr(&p)?;
+                if (img.width, img.height) != (w, h) {
+                    bail!(
+                        "{}: is {}×{}, but the sidecar's image is {w}×{h}",
+                        p.display(),
+                        img.width,
+                        img.height
+                    );
+                }
+                if let Some(i) = img.rgb.iter().position(|c| !c.is_finite()) {
+                    bail!(
+                        "{}: pixel ({}, {}) is not finite",
+                        p.display(),
+                        i as u32 % w,
+                        i as u32 / w
+                    );
+                }
+                references.push(img);
+            }
+        }
+        None => {
+            let pb = bar("references", 1);
+            std::fs::create_dir_all(a.out.join("reference"))
+                .map_err(|e| lightprobe::Error::io(a.out.join("reference"), e))?;
+            for (i, cam) in views.iter().enumerate() {
+                let img = renderer.render_radiance(cam, i as u64, &settings, &|k| pb.inc(k));
+                imageio::write_exr(
+                    &a.out.join("reference").join(format!("{}.exr", cam.name)),
+                    &img,
+                )?;
+                references.push(img);
+            }
+            pb.finish_and_clear();
+        }
+    }
+    let reference_seconds = t.elapsed().as_secs_f64();
+    // The geometry mask: the reference's coverage alpha, else pixel centres that hit geometry.
+    let masks: Vec<Vec<bool>> = references
+        .iter()
+        .zip(&views)
+        .map(|(img, cam)| match &img.alpha {
+            Some(_) => metrics::mask_of(img),
+            None => renderer
+                .aovs(cam)
+                .depth
+                .rgb
+                .iter()
+                .map(|d| d.x > 0.0)
+                .collect(),
+        })
+        .collect();
+
+    // ---- Noise floor: the reference lighting again, another seed ----
+    let t = Instant::now();
+    let mut noise_floor = Vec::new();
+    if !scene.lights.is_empty() {
+        let pb = bar("noise floor", 1);
+        let mut st = settings;
+        st.seed = st.seed.wrapping_add(7919);
+        for (i, cam) in views.iter().enumerate() {
+            let img = renderer.render_radiance(cam, i as u64, &st, &|k| pb.inc(k));
+            noise_floor.push(metrics::compare(&img, &references[i], &masks[i])?);
+        }
+        pb.finish_and_clear();
+    }
+    let noise_seconds = t.elapsed().as_secs_f64();
+
+    // ---- Fit ----
+    let mut transport_settings = settings;
+    transport_settings.spp = spp;
+    transport_settings.seed = settings.seed.wrapping_add(1);
+    let fit_settings = FitSettings {
+        rings,
+        transport: transport_settings,
+        solver: a.solver,
+        smooth: a.smooth,
+        ridge: a.ridge,
+        gradient_rounds: a.rounds,
+        time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+    };
+    let passes = if a.solver == Solver::Gradient {
+        a.rounds as u64
+    } else {
+        1
+    };
+    let pb = bar("transport", passes);
+    let fit = estimate::fit(
+        &renderer,
+        &views,
+        &references,
+        &masks,
+        &fit_settings,
+        &|k| pb.inc(k),
+    );
+    pb.finish_and_clear();
+    for (ch, c) in fit.channels.iter().enumerate() {
+        if !c.converged {
+            eprintln!(
+                "lightprobe: warning: the {:?} solver did not converge in channel {} within {} iterations / {} s (KKT violation {:.2e})",
+                a.solver,
+                ["R", "G", "B"][ch],
+                c.iterations,
+                a.time_limit,
+                c.kkt_violation
+            );
+        }
+    }
+    fit.envmap.save(&a.out.join("envmap.ron"))?;
+    let attributes = exr::meta::header::LayerAttributes {
+        environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
+        ..Default::default()
+    };
+    imageio::write_exr_with(
+        &a.out.join("envmap.exr"),
+        &latlong::export(&fit.envmap, Target::Mitsuba, Filter::Box, 4096),
+        attributes,
+    )?;
+
+    // ---- Re-render the estimate with a seed the fit never saw ----
+    let t = Instant::now();
+    let est_lights = Lights::env(fit.envmap.clone());
+    let est_renderer = renderer.with_lights(&est_lights);
+    let mut st = settings;
+    st.seed = settings.seed.wrapping_add(104_729);
+    let pb = bar("re-render", 1);
+    std::fs::create_dir_all(a.out.join("estimate"))
+        .map_err(|e| lightprobe::Error::io(a.out.join("estimate"), e))?;
+    let mut errors = Vec::new();
+    for (i, cam) in views.iter().enumerate() {
+        let img = est_renderer.render_radiance(cam, i as u64, &st, &|k| pb.inc(k));
+        imageio::write_exr(
+            &a.out.join("estimate").join(format!("{}.exr", cam.name)),
+            &img,
+        )?;
+        imageio::write_png(
+            &a.out.join("estimate").join(format!("{}.png", cam.name)),
+            &img,
+            imageio::auto_exposure(&references[i]),
+        )?;
+        metrics::write_heatmap(
+            &a.out
+                .join("estimate")
+                .join(format!("{}.error.png", cam.name)),
+            &img,
+            &references[i],
+            &masks[i],
+            None,
+        )?;
+        errors.push(metrics::compare(&img, &references[i], &masks[i])?);
+    }
+    pb.finish_and_clear();
+    let rerender_seconds = t.elapsed().as_secs_f64();
+
+    // ---- Representation limit (optional) ----
+    let t = Instant::now();
+    let mut limit = Vec::new();
+    if a.oracle {
+        let mut oracle_settings = fit_settings;
+        oracle_settings.solver = Solver::Nnls;
+        oracle_settings.transport.spp = spp.saturating_mul(8).min(sidecar::MAX_SPP);
+        oracle_settings.transport.seed = settings.seed.wrapping_add(31_337);
+        let pb = bar("oracle", 8);
+        let best = estimate::fit(
+            &renderer,
+            &views,
+            &references,
+            &masks,
+            &oracle_settings,
+            &|k| pb.inc(k),
+        );
+        pb.finish_and_clear();
+        let best_lights = Lights::env(best.envmap.clone());
+        let best_renderer = renderer.with_lights(&best_lights);
+        for (i, cam) in views.iter().enumerate() {
+            let img = best_renderer.render_radiance(cam, i as u64, &st, &|_| {});
+            limit.push(metrics::compare(&img, &references[i], &masks[i])?);
+        }
+    }
+    let oracle_seconds = t.elapsed().as_secs_f64();
+
+    let recovery = estimate::recovery::recover(&fit.envmap, &scene.lights, scene.center());
+    let per_view: Vec<_> = views
+        .iter()
+        .enumerate()
+        .map(|(i, cam)| {
+            let e = &errors[i];
+            json!({
+                "view": cam.name,
+                "estimate": metrics_json(e),
+                "noise_floor": noise_floor.get(i).map(metrics_json),
+                "representation_limit": limit.get(i).map(metrics_json),
+                "rel_mae_over_noise_floor": noise_floor.get(i).map(|n| e.rel_mae / n.rel_mae),
+                "rel_mae_over_representation_limit": limit.get(i).map(|l| e.rel_mae / l.rel_mae),
+            })
+        })
+        .collect();
+    let mean = |v: &[metrics::Metrics]| {
+        if v.is_empty() {
+            None
+        } else {
+            Some(v.iter().map(|m| m.rel_mae).sum::<f64>() / v.len() as f64)
+        }
+    };
+    let report = json!({
+        "lightprobe_version": lightprobe::VERSION,
+        "scene": a.scene,
+        "rings": rings,
+        "cells": fit.envmap.grid.cell_count(),
+        "solver": a.solver,
+        "smooth": a.smooth,
+        "ridge": a.ridge,
+        "transport_spp": spp,
+        "settings": settings,
+        "rel_mae": mean(&errors),
+        "noise_floor_rel_mae": mean(&noise_floor),
+        "representation_limit_rel_mae": mean(&limit),
+        "views": per_view,
+        "channels": fit.channels,
+        "light_recovery": recovery,
+        "timings": {
+            "references_seconds": reference_seconds,
+            "noise_floor_seconds": noise_seconds,
+            "transport_seconds": fit.transport_seconds,
+            "solve_seconds": fit.solve_seconds,
+            "fit_seconds": fit.transport_seconds + fit.solve_seconds,
+            "rerender_seconds": rerender_seconds,
+            "oracle_seconds": oracle_seconds,
+            "total_seconds": t_all.elapsed().as_secs_f64(),
+        },
+        "memory": { "transport_bytes": fit.transport_bytes, "peak_bytes": peak_memory_bytes() },
+        "threads": rayon::current_num_threads(),
+    });
+    let text = serde_json::to_string_pretty(&report)? + "\n";
+    imageio::write_bytes(&a.out.join("report.json"), text.as_bytes())?;
+    if a.json {
+        print!("{text}");
+        return Ok(());
+    }
+    println!(
+        "{rings} rings ({} cells), {:?} solver, transport {spp} spp",
+        fit.envmap.grid.cell_count(),
+        a.solver
+    );
+    for (i, cam) in views.iter().enumerate() {
+        let mut line = format!("{:<12} relMAE {:.2}%", cam.name, 100.0 * errors[i].rel_mae);
+        if let Some(nf) = noise_floor.get(i) {
+            line += &format!(
+                "  noise floor {:.2}% (×{:.2})",
+                100.0 * nf.rel_mae,
+                errors[i].rel_mae / nf.rel_mae
+            );
+        }
+        if let Some(l) = limit.get(i) {
+            line += &format!(
+                "  representation limit {:.2}% (×{:.2})",
+                100.0 * l.rel_mae,
+                errors[i].rel_mae / l.rel_mae
+            );
+        }
+        println!("{line}");
+    }
+    for (k, r) in recovery.iter().enumerate() {
+        println!(
+            "light {k}: direction off by {:.1}°, power ratio {:.2}",
+            r.angle_error_degrees, r.power_ratio
+        );
+    }
+    println!(
+        "fit {:.2} s (transport {:.2} s, solve {:.2} s); total {:.1} s; peak memory {:.0} MiB; {}",
+        fit.transport_seconds + fit.solve_seconds,
+        fit.transport_seconds,
+        fit.solve_seconds,
+        t_all.elapsed().as_secs_f64(),
+        peak_memory_bytes() as f64 / (1u64 << 20) as f64,
+        a.out.join("report.json").display()
     );
     Ok(())
 }

@@ -1,8 +1,272 @@
 //! Estimating the environment map that best explains reference images.
 //!
-//! The one path tracer estimates the transport T ([`transport`]); solvers ([`nnls`]) fit the
+//! The one path tracer estimates the transport T ([`transport`]); a solver ([`nnls`]) fits the
 //! per-cell radiance λ ≥ 0 to the references, per colour channel, over the masked pixels of
-//! every view jointly.
+//! every view jointly: `min ‖T_α λ_α − I_α‖² (+ μ·smoothness)` subject to `λ_α ≥ 0`.
+//!
+//! - `nnls` (default): cells sampled in proportion to solid angle, then exact NNLS.
+//! - `gradient`: the paper's method — projected gradient descent with a backtracking line
+//!   search, re-estimating T between rounds with importance sampling from the current estimate
+//!   (sequential Monte Carlo).
 
 pub mod nnls;
+pub mod recovery;
 pub mod transport;
+
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use serde::Serialize;
+
+use crate::envmap::{Envmap, RingGrid};
+use crate::imageio::Image;
+use crate::render::{RenderSettings, Renderer};
+use crate::scene::Camera;
+pub use transport::{Transport, estimate_transport};
+
+/// Which solver fits λ.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Solver {
+    /// Exact non-negative least squares (active set) on the normal equations.
+    Nnls,
+    /// The paper's projected gradient descent with sequential Monte Carlo re-sampling.
+    Gradient,
+}
+
+/// How to fit.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct FitSettings {
+    pub rings: u32,
+    /// Samples, bounces and seed of the transport estimate.
+    pub transport: RenderSettings,
+    pub solver: Solver,
+    /// Weight of the smoothness term between neighbouring cells, relative to the data term's
+    /// scale (mean diagonal of TᵀT); 0 = none.
+    pub smooth: f64,
+    /// Weight of a ridge pulling every cell toward zero, relative to the mean diagonal of TᵀT:
+    /// cells the views barely see stay dark instead of taking wild values; 0 = none.
+    pub ridge: f64,
+    /// Transport rounds of the gradient solver (each re-sampled from the current estimate).
+    pub gradient_rounds: u32,
+    /// Wall-clock budget of each channel's solve.
+    pub time_limit: Duration,
+}
+
+/// One channel's solve.
+#[derive(Debug, Clone, Serialize)]
+pub struct ChannelFit {
+    pub iterations: usize,
+    pub kkt_violation: f64,
+    pub converged: bool,
+    /// Objective ‖Tλ − I‖² after each iteration.
+    pub objective: Vec<f64>,
+}
+
+/// A fitted envmap and how it was found.
+pub struct Fit {
+    pub envmap: Envmap,
+    pub channels: Vec<ChannelFit>,
+    pub transport_seconds: f64,
+    pub solve_seconds: f64,
+    pub transport_bytes: usize,
+}
+
+/// Pairs of neighbouring cells: adjacent in a ring, or overlapping in azimuth across rings.
+pub fn neighbours(grid: &RingGrid) -> Vec<(u32, u32)> {
+    let mut pairs = std::collections::BTreeSet::new();
+    for ring in 0..grid.rings() {
+        let (start, n) = (grid.ring_start(ring), grid.ring_len(ring));
+        if n > 1 {
+            for j in 0..n {
+                let (a, b) = (start + j, start + (j + 1) % n);
+                pairs.insert((a.min(b), a.max(b)));
+            }
+        }
+        if ring + 1 < grid.rings() {
+            let (next_start, m) = (grid.ring_start(ring + 1), grid.ring_len(ring + 1));
+            let k = 4 * n.max(m);
+            for s in 0..k {
+                let phi = std::f64::consts::TAU * (s as f64 + 0.5) / k as f64;
+                let a = start + ((phi * n as f64 / std::f64::consts::TAU).round() as u32 % n);
+                let b = next_start + ((phi * m as f64 / std::f64::consts::TAU).round() as u32 % m);
+                pairs.insert((a.min(b), a.max(b)));
+            }
+        }
+    }
+    pairs.into_iter().collect()
+}
+
+/// Normal equations of one channel: (TᵀT + smoothness, TᵀI, ‖I‖²), dense row-major f64.
+fn normal_equations(
+    tr: &Transport,
+    ch: usize,
+    y: &[f64],
+    smooth_pairs: &[(u32, u32)],
+    smooth: f64,
+    ridge: f64,
+) -> (Vec<f64>, Vec<f64>, f64) {
+    let (m, n) = (tr.rows, tr.cells);
+    let t = faer::Mat::<f64>::from_fn(m, n, |i, j| tr.t[ch][i * n + j] as f64);
+    let yv = faer::Mat::<f64>::from_fn(m, 1, |i, _| y[i]);
+    let gram = t.transpose() * &t;
+    let tb = t.transpose() * &yv;
+    let mut g = vec![0.0; n * n];
+    for i in 0..n {
+        for j in 0..n {
+            g[i * n + j] = gram[(i, j)];
+        }
+    }
+    let mean_diag = (0..n).map(|i| g[i * n + i]).sum::<f64>() / n as f64;
+    if ridge > 0.0 {
+        for i in 0..n {
+            g[i * n + i] += ridge * mean_diag;
+        }
+    }
+    if smooth > 0.0 {
+        let scale = smooth * mean_diag;
+        for &(a, b) in smooth_pairs {
+            let (a, b) = (a as usize, b as usize);
+            g[a * n + a] += scale;
+            g[b * n + b] += scale;
+            g[a * n + b] -= scale;
+            g[b * n + a] -= scale;
+        }
+    }
+    let b: Vec<f64> = (0..n).map(|i| tb[(i, 0)]).collect();
+    (g, b, y.iter().map(|v| v * v).sum())
+}
+
+/// The values of the masked pixels of every reference, in transport row order, per channel.
+fn observed(tr: &Transport, references: &[Image]) -> [Vec<f64>; 3] {
+    std::array::from_fn(|ch| {
+        tr.pixel_of_row
+            .iter()
+            .map(|&(v, i)| references[v].rgb[i as usize][ch] as f64)
+            .collect()
+    })
+}
+
+/// Fits an envmap of `settings.rings` rings to `references` (masked by `masks`), seen by
+/// `cameras` in the scene of `renderer`.
+pub fn fit(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    settings: &FitSettings,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Fit {
+    let rings = settings.rings;
+    let grid = RingGrid::new(rings);
+    let n = grid.cell_count();
+    let pairs = if settings.smooth > 0.0 {
+        neighbours(&grid)
+    } else {
+        Vec::new()
+    };
+    let mut sampling = Envmap::constant(rings, Vec3::ONE);
+    let mut lambda = vec![vec![0.0f64; n]; 3];
+    let mut channels: Vec<ChannelFit> = (0..3)
+        .map(|_| ChannelFit {
+            iterations: 0,
+            kkt_violation: 0.0,
+            converged: false,
+            objective: Vec::new(),
+        })
+        .collect();
+    let (mut transport_seconds, mut solve_seconds, mut transport_bytes) = (0.0, 0.0, 0);
+    let rounds = match settings.solver {
+        Solver::Nnls => 1,
+        Solver::Gradient => settings.gradient_rounds.max(1),
+    };
+    for round in 0..rounds {
+        let t0 = Instant::now();
+        let mut st = settings.transport;
+        st.seed = st.seed.wrapping_add(round as u64 * 0x9E37_79B9);
+        let tr = estimate_transport(renderer, cameras, masks, &sampling, &st, 1000, progress);
+        transport_seconds += t0.elapsed().as_secs_f64();
+        transport_bytes = transport_bytes.max(tr.memory_bytes());
+        let y = observed(&tr, references);
+        let t1 = Instant::now();
+        for ch in 0..3 {
+            let (g, b, yy) =
+                normal_equations(&tr, ch, &y[ch], &pairs, settings.smooth, settings.ridge);
+            let s = match settings.solver {
+                Solver::Nnls => nnls::nnls(&g, &b, 1e-9, 20 * n + 100, settings.time_limit),
+                Solver::Gradient => nnls::projected_gradient(
+                    &g,
+                    &b,
+                    &lambda[ch],
+                    1e-6,
+                    100_000,
+                    settings.time_limit / rounds,
+                ),
+            };
+            let c = &mut channels[ch];
+            c.iterations += s.iterations;
+            c.kkt_violation = s.kkt_violation;
+            c.converged = s.converged;
+            // ‖Tλ − y‖² = 2·(½λᵀGλ − bᵀλ) + ‖y‖² (exact without regularisation).
+            c.objective
+                .extend(s.objective.iter().map(|f| (2.0 * f + yy).max(0.0)));
+            lambda[ch] = s.x;
+        }
+        solve_seconds += t1.elapsed().as_secs_f64();
+        let radiance: Vec<Vec3> = (0..n)
+            .map(|c| {
+                Vec3::new(
+                    lambda[0][c] as f32,
+                    lambda[1][c] as f32,
+                    lambda[2][c] as f32,
+                )
+            })
+            .collect();
+        sampling = Envmap::new(rings, radiance).expect("solver output is finite and non-negative");
+    }
+    Fit {
+        envmap: sampling,
+        channels,
+        transport_seconds,
+        solve_seconds,
+        transport_bytes,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn neighbours_are_symmetric_local_and_connect_the_grid() {
+        for rings in [2, 3, 9, 21] {
+            let g = RingGrid::new(rings);
+            let pairs = neighbours(&g);
+            let n = g.cell_count();
+            // Connected: a union-find over the pairs ends in one set.
+            let mut parent: Vec<usize> = (0..n).collect();
+            fn find(p: &mut Vec<usize>, i: usize) -> usize {
+                if p[i] != i {
+                    let r = find(p, p[i]);
+                    p[i] = r;
+                }
+                p[i]
+            }
+            for &(a, b) in &pairs {
+                assert!(a < b);
+                let d = g.center(a).angle_between(g.center(b));
+                assert!(
+                    d < 2.5 * std::f32::consts::PI / (rings - 1) as f32,
+                    "rings {rings}: {a}-{b} {d}"
+                );
+                let (ra, rb) = (find(&mut parent, a as usize), find(&mut parent, b as usize));
+                parent[ra] = rb;
+            }
+            let root = find(&mut parent, 0);
+            assert!(
+                (0..n).all(|i| find(&mut parent, i) == root),
+                "rings {rings}"
+            );
+        }
+    }
+}

@@ -36,7 +36,10 @@ fn matvec(g: &[f64], x: &[f64]) -> Vec<f64> {
 
 /// The relative KKT violation of `x` (see [`Solution::kkt_violation`]).
 pub fn kkt_violation(g: &[f64], b: &[f64], x: &[f64]) -> f64 {
-    let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(f64::MIN_POSITIVE);
+    let scale = b
+        .iter()
+        .fold(0.0f64, |m, v| m.max(v.abs()))
+        .max(f64::MIN_POSITIVE);
     let gx = matvec(g, x);
     let mut worst = 0.0f64;
     for i in 0..x.len() {
@@ -120,14 +123,22 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
     let mut iterations = 0;
     let mut converged = false;
     if scale == 0.0 {
-        return Solution { x, iterations, kkt_violation: 0.0, converged: true, objective: vec![0.0] };
+        return Solution {
+            x,
+            iterations,
+            kkt_violation: 0.0,
+            converged: true,
+            objective: vec![0.0],
+        };
     }
     let tol_abs = tol * scale;
     loop {
         let gx = matvec(g, &x);
         let w: Vec<f64> = (0..n).map(|i| b[i] - gx[i]).collect();
         // The most promising variable not yet free.
-        let candidate = (0..n).filter(|&i| !passive[i]).max_by(|&i, &j| w[i].total_cmp(&w[j]));
+        let candidate = (0..n)
+            .filter(|&i| !passive[i])
+            .max_by(|&i, &j| w[i].total_cmp(&w[j]));
         let Some(j) = candidate.filter(|&j| w[j] > tol_abs) else {
             converged = true;
             break;
@@ -164,7 +175,9 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
             }
             for (k, &i) in p.iter().enumerate() {
                 x[i] += alpha * (s[k] - x[i]);
-                if x[i] <= 1e-15 * scale.max(1.0) || (s[k] <= 0.0 && (x[i] - 0.0).abs() <= f64::EPSILON * x[i].abs().max(1.0)) {
+                if x[i] <= 1e-15 * scale.max(1.0)
+                    || (s[k] <= 0.0 && (x[i] - 0.0).abs() <= f64::EPSILON * x[i].abs().max(1.0))
+                {
                     x[i] = 0.0;
                     passive[i] = false;
                 }
@@ -176,24 +189,49 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
         objective_trace.push(objective(g, b, &x));
     }
     let kkt = kkt_violation(g, b, &x);
-    Solution { x, iterations, kkt_violation: kkt, converged, objective: objective_trace }
+    Solution {
+        x,
+        iterations,
+        kkt_violation: kkt,
+        converged,
+        objective: objective_trace,
+    }
 }
 
 /// The paper's solver: projected gradient descent with a backtracking (Armijo) line search
 /// from `x0`, stopped when the projected gradient's norm falls below `tol` × its initial value
 /// (the first-order optimality of the Wolfe conditions), or after `max_iter` / `time_limit`.
-pub fn projected_gradient(g: &[f64], b: &[f64], x0: &[f64], tol: f64, max_iter: usize, time_limit: Duration) -> Solution {
+pub fn projected_gradient(
+    g: &[f64],
+    b: &[f64],
+    x0: &[f64],
+    tol: f64,
+    max_iter: usize,
+    time_limit: Duration,
+) -> Solution {
     let n = b.len();
     let start = Instant::now();
     let mut x: Vec<f64> = x0.iter().map(|v| v.max(0.0)).collect();
     let proj_grad_norm = |x: &[f64], grad: &[f64]| -> f64 {
-        x.iter().zip(grad).map(|(&xi, &gi)| if xi > 0.0 || gi < 0.0 { gi * gi } else { 0.0 }).sum::<f64>().sqrt()
+        x.iter()
+            .zip(grad)
+            .map(|(&xi, &gi)| if xi > 0.0 || gi < 0.0 { gi * gi } else { 0.0 })
+            .sum::<f64>()
+            .sqrt()
     };
-    let mut grad: Vec<f64> = matvec(g, &x).iter().zip(b).map(|(gx, bi)| gx - bi).collect();
+    let mut grad: Vec<f64> = matvec(g, &x)
+        .iter()
+        .zip(b)
+        .map(|(gx, bi)| gx - bi)
+        .collect();
     let mut f = objective(g, b, &x);
     let g0 = proj_grad_norm(&x, &grad).max(f64::MIN_POSITIVE);
     // Initial step: 1 / (an upper bound of G's largest eigenvalue: the max row sum).
-    let lipschitz = g.chunks_exact(n).map(|r| r.iter().map(|v| v.abs()).sum::<f64>()).fold(0.0, f64::max).max(f64::MIN_POSITIVE);
+    let lipschitz = g
+        .chunks_exact(n)
+        .map(|r| r.iter().map(|v| v.abs()).sum::<f64>())
+        .fold(0.0, f64::max)
+        .max(f64::MIN_POSITIVE);
     let mut step = 1.0 / lipschitz;
     let mut trace = vec![f];
     let mut iterations = 0;
@@ -206,7 +244,11 @@ pub fn projected_gradient(g: &[f64], b: &[f64], x0: &[f64], tol: f64, max_iter: 
         iterations += 1;
         step *= 2.0; // let the step grow again after easy iterations
         loop {
-            let xn: Vec<f64> = x.iter().zip(&grad).map(|(xi, gi)| (xi - step * gi).max(0.0)).collect();
+            let xn: Vec<f64> = x
+                .iter()
+                .zip(&grad)
+                .map(|(xi, gi)| (xi - step * gi).max(0.0))
+                .collect();
             let fn_ = objective(g, b, &xn);
             let d: Vec<f64> = xn.iter().zip(&x).map(|(a, b)| a - b).collect();
             // Armijo sufficient decrease for projected steps.
@@ -217,11 +259,21 @@ pub fn projected_gradient(g: &[f64], b: &[f64], x0: &[f64], tol: f64, max_iter: 
             }
             step *= 0.5;
         }
-        grad = matvec(g, &x).iter().zip(b).map(|(gx, bi)| gx - bi).collect();
+        grad = matvec(g, &x)
+            .iter()
+            .zip(b)
+            .map(|(gx, bi)| gx - bi)
+            .collect();
         trace.push(f);
     }
     let kkt = kkt_violation(g, b, &x);
-    Solution { x, iterations, kkt_violation: kkt, converged, objective: trace }
+    Solution {
+        x,
+        iterations,
+        kkt_violation: kkt,
+        converged,
+        objective: trace,
+    }
 }
 
 #[cfg(test)]
@@ -233,8 +285,18 @@ mod tests {
     fn problem(m: usize, n: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
         let mut r = Rng::new(seed);
         let t: Vec<f64> = (0..m * n).map(|_| r.next_f32() as f64).collect();
-        let x_true: Vec<f64> = (0..n).map(|i| if i % 3 == 0 { 0.0 } else { r.next_f32() as f64 * 2.0 }).collect();
-        let y: Vec<f64> = (0..m).map(|i| dot(&t[i * n..(i + 1) * n], &x_true) + (r.next_f32() as f64 - 0.5) * 0.3).collect();
+        let x_true: Vec<f64> = (0..n)
+            .map(|i| {
+                if i % 3 == 0 {
+                    0.0
+                } else {
+                    r.next_f32() as f64 * 2.0
+                }
+            })
+            .collect();
+        let y: Vec<f64> = (0..m)
+            .map(|i| dot(&t[i * n..(i + 1) * n], &x_true) + (r.next_f32() as f64 - 0.5) * 0.3)
+            .collect();
         let mut g = vec![0.0; n * n];
         let mut b = vec![0.0; n];
         for i in 0..m {
@@ -254,16 +316,26 @@ mod tests {
         for seed in 0..5 {
             let (g, b, _) = problem(60, 20, seed);
             let s = nnls(&g, &b, 1e-10, 1000, Duration::from_secs(10));
-            assert!(s.converged && s.kkt_violation < 1e-8, "seed {seed}: {}", s.kkt_violation);
+            assert!(
+                s.converged && s.kkt_violation < 1e-8,
+                "seed {seed}: {}",
+                s.kkt_violation
+            );
             assert!(s.x.iter().all(|&v| v >= 0.0));
             // Some constraints are active (the noisy data pull some variables below zero).
-            assert!(s.objective.windows(2).all(|w| w[1] <= w[0] + 1e-9 * w[0].abs().max(1.0)));
+            assert!(
+                s.objective
+                    .windows(2)
+                    .all(|w| w[1] <= w[0] + 1e-9 * w[0].abs().max(1.0))
+            );
         }
         // Without noise and with a full-rank T the truth is recovered.
         let n = 8;
         let mut r = Rng::new(9);
         let t: Vec<f64> = (0..40 * n).map(|_| r.next_f32() as f64).collect();
-        let x_true: Vec<f64> = (0..n).map(|i| if i % 2 == 0 { 0.0 } else { 1.0 + i as f64 }).collect();
+        let x_true: Vec<f64> = (0..n)
+            .map(|i| if i % 2 == 0 { 0.0 } else { 1.0 + i as f64 })
+            .collect();
         let mut g = vec![0.0; n * n];
         let mut b = vec![0.0; n];
         for i in 0..40 {
@@ -289,7 +361,10 @@ mod tests {
         let f = objective(&g, &b, &s.x);
         let mut r = Rng::new(4);
         for _ in 0..500 {
-            let y: Vec<f64> = s.x.iter().map(|&v| (v + (r.next_f32() as f64 - 0.5) * 0.01).max(0.0)).collect();
+            let y: Vec<f64> =
+                s.x.iter()
+                    .map(|&v| (v + (r.next_f32() as f64 - 0.5) * 0.01).max(0.0))
+                    .collect();
             assert!(objective(&g, &b, &y) >= f - 1e-9 * f.abs());
         }
     }
@@ -300,17 +375,26 @@ mod tests {
         let exact = nnls(&g, &b, 1e-12, 1000, Duration::from_secs(10));
         // Gradient descent converges linearly at a rate set by G's conditioning (all-positive
         // random T is ill-conditioned): ask for 1e-6 of the initial projected gradient.
-        let pg = projected_gradient(&g, &b, &vec![0.0; 10], 1e-6, 1_000_000, Duration::from_secs(60));
+        let pg = projected_gradient(&g, &b, &[0.0; 10], 1e-6, 1_000_000, Duration::from_secs(60));
         assert!(pg.converged, "{} iterations", pg.iterations);
         let (fe, fp) = (objective(&g, &b, &exact.x), objective(&g, &b, &pg.x));
         assert!((fp - fe).abs() <= 1e-6 * fe.abs(), "{fp} vs {fe}");
         assert!(pg.kkt_violation < 1e-4, "{}", pg.kkt_violation);
-        assert!(pg.objective.windows(2).all(|w| w[1] <= w[0]), "monotone descent");
+        assert!(
+            pg.objective.windows(2).all(|w| w[1] <= w[0]),
+            "monotone descent"
+        );
     }
 
     #[test]
     fn zero_data_gives_zero() {
-        let s = nnls(&[1.0, 0.0, 0.0, 1.0], &[0.0, 0.0], 1e-10, 10, Duration::from_secs(1));
+        let s = nnls(
+            &[1.0, 0.0, 0.0, 1.0],
+            &[0.0, 0.0],
+            1e-10,
+            10,
+            Duration::from_secs(1),
+        );
         assert_eq!(s.x, vec![0.0, 0.0]);
         assert!(s.converged);
     }

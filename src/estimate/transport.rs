@@ -98,5 +98,11 @@ pub fn estimate_transport(
             pixel_of_row.push((v, i as u32));
         }
     }
-    Transport { rings: sampling.grid.rings(), cells, rows: pixel_of_row.len(), t, pixel_of_row }
+    Transport {
+        rings: sampling.grid.rings(),
+        cells,
+        rows: pixel_of_row.len(),
+        t,
+        pixel_of_row,
+    }
 }

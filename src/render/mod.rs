@@ -149,7 +149,11 @@ pub struct Renderer<'a> {
 impl<'a> Renderer<'a> {
     /// Builds the BVH.
     pub fn new(scene: &'a Scene, lights: &'a Lights) -> Self {
-        Renderer { scene, lights, accel: std::sync::Arc::new(build_accel(scene)) }
+        Renderer {
+            scene,
+            lights,
+            accel: std::sync::Arc::new(build_accel(scene)),
+        }
     }
 
     /// The same scene and BVH under other lights.
@@ -157,7 +161,11 @@ impl<'a> Renderer<'a> {
     where
         'a: 'b,
     {
-        Renderer { scene: self.scene, lights, accel: self.accel.clone() }
+        Renderer {
+            scene: self.scene,
+            lights,
+            accel: self.accel.clone(),
+        }
     }
 
     fn tracer<'s>(&'s self, settings: &'s RenderSettings) -> Tracer<'s> {

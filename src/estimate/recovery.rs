@@ -1,0 +1,95 @@
+//! Light recovery: how well an estimated envmap locates and weighs the true sphere lights.
+//!
+//! For each true light (in order of decreasing power seen from the scene centre), the cell
+//! whose neighbourhood (a cone of radius `max(2 ring spacings, 25°)`) holds the most remaining
+//! power seeds a cluster of the cells in that cone; the cluster's power-weighted centroid
+//! direction is compared with the light's direction from the scene centre, and its power
+//! `Σ lum(λ)·Ω` with the light's `lum(L)·Ω_light`. A window, not the single brightest cell,
+//! because on fine grids a light's energy spreads over many cells.
+
+use glam::Vec3;
+use serde::Serialize;
+
+use crate::envmap::Envmap;
+use crate::imageio::luminance;
+use crate::scene::SphereLight;
+
+/// Recovery figures of one light.
+#[derive(Debug, Clone, Serialize)]
+pub struct LightRecovery {
+    /// True direction from the scene centre (unit, world).
+    pub true_direction: [f32; 3],
+    /// Estimated direction: power-weighted centroid of the light's cluster.
+    pub estimated_direction: [f32; 3],
+    pub angle_error_degrees: f32,
+    /// Estimated cluster power / true power (luminance × solid angle, seen from the centre).
+    pub power_ratio: f32,
+    pub cluster_cells: usize,
+}
+
+/// Matches clusters of bright cells to the true lights.
+pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<LightRecovery> {
+    let g = &env.grid;
+    let n = g.cell_count() as u32;
+    let power: Vec<f32> = (0..n)
+        .map(|c| luminance(env.radiance()[c as usize]) * env.solid_angle(c))
+        .collect();
+    let spacing = if g.rings() > 1 {
+        std::f32::consts::PI / (g.rings() - 1) as f32
+    } else {
+        std::f32::consts::PI
+    };
+    let radius = (2.0 * spacing).max(25f32.to_radians()) + 1e-4;
+    let mut taken = vec![false; n as usize];
+    let mut order: Vec<(f32, &SphereLight)> = lights
+        .iter()
+        .map(|l| {
+            let d = (l.center - scene_center).length();
+            let sin2 = (l.radius / d).powi(2).min(1.0);
+            let omega = std::f32::consts::TAU * sin2 / (1.0 + (1.0 - sin2).sqrt());
+            (luminance(l.radiance) * omega, l)
+        })
+        .collect();
+    order.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let mut out = Vec::new();
+    for (true_power, light) in order {
+        let truth = (light.center - scene_center).normalize();
+        let free: Vec<u32> = (0..n).filter(|&c| !taken[c as usize]).collect();
+        let window = |axis: Vec3| {
+            free.iter()
+                .filter(|&&c| g.center(c).angle_between(axis) <= radius)
+                .map(|&c| power[c as usize])
+                .sum::<f32>()
+        };
+        let Some(&seed) = free
+            .iter()
+            .max_by(|&&a, &&b| window(g.center(a)).total_cmp(&window(g.center(b))))
+        else {
+            break;
+        };
+        let axis = g.center(seed);
+        let mut sum = Vec3::ZERO;
+        let (mut p_sum, mut count) = (0.0f32, 0);
+        for &c in &free {
+            if g.center(c).angle_between(axis) <= radius {
+                taken[c as usize] = true;
+                sum += g.center(c) * power[c as usize];
+                p_sum += power[c as usize];
+                count += 1;
+            }
+        }
+        let est = sum.normalize_or(axis);
+        out.push(LightRecovery {
+            true_direction: truth.to_array(),
+            estimated_direction: est.to_array(),
+            angle_error_degrees: truth.angle_between(est).to_degrees(),
+            power_ratio: if true_power > 0.0 {
+                p_sum / true_power
+            } else {
+                f32::NAN
+            },
+            cluster_cells: count,
+        });
+    }
+    out
+}
