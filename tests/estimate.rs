@@ -1,0 +1,375 @@
+//! The estimator against known answers: a known envmap recovered, a distant sphere light
+//! located, and the solvers at the optimum.
+
+use std::time::Duration;
+
+use glam::Vec3;
+use lightprobe::envmap::{Envmap, RingGrid};
+use lightprobe::estimate::{self, FitSettings, Solver, recovery};
+use lightprobe::imageio::Image;
+use lightprobe::metrics;
+use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
+use lightprobe::scene::{Albedo, Camera, Material, Mesh, Scene, SceneSettings, SphereLight};
+
+/// A square of side 2·half at height y, facing +Y (two triangles).
+fn plane(half: f32, y: f32) -> Mesh {
+    let mut m = Mesh::default();
+    let p = [
+        Vec3::new(-half, y, -half),
+        Vec3::new(half, y, -half),
+        Vec3::new(half, y, half),
+        Vec3::new(-half, y, half),
+    ];
+    m.push(&p, None, None, &[0, 2, 1, 0, 3, 2], 0);
+    m
+}
+
+/// An icosphere of radius r about c with `levels` subdivisions and smooth normals.
+fn icosphere(c: Vec3, r: f32, levels: u32) -> Mesh {
+    let t = (1.0 + 5f32.sqrt()) / 2.0;
+    let mut v: Vec<Vec3> = [
+        (-1.0, t, 0.0),
+        (1.0, t, 0.0),
+        (-1.0, -t, 0.0),
+        (1.0, -t, 0.0),
+        (0.0, -1.0, t),
+        (0.0, 1.0, t),
+        (0.0, -1.0, -t),
+        (0.0, 1.0, -t),
+        (t, 0.0, -1.0),
+        (t, 0.0, 1.0),
+        (-t, 0.0, -1.0),
+        (-t, 0.0, 1.0),
+    ]
+    .iter()
+    .map(|&(x, y, z)| Vec3::new(x, y, z).normalize())
+    .collect();
+    let mut f: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..levels {
+        let mut mid = std::collections::HashMap::new();
+        let mut midpoint = |a: u32, b: u32, v: &mut Vec<Vec3>| {
+            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
+                v.len() as u32 - 1
+            })
+        };
+        f = f
+            .iter()
+            .flat_map(|&[a, b, c]| {
+                let (ab, bc, ca) = (
+                    midpoint(a, b, &mut v),
+                    midpoint(b, c, &mut v),
+                    midpoint(c, a, &mut v),
+                );
+                [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+            })
+            .collect();
+    }
+    let mut m = Mesh::default();
+    let positions: Vec<Vec3> = v.iter().map(|&d| c + d * r).collect();
+    let indices: Vec<u32> = f.into_iter().flatten().collect();
+    m.push(&positions, Some(&v), None, &indices, 0);
+    m
+}
+
+/// A table-like plane with a ball and a box on it, seen from two sides.
+fn scene(lights: Vec<SphereLight>) -> Scene {
+    let mut mesh = plane(1.0, 0.0);
+    let ball = icosphere(Vec3::new(-0.3, 0.25, 0.1), 0.25, 3);
+    mesh.push(
+        &ball.positions,
+        Some(&ball.normals),
+        None,
+        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
+        1,
+    );
+    let (lo, hi) = (Vec3::new(0.2, 0.0, -0.3), Vec3::new(0.45, 0.4, -0.05));
+    let c = |x: bool, y: bool, z: bool| {
+        Vec3::new(
+            if x { hi.x } else { lo.x },
+            if y { hi.y } else { lo.y },
+            if z { hi.z } else { lo.z },
+        )
+    };
+    let corners = [
+        c(false, false, false),
+        c(true, false, false),
+        c(true, true, false),
+        c(false, true, false),
+        c(false, false, true),
+        c(true, false, true),
+        c(true, true, true),
+        c(false, true, true),
+    ];
+    let faces = [
+        0, 1, 2, 0, 2, 3, 4, 6, 5, 4, 7, 6, 0, 4, 5, 0, 5, 1, 3, 2, 6, 3, 6, 7, 0, 3, 7, 0, 7, 4,
+        1, 5, 6, 1, 6, 2,
+    ];
+    mesh.push(&corners, None, None, &faces, 2);
+    let (w, h) = (128, 96);
+    Scene {
+        mesh,
+        materials: vec![
+            Material {
+                name: "table".into(),
+                albedo: Albedo::Constant(Vec3::new(0.6, 0.55, 0.5)),
+            },
+            Material {
+                name: "ball".into(),
+                albedo: Albedo::Constant(Vec3::new(0.8, 0.8, 0.8)),
+            },
+            Material {
+                name: "box".into(),
+                albedo: Albedo::Constant(Vec3::new(0.7, 0.3, 0.2)),
+            },
+        ],
+        cameras: vec![
+            Camera::look_at(
+                "a",
+                Vec3::new(0.0, 1.2, 1.8),
+                Vec3::new(0.0, 0.1, 0.0),
+                0.9,
+                w,
+                h,
+            ),
+            Camera::look_at(
+                "b",
+                Vec3::new(1.7, 1.0, -0.8),
+                Vec3::new(0.0, 0.1, 0.0),
+                0.9,
+                w,
+                h,
+            ),
+        ],
+        lights,
+        settings: SceneSettings {
+            width: w,
+            height: h,
+            spp: 256,
+            max_bounces: 2,
+            seed: 1,
+            rings: 5,
+        },
+        source: Default::default(),
+    }
+}
+
+fn settings(spp: u32, seed: u64) -> RenderSettings {
+    RenderSettings {
+        spp,
+        max_bounces: 2,
+        seed,
+        strategy: Strategy::Mis,
+        hide_emitters: true,
+    }
+}
+
+fn fit_settings(rings: u32, spp: u32, solver: Solver, ridge: f64) -> FitSettings {
+    FitSettings {
+        rings,
+        transport: settings(spp, 99),
+        solver,
+        smooth: 0.0,
+        ridge,
+        gradient_rounds: 1,
+        time_limit: Duration::from_secs(60),
+    }
+}
+
+/// Renders every view of `sc` under `lights`; returns images and their geometry masks.
+fn render_all(r: &Renderer, sc: &Scene, spp: u32, seed: u64) -> (Vec<Image>, Vec<Vec<bool>>) {
+    let imgs: Vec<Image> = sc
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| r.render_radiance(c, i as u64, &settings(spp, seed), &|_| {}))
+        .collect();
+    let masks = imgs.iter().map(metrics::mask_of).collect();
+    (imgs, masks)
+}
+
+/// A sky with a warm and a blue bright cell.
+fn known_envmap(rings: u32) -> Envmap {
+    let g = RingGrid::new(rings);
+    let radiance = (0..g.cell_count() as u32)
+        .map(|c| {
+            let d = g.center(c);
+            let sky = Vec3::new(0.2, 0.3, 0.5) * (0.5 + 0.5 * d.y.max(0.0));
+            if c == g.ring_start(1) + 1 {
+                Vec3::new(8.0, 6.0, 3.0)
+            } else if c == g.ring_start(2) + 5 {
+                Vec3::new(1.0, 2.0, 4.0)
+            } else {
+                sky
+            }
+        })
+        .collect();
+    Envmap::new(rings, radiance).unwrap()
+}
+
+#[test]
+fn a_known_envmap_is_recovered_at_the_noise_floor() {
+    // Exact recovery needs cells the images can tell apart. A diffuse scene low-pass filters
+    // its lighting: with 5 rings here the fit renders at the noise floor yet shuffles energy
+    // between neighbouring 45° cells (measured: a pole cell fitted 1.28 for a true 0.2). With
+    // 3 rings (the zenith, four horizon sectors and the nadir) the ball and box shadows
+    // separate every cell above the table; the nadir, hidden by the table, is not checked.
+    let rings = 3;
+    let truth = Envmap::new(
+        rings,
+        vec![
+            Vec3::new(0.6, 0.7, 1.0),
+            Vec3::new(3.0, 2.0, 1.0),
+            Vec3::new(0.2, 0.3, 0.5),
+            Vec3::new(1.5, 1.5, 1.5),
+            Vec3::new(0.4, 0.8, 2.0),
+            Vec3::new(0.3, 0.3, 0.3),
+        ],
+    )
+    .unwrap();
+    let sc = scene(vec![]);
+    let lights = Lights::env(truth.clone());
+    let r = Renderer::new(&sc, &lights);
+    let (refs, masks) = render_all(&r, &sc, 1024, 1);
+    let (again, _) = render_all(&r, &sc, 1024, 2);
+    let cams: Vec<&Camera> = sc.cameras.iter().collect();
+    let fit = estimate::fit(
+        &r,
+        &cams,
+        &refs,
+        &masks,
+        &fit_settings(rings, 2048, Solver::Nnls, 1e-4),
+        &|_| {},
+    );
+    assert!(
+        fit.channels
+            .iter()
+            .all(|c| c.converged && c.kkt_violation < 1e-6),
+        "{:?}",
+        fit.channels
+    );
+
+    // Photometric error of a fresh render of the estimate, against the noise floor.
+    let est_lights = Lights::env(fit.envmap.clone());
+    let (est, _) = render_all(&r.with_lights(&est_lights), &sc, 1024, 3);
+    for v in 0..2 {
+        let e = metrics::compare(&est[v], &refs[v], &masks[v])
+            .unwrap()
+            .rel_mae;
+        let floor = metrics::compare(&again[v], &refs[v], &masks[v])
+            .unwrap()
+            .rel_mae;
+        assert!(
+            e < 1.3 * floor,
+            "view {v}: relMAE {e} vs noise floor {floor}"
+        );
+    }
+    // Every cell above the table comes back within 10% (in luminance).
+    for cell in 0..5 {
+        let (want, got) = (truth.radiance()[cell], fit.envmap.radiance()[cell]);
+        let (lw, lg) = (
+            lightprobe::imageio::luminance(want),
+            lightprobe::imageio::luminance(got),
+        );
+        assert!((lg / lw - 1.0).abs() < 0.10, "cell {cell}: {got} vs {want}");
+    }
+}
+
+#[test]
+fn a_small_distant_sphere_light_is_located_within_4_degrees() {
+    let center = Vec3::new(0.0, 0.1, 0.0);
+    let dir = Vec3::new(0.45, 0.8, 0.3).normalize();
+    let light = SphereLight {
+        center: center + dir * 10.0,
+        radius: 0.25,
+        radiance: Vec3::splat(3000.0),
+    };
+    let sc = scene(vec![light]);
+    let lights = Lights::new(sc.lights.clone());
+    let r = Renderer::new(&sc, &lights);
+    let (refs, masks) = render_all(&r, &sc, 256, 1);
+    let cams: Vec<&Camera> = sc.cameras.iter().collect();
+    let fit = estimate::fit(
+        &r,
+        &cams,
+        &refs,
+        &masks,
+        &fit_settings(21, 2048, Solver::Nnls, 1e-2),
+        &|_| {},
+    );
+    let rec = recovery::recover(&fit.envmap, &sc.lights, center);
+    assert_eq!(rec.len(), 1);
+    // Measured: 3.7° and power ×0.84 at 2048 transport spp (the cell nearest the light is the
+    // brightest, 2.9° off). At 256 spp the transport is too noisy for 522 cells (12.8°, ×0.50);
+    // the issue's goal of 3° is not met yet: see the issue note.
+    assert!(rec[0].angle_error_degrees < 4.0, "{:?}", rec[0]);
+    assert!((0.8..1.2).contains(&rec[0].power_ratio), "{:?}", rec[0]);
+}
+
+#[test]
+fn gradient_and_nnls_reach_the_same_optimum() {
+    let rings = 3;
+    let sc = scene(vec![]);
+    let lights = Lights::env(known_envmap(rings));
+    let r = Renderer::new(&sc, &lights);
+    let (refs, masks) = render_all(&r, &sc, 256, 1);
+    let cams: Vec<&Camera> = sc.cameras.iter().collect();
+    // One round each, same transport (same seed and sampling): the same quadratic problem.
+    let a = estimate::fit(
+        &r,
+        &cams,
+        &refs,
+        &masks,
+        &fit_settings(rings, 256, Solver::Nnls, 1e-4),
+        &|_| {},
+    );
+    let b = estimate::fit(
+        &r,
+        &cams,
+        &refs,
+        &masks,
+        &fit_settings(rings, 256, Solver::Gradient, 1e-4),
+        &|_| {},
+    );
+    for ch in 0..3 {
+        let (fa, fb) = (
+            *a.channels[ch].objective.last().unwrap(),
+            *b.channels[ch].objective.last().unwrap(),
+        );
+        assert!(
+            b.channels[ch].converged,
+            "gradient did not converge in channel {ch}"
+        );
+        assert!(
+            (fb - fa).abs() <= 1e-3 * fa.abs().max(1e-12),
+            "channel {ch}: gradient {fb} vs nnls {fa}"
+        );
+    }
+    for (x, y) in a.envmap.radiance().iter().zip(b.envmap.radiance()) {
+        assert!(
+            (*x - *y).abs().max_element() < 0.02 * x.max_element().max(0.1),
+            "{x} vs {y}"
+        );
+    }
+}
