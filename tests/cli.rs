@@ -210,6 +210,20 @@ struct Case {
     expect: &'static str,
 }
 
+/// An RGB EXR of `w × h` pixels, all `value`.
+fn tiny_exr(w: u32, h: u32, value: f32) -> Vec<u8> {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("x.exr");
+    let img = lightprobe::imageio::Image {
+        width: w,
+        height: h,
+        rgb: vec![glam::Vec3::splat(value); (w * h) as usize],
+        alpha: None,
+    };
+    lightprobe::imageio::write_exr(&p, &img).unwrap();
+    std::fs::read(p).unwrap()
+}
+
 fn sidecar(extra_fields: &str, lights: &str) -> Vec<u8> {
     format!(
         "Scene(\n  gltf: {:?},\n  image: (width: 16, height: 12),\n  lights: [{lights}],\n  render: (spp: 2),\n{extra_fields})\n",
@@ -598,6 +612,75 @@ fn cases() -> Vec<Case> {
             .to_vec(),
             "x.exr: no such file",
         ),
+        c(
+            "estimate rings absurd for memory",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--rings",
+                "1000",
+                "--quiet",
+            ]
+            .to_vec(),
+            "would need about",
+        ),
+        c(
+            "estimate reference of the wrong size",
+            vec![
+                ("scene.ron", sidecar("  views: [\"cam_front\"],\n", LIGHT)),
+                ("ref/cam_front.exr", tiny_exr(8, 6, 0.5)),
+            ],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--reference",
+                "{d}/ref",
+                "--quiet",
+            ]
+            .to_vec(),
+            "cam_front.exr: is 8×6, but the sidecar's image is 16×12",
+        ),
+        c(
+            "estimate reference with NaN",
+            vec![
+                ("scene.ron", sidecar("  views: [\"cam_front\"],\n", LIGHT)),
+                ("ref/cam_front.exr", tiny_exr(16, 12, f32::NAN)),
+            ],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--reference",
+                "{d}/ref",
+                "--quiet",
+            ]
+            .to_vec(),
+            "is not finite",
+        ),
+        c(
+            "estimate missing reference view",
+            vec![
+                ("scene.ron", sidecar("", LIGHT)),
+                ("ref/cam_front.exr", tiny_exr(16, 12, 0.5)),
+            ],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--reference",
+                "{d}/ref",
+                "--quiet",
+            ]
+            .to_vec(),
+            "cam_side.exr: no such file",
+        ),
     ]
 }
 
@@ -608,7 +691,9 @@ fn bad_inputs_fail_cleanly() {
         let tmp = tempfile::tempdir().unwrap();
         let d = tmp.path();
         for (name, content) in &case.files {
-            std::fs::write(d.join(name), content).unwrap();
+            let p = d.join(name);
+            std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+            std::fs::write(p, content).unwrap();
         }
         let before = files_in(d);
         let args: Vec<String> = case
@@ -741,4 +826,70 @@ fn unknown_enum_values_are_usage_errors() {
             "{err}"
         );
     }
+}
+
+#[test]
+fn estimate_runs_end_to_end_and_reports() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    let out = tmp.path().join("out");
+    let o = run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--rings",
+        "5",
+        "--spp",
+        "16",
+        "--quiet",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["cells"], 18);
+    assert_eq!(report["views"].as_array().unwrap().len(), 2);
+    let rel = report["rel_mae"].as_f64().unwrap();
+    let floor = report["noise_floor_rel_mae"].as_f64().unwrap();
+    assert!(
+        rel.is_finite() && rel > 0.0 && rel < 1.0 && floor > 0.0,
+        "{rel} {floor}"
+    );
+    assert!(
+        report["channels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|c| c["converged"] == true)
+    );
+    for f in [
+        "envmap.ron",
+        "envmap.exr",
+        "report.json",
+        "reference/cam_front.exr",
+        "estimate/cam_front.exr",
+        "estimate/cam_front.error.png",
+    ] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    let env = lightprobe::envmap::Envmap::load(&out.join("envmap.ron")).unwrap();
+    assert_eq!(env.grid.rings(), 5);
+    // Fitting the written references again (--reference) gives the same envmap: same seeds.
+    let out2 = tmp.path().join("out2");
+    let o = run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+        "--rings",
+        "5",
+        "--spp",
+        "16",
+        "--quiet",
+        "--reference",
+        out.join("reference").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let env2 = lightprobe::envmap::Envmap::load(&out2.join("envmap.ron")).unwrap();
+    assert_eq!(env.radiance(), env2.radiance());
 }
