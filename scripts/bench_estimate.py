@@ -86,6 +86,49 @@ def load() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
+def _cpu_now() -> tuple[float, float, float]:
+    """(wall, busy CPU-seconds of the whole machine, CPU-seconds of this
+    process and its reaped children)."""
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    hz = os.sysconf("SC_CLK_TCK")
+    idle = v[3] + (v[4] if len(v) > 4 else 0)          # idle + iowait
+    t = os.times()
+    return (time.perf_counter(), (sum(v[:8]) - idle) / hz,
+            t.user + t.system + t.children_user + t.children_system)
+
+
+def wait_idle(max_seconds: float, threshold: float = 0.2, window: float = 5.0) -> dict:
+    """Wait (up to max_seconds) for a window in which other processes use
+    less than `threshold` cores; returns what was seen."""
+    t0 = time.perf_counter()
+    while True:
+        with CpuMonitor() as cm:
+            time.sleep(window)
+        busy = cm.result["other_cores"]
+        waited = time.perf_counter() - t0
+        if busy < threshold or waited >= max_seconds:
+            return {"waited_seconds": waited, "other_cores_last_window": busy,
+                    "idle": busy < threshold}
+
+
+class CpuMonitor:
+    """How many cores other processes kept busy while we measured: the
+    machine's busy time (/proc/stat) minus our own (and our children's)."""
+
+    def __enter__(self):
+        self.a = _cpu_now()
+        return self
+
+    def __exit__(self, *exc):
+        b = _cpu_now()
+        wall = b[0] - self.a[0]
+        self.result = {"wall": wall, "own_cores": (b[2] - self.a[2]) / wall,
+                       "other_cores": max(0.0, (b[1] - self.a[1]) - (b[2] - self.a[2])) / wall,
+                       "loadavg_end": load()}
+        return False
+
+
 # --------------------------------------------------------------------------
 # lightprobe
 # --------------------------------------------------------------------------
@@ -124,7 +167,8 @@ def lp_estimate(bin_: Path, scene: Path, ref: Path, out: Path, rings: int,
            "--quiet", "--json"]
     if spp:
         cmd += ["--spp", spp]
-    r = run_timed(cmd)
+    with CpuMonitor() as cm:
+        r = run_timed(cmd)
     rep = json.loads((out / "report.json").read_text())
     t = rep["timings"]
     evaluation = t.get("noise_floor_seconds", 0.0) + t.get("rerender_seconds", 0.0)
@@ -139,6 +183,7 @@ def lp_estimate(bin_: Path, scene: Path, ref: Path, out: Path, rings: int,
         "peak_bytes": rep["memory"]["peak_bytes"], "memory": rep["memory"],
         "max_rss_bytes": r["max_rss_bytes"], "threads": rep.get("threads"),
         "light_recovery": rep.get("light_recovery"), "out": str(out),
+        "cpu": cm.result,
     }
 
 
@@ -154,7 +199,8 @@ def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
             f"report total {r['total_seconds']:.2f} s, process wall "
             f"{r['process_wall_seconds']:.2f} s (excl. evaluation "
             f"{r['process_wall_excl_evaluation_seconds']:.2f} s), peak "
-            f"{r['peak_bytes'] / 2**20:.0f} MiB, load {load()[0]}")
+            f"{r['peak_bytes'] / 2**20:.0f} MiB; other processes used "
+            f"{r['cpu']['other_cores']:.2f} cores meanwhile")
     med = lambda key: statistics.median(r[key] for r in main_runs)  # noqa: E731
     main = dict(main_runs[0])
     for key in ("fit_seconds", "total_seconds", "process_wall_seconds",
@@ -173,8 +219,8 @@ def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
                         args.rings, spp)
         curve.append(r)
         log(f"  lightprobe rings {args.rings} spp {spp}: relMAE {r['rel_mae']:.4f} fit "
-            f"{r['fit_seconds']:.2f} s, process wall {r['process_wall_seconds']:.2f} s, load "
-            f"{load()[0]}")
+            f"{r['fit_seconds']:.2f} s, process wall {r['process_wall_seconds']:.2f} s; other "
+            f"processes {r['cpu']['other_cores']:.2f} cores")
     curve.append(main)
     res["curve"] = sorted(curve, key=lambda r: r["transport_spp"])
     if args.big_rings:
@@ -184,8 +230,8 @@ def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
         log(f"  lightprobe rings {args.big_rings} ({r['cells']} cells): relMAE "
             f"{r['rel_mae']:.4f} fit {r['fit_seconds']:.2f} s, process wall "
             f"{r['process_wall_seconds']:.2f} s, memory.peak_bytes {r['peak_bytes']:,} "
-            f"({r['peak_bytes'] / GIB:.3f} GiB; process max RSS {r['max_rss_bytes']:,}), "
-            f"load {load()[0]}")
+            f"({r['peak_bytes'] / GIB:.3f} GiB; process max RSS {r['max_rss_bytes']:,}); other "
+            f"processes {r['cpu']['other_cores']:.2f} cores")
     res["load_after"] = load()
     return res
 
@@ -418,7 +464,7 @@ def chart(path: Path, lp: dict, mitsuba: list[dict], tte: dict, meta: dict) -> N
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(9.5, 6.2), dpi=120)
+    fig, ax = plt.subplots(figsize=(10, 8.2), dpi=120)
     colours = ["tab:blue", "tab:purple", "tab:cyan"]
     for m, col in zip(mitsuba, colours):
         pts = [(c["seconds"], c["rel_mae"]) for c in m["curve"]]
@@ -456,29 +502,35 @@ def chart(path: Path, lp: dict, mitsuba: list[dict], tte: dict, meta: dict) -> N
         if row.get("mitsuba_seconds"):
             ax.axvline(row["mitsuba_seconds"], color=col, ls=":", lw=1)
     ax.set_xscale("log")
-    ax.set_xlabel("wall time, seconds (log); Mitsuba: cumulative optimisation time, "
-                  "evaluations excluded")
-    ax.set_ylabel("relMAE of a fresh 512-spp re-render vs the references (mean of views)")
-    lo = min(mn["noise_floor_rel_mae"], *(m["best"]["rel_mae"] for m in mitsuba)) * 0.85
-    ys = [r["rel_mae"] for r in cur] + [m["curve"][1]["rel_mae"] if len(m["curve"]) > 1
-                                        else m["curve"][0]["rel_mae"] for m in mitsuba]
-    ax.set_ylim(lo, max(ys) * 1.15)
+    ax.set_yscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%.2f"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%.2f"))
+    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.set_xlabel("wall time, seconds (log); Mitsuba: cumulative optimisation time incl. JIT, "
+                  "excl. scene build and evaluations")
+    ax.set_ylabel("relMAE (log) of a fresh 512-spp re-render vs the references, mean of views")
+    ys = [r["rel_mae"] for r in cur] + [c["rel_mae"] for m in mitsuba for c in m["curve"]]
+    ax.set_ylim(mn["noise_floor_rel_mae"] * 0.85, max(ys) * 1.12)
     ax.grid(True, which="both", alpha=0.3)
     lines = []
     for row in tte["per_resolution"]:
         w, h = row["resolution"]
         if row.get("ratio_fit"):
-            lines.append(f"{w}x{h}: to relMAE {row['target_rel_mae']:.4f} ({row['target_is']}): "
-                         f"Mitsuba {row['mitsuba_seconds']:.1f} s, lightprobe fit "
-                         f"{row['lightprobe_fit_seconds']:.2f} s -> {row['ratio_fit']:.1f}x "
-                         f"(process wall: {row['ratio_process_wall']:.1f}x)")
-    lines.append(f"load average during runs: {meta['load_summary']}; {meta['cpus']} CPUs")
-    ax.text(0.01, 0.01, "\n".join(lines), transform=ax.transAxes, fontsize=8, va="bottom",
-            bbox=dict(boxstyle="round", fc="white", alpha=0.85))
+            lines.append(f"Mitsuba {w}x{h} -> relMAE {row['target_rel_mae']:.4f} "
+                         f"({row['target_is']}): Mitsuba {row['mitsuba_seconds']:.1f} s "
+                         f"(dotted line), lightprobe fit {row['lightprobe_fit_seconds']:.2f} s: "
+                         f"{row['ratio_fit']:.1f}x (vs lightprobe process wall "
+                         f"{row['ratio_process_wall']:.1f}x)")
+    lines.append("goal: lightprobe >= 20x faster than Mitsuba at equal or lower error, < 5 s wall")
+    lines.append(f"load average during runs: {meta['load_summary']} on {meta['cpus']} CPUs")
+    ax.text(0.01, 0.10, "\n".join(lines), transform=ax.transAxes, fontsize=8, va="bottom",
+            bbox=dict(boxstyle="round", fc="white", alpha=0.9))
     ax.set_title(f"Envmap estimation, time to error: {meta['scene_name']} "
                  f"({meta['width']}x{meta['height']}, {len(meta['views'])} views, "
                  f"max_bounces {meta['max_bounces']})", fontsize=11)
-    ax.legend(fontsize=7.5, loc="upper right")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.11), ncol=1,
+              frameon=False)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -519,9 +571,21 @@ def main() -> int:
     ap.add_argument("--mi-eval-spp", type=int, default=None, help="default: the sidecar's")
     ap.add_argument("--mi-integrator", default="prb")
     ap.add_argument("--no-crosscheck", dest="crosscheck", action="store_false")
+    ap.add_argument("--wait-idle", type=float, default=0.0, metavar="SECONDS",
+                    help="before each timed phase wait up to this long for other processes "
+                         "to use < 0.2 cores (a concurrent build skews timings)")
+    ap.add_argument("--replot", type=Path, default=None,
+                    help="only redraw the chart from a bench_estimate.json (into --out)")
     ap.add_argument("--quick", action="store_true",
                     help="smoke test: 30 Mitsuba steps, no curve/big runs")
     args = ap.parse_args()
+    if args.replot:
+        j = json.loads(args.replot.read_text())
+        args.out.mkdir(parents=True, exist_ok=True)
+        png = args.out / "estimate_vs_mitsuba.png"
+        chart(png, j["lightprobe"], j["mitsuba"], j["time_to_error"], j["meta"])
+        log(f"wrote {png}")
+        return 0
     if args.quick:
         args.mi_steps, args.curve_spp, args.big_rings = 30, "", 0
     args.curve_spp = [int(s) for s in args.curve_spp.split(",") if s.strip()]
@@ -549,6 +613,11 @@ def main() -> int:
         f"({rr['wall_seconds']:.1f} s) -> {ref}")
 
     # 2. lightprobe
+    idle = {}
+    if args.wait_idle:
+        idle["lightprobe"] = wait_idle(args.wait_idle)
+        log(f"waited {idle['lightprobe']['waited_seconds']:.0f} s for an idle machine: other "
+            f"processes at {idle['lightprobe']['other_cores_last_window']:.2f} cores")
     log(f"lightprobe estimate (load {load()}):")
     lp = run_lightprobe_suite(args, ref, work)
     loads += [lp["load_before"], lp["load_after"]]
@@ -562,14 +631,21 @@ def main() -> int:
             f"{args.mi_loss.upper()} loss, init {args.mi_init} (load {load()}):")
         l0 = load()
         fit = MitsubaFit(args, info, meshes, refs, w, h)
-        r = fit.run()
+        if args.wait_idle:
+            idle[f"mitsuba_{w}x{h}"] = wi = wait_idle(args.wait_idle)
+            log(f"  waited {wi['waited_seconds']:.0f} s for an idle machine: other processes "
+                f"at {wi['other_cores_last_window']:.2f} cores")
+        with CpuMonitor() as cm:
+            r = fit.run()
+        r["cpu"] = cm.result
         r["load_before"], r["load_after"] = l0, load()
         loads += [l0, r["load_after"]]
         mitsuba.append(r)
         log(f"  -> best relMAE {r['best']['rel_mae']:.4f} at step {r['best']['step']} "
             f"({r['best']['seconds']:.1f} s), final {r['final']['rel_mae']:.4f}; scene build "
             f"{r['scene_build_seconds']:.1f} s, first step {r['first_step_seconds']:.2f} s, "
-            f"median step {r['median_step_seconds']:.3f} s")
+            f"median step {r['median_step_seconds']:.3f} s; other processes used "
+            f"{r['cpu']['other_cores']:.2f} cores meanwhile")
     mi_rss = __import__("resource").getrusage(__import__("resource").RUSAGE_SELF).ru_maxrss * 1024
 
     cc = None
@@ -609,17 +685,20 @@ def main() -> int:
     flat = [x for l3 in loads for x in l3[:1]]
     meta = {"scene_name": Path(args.scene).stem, "width": st["width"], "height": st["height"],
             "views": views, "max_bounces": st["max_bounces"], "cpus": os.cpu_count(),
-            "load_summary": f"1-min {min(flat):.2f}-{max(flat):.2f}"}
+            "load_summary": f"1-min {min(flat):.2f}-{max(flat):.2f}; other processes used "
+                            f"{mn['cpu']['other_cores']:.2f} cores during lightprobe's main run, "
+                            + ", ".join(f"{m['cpu']['other_cores']:.2f}" for m in mitsuba)
+                            + " during Mitsuba's"}
     png = args.out / "estimate_vs_mitsuba.png"
     chart(png, lp, mitsuba, tte, meta)
 
     result = {
         "scene": str(args.scene), "views": views, "settings": st, "cpus": os.cpu_count(),
-        "loadavg_samples": loads, "reference": {"dir": str(ref), "seconds": rr["wall_seconds"]},
+        "loadavg_samples": loads, "wait_idle": idle, "reference": {"dir": str(ref), "seconds": rr["wall_seconds"]},
         "lightprobe": lp, "mitsuba": mitsuba, "mitsuba_version": mi.__version__,
         "mitsuba_variant": variant, "mitsuba_threads": dr.thread_count(),
         "mitsuba_python_max_rss_bytes": mi_rss, "crosscheck": cc, "time_to_error": tte,
-        "goals": goals, "chart": str(png), "seconds": time.time() - t_start,
+        "goals": goals, "meta": meta, "chart": str(png), "seconds": time.time() - t_start,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
     }
     jpath = args.out / "bench_estimate.json"
@@ -667,7 +746,7 @@ def main() -> int:
         g = goals["peak_memory_25_rings_under_1GiB"]
         log(f"GOAL peak memory at {g['rings']} rings < 1 GiB: {g['peak_bytes'] / 2**20:.0f} MiB "
             f"(max RSS {g['max_rss_bytes'] / 2**20:.0f} MiB) -> {'MET' if g['met'] else 'NOT MET'}")
-    log(f"load average samples (1-min): {flat} on {os.cpu_count()} CPUs")
+    log(f"load average samples (1-min): {flat} on {os.cpu_count()} CPUs; {meta['load_summary']}")
     log(f"wrote {png} and {jpath} ({time.time() - t_start:.0f} s)")
     return 0
 

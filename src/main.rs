@@ -146,9 +146,11 @@ struct EstimateArgs {
     /// visibility by about 1%.
     #[arg(long, default_value_t = 1e-2)]
     ridge: f64,
-    /// Transport rounds of the gradient solver.
-    #[arg(long, default_value_t = 3)]
-    rounds: u32,
+    /// Transport rounds (sequential Monte Carlo): rounds after the first sample cells by the
+    /// current estimate. Default: 1 for nnls (which averages the rounds' transports), 3 for
+    /// gradient (which continues from its estimate each round).
+    #[arg(long)]
+    rounds: Option<u32>,
     /// Also compute the representation limit: the best envmap of this resolution, fitted to a
     /// transport with 8× the samples (slower).
     #[arg(long)]
@@ -637,7 +639,11 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     if !(a.time_limit.is_finite() && a.time_limit > 0.0) {
         bail!("--time-limit must be a positive number of seconds");
     }
-    if a.rounds == 0 || a.rounds > 100 {
+    let rounds = a.rounds.unwrap_or(match a.solver {
+        Solver::Nnls => 1,
+        Solver::Gradient => 3,
+    });
+    if rounds == 0 || rounds > 100 {
         bail!("--rounds must be between 1 and 100");
     }
     if a.reference.is_none() && scene.lights.is_empty() {
@@ -761,14 +767,10 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         solver: a.solver,
         smooth: a.smooth,
         ridge: a.ridge,
-        gradient_rounds: a.rounds,
+        rounds,
         time_limit: std::time::Duration::from_secs_f64(a.time_limit),
     };
-    let passes = if a.solver == Solver::Gradient {
-        a.rounds as u64
-    } else {
-        1
-    };
+    let passes = rounds as u64;
     let pb = bar("transport", passes);
     let fit = estimate::fit(
         &renderer,

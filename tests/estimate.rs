@@ -192,7 +192,7 @@ fn fit_settings(rings: u32, spp: u32, solver: Solver, ridge: f64) -> FitSettings
         solver,
         smooth: 0.0,
         ridge,
-        gradient_rounds: 1,
+        rounds: 1,
         time_limit: Duration::from_secs(60),
     }
 }

@@ -47,8 +47,10 @@ pub struct FitSettings {
     /// Weight of a ridge pulling every cell toward zero, relative to the mean diagonal of TᵀT:
     /// cells the views barely see stay dark instead of taking wild values; 0 = none.
     pub ridge: f64,
-    /// Transport rounds of the gradient solver (each re-sampled from the current estimate).
-    pub gradient_rounds: u32,
+    /// Transport rounds (sequential Monte Carlo): each round after the first samples cells by
+    /// the current estimate (plus a defensive floor). NNLS solves once on the average of all
+    /// rounds' transports; the gradient solver continues from its current estimate each round.
+    pub rounds: u32,
     /// Wall-clock budget of each channel's solve.
     pub time_limit: Duration,
 }
@@ -147,6 +149,48 @@ fn observed(tr: &Transport, references: &[Image]) -> [Vec<f64>; 3] {
     })
 }
 
+/// Solves all three channels on transport `tr`, starting the gradient solver from `start`;
+/// records iterations and objectives into `channels` when given.
+fn solve_all(
+    tr: &Transport,
+    references: &[Image],
+    pairs: &[(u32, u32)],
+    settings: &FitSettings,
+    start: &[Vec<f64>],
+    mut channels: Option<&mut Vec<ChannelFit>>,
+) -> Vec<Vec<f64>> {
+    let n = tr.cells;
+    let y = observed(tr, references);
+    let rounds = settings.rounds.max(1);
+    (0..3)
+        .map(|ch| {
+            let (g, b, yy) =
+                normal_equations(tr, ch, &y[ch], pairs, settings.smooth, settings.ridge);
+            let s = match settings.solver {
+                Solver::Nnls => nnls::nnls(&g, &b, 1e-9, 20 * n + 100, settings.time_limit),
+                Solver::Gradient => nnls::projected_gradient(
+                    &g,
+                    &b,
+                    &start[ch],
+                    1e-6,
+                    100_000,
+                    settings.time_limit / rounds,
+                ),
+            };
+            if let Some(chs) = channels.as_deref_mut() {
+                let c = &mut chs[ch];
+                c.iterations += s.iterations;
+                c.kkt_violation = s.kkt_violation;
+                c.converged = s.converged;
+                // ‖Tλ − y‖² = 2·(½λᵀGλ − bᵀλ) + ‖y‖² (exact without regularisation).
+                c.objective
+                    .extend(s.objective.iter().map(|f| (2.0 * f + yy).max(0.0)));
+            }
+            s.x
+        })
+        .collect()
+}
+
 /// Fits an envmap of `settings.rings` rings to `references` (masked by `masks`), seen by
 /// `cameras` in the scene of `renderer`.
 pub fn fit(
@@ -176,43 +220,45 @@ pub fn fit(
         })
         .collect();
     let (mut transport_seconds, mut solve_seconds, mut transport_bytes) = (0.0, 0.0, 0);
-    let rounds = match settings.solver {
-        Solver::Nnls => 1,
-        Solver::Gradient => settings.gradient_rounds.max(1),
-    };
+    let rounds = settings.rounds.max(1);
+    // NNLS averages the rounds' transports (each an unbiased estimate of the same T).
+    let mut t_avg: Option<Transport> = None;
     for round in 0..rounds {
         let t0 = Instant::now();
         let mut st = settings.transport;
         st.seed = st.seed.wrapping_add(round as u64 * 0x9E37_79B9);
         let tr = estimate_transport(renderer, cameras, masks, &sampling, &st, 1000, progress);
         transport_seconds += t0.elapsed().as_secs_f64();
-        transport_bytes = transport_bytes.max(tr.memory_bytes());
-        let y = observed(&tr, references);
+        transport_bytes = transport_bytes.max(tr.memory_bytes() * if rounds > 1 { 2 } else { 1 });
+        let tr = match (settings.solver, t_avg.take()) {
+            (Solver::Nnls, Some(mut acc)) => {
+                let k = round as f32;
+                for (a, b) in acc.t.iter_mut().zip(&tr.t) {
+                    a.iter_mut()
+                        .zip(b)
+                        .for_each(|(x, y)| *x = (*x * k + *y) / (k + 1.0));
+                }
+                acc
+            }
+            _ => tr,
+        };
+        let last = round + 1 == rounds;
         let t1 = Instant::now();
-        for ch in 0..3 {
-            let (g, b, yy) =
-                normal_equations(&tr, ch, &y[ch], &pairs, settings.smooth, settings.ridge);
-            let s = match settings.solver {
-                Solver::Nnls => nnls::nnls(&g, &b, 1e-9, 20 * n + 100, settings.time_limit),
-                Solver::Gradient => nnls::projected_gradient(
-                    &g,
-                    &b,
-                    &lambda[ch],
-                    1e-6,
-                    100_000,
-                    settings.time_limit / rounds,
-                ),
-            };
-            let c = &mut channels[ch];
-            c.iterations += s.iterations;
-            c.kkt_violation = s.kkt_violation;
-            c.converged = s.converged;
-            // ‖Tλ − y‖² = 2·(½λᵀGλ − bᵀλ) + ‖y‖² (exact without regularisation).
-            c.objective
-                .extend(s.objective.iter().map(|f| (2.0 * f + yy).max(0.0)));
-            lambda[ch] = s.x;
-        }
+        // Intermediate NNLS solves only steer the next round's sampling: their statistics are
+        // not the fit's.
+        let record = settings.solver == Solver::Gradient || last;
+        lambda = solve_all(
+            &tr,
+            references,
+            &pairs,
+            settings,
+            &lambda,
+            record.then_some(&mut channels),
+        );
         solve_seconds += t1.elapsed().as_secs_f64();
+        if settings.solver == Solver::Nnls {
+            t_avg = Some(tr);
+        }
         let radiance: Vec<Vec3> = (0..n)
             .map(|c| {
                 Vec3::new(
@@ -222,7 +268,17 @@ pub fn fit(
                 )
             })
             .collect();
-        sampling = Envmap::new(rings, radiance).expect("solver output is finite and non-negative");
+        sampling = if last {
+            Envmap::new(rings, radiance).expect("solver output is finite and non-negative")
+        } else {
+            // Sample by the estimate, with a defensive floor so no cell is starved.
+            let mean = radiance.iter().copied().sum::<Vec3>() / n as f32;
+            let steer = radiance
+                .iter()
+                .map(|r| *r + 0.25 * mean + Vec3::splat(1e-6))
+                .collect();
+            Envmap::new(rings, steer).expect("finite and non-negative")
+        };
     }
     Fit {
         envmap: sampling,

@@ -1,11 +1,13 @@
 //! Light recovery: how well an estimated envmap locates and weighs the true sphere lights.
 //!
-//! For each true light (in order of decreasing power seen from the scene centre), the cell
-//! whose neighbourhood (a cone of radius `max(2 ring spacings, 25°)`) holds the most remaining
-//! power seeds a cluster of the cells in that cone; the cluster's power-weighted centroid
+//! Bright clusters are formed first, without looking at the truth: repeatedly, the cell whose
+//! neighbourhood (a cone of radius `max(2 ring spacings, 25°)`) holds the most remaining power
+//! seeds a cluster of the cells in that cone (a window, not the single brightest cell, because
+//! on fine grids a light's energy spreads over many cells), while clusters hold at least 5% of
+//! the total power (at most 8). Then each true light, in order of decreasing power seen from
+//! the scene centre, is matched to the nearest unmatched cluster: its power-weighted centroid
 //! direction is compared with the light's direction from the scene centre, and its power
-//! `Σ lum(λ)·Ω` with the light's `lum(L)·Ω_light`. A window, not the single brightest cell,
-//! because on fine grids a light's energy spreads over many cells.
+//! `Σ lum(λ)·Ω` with the light's `lum(L)·Ω_light`.
 
 use glam::Vec3;
 use serde::Serialize;
@@ -51,9 +53,10 @@ pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<
         })
         .collect();
     order.sort_by(|a, b| b.0.total_cmp(&a.0));
-    let mut out = Vec::new();
-    for (true_power, light) in order {
-        let truth = (light.center - scene_center).normalize();
+    // ---- Clusters, from the estimate alone ----
+    let total: f32 = power.iter().sum();
+    let mut clusters: Vec<(Vec3, f32, usize)> = Vec::new(); // (centroid, power, cells)
+    while clusters.len() < 8 {
         let free: Vec<u32> = (0..n).filter(|&c| !taken[c as usize]).collect();
         let window = |axis: Vec3| {
             free.iter()
@@ -68,8 +71,10 @@ pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<
             break;
         };
         let axis = g.center(seed);
-        let mut sum = Vec3::ZERO;
-        let (mut p_sum, mut count) = (0.0f32, 0);
+        if window(axis) < 0.05 * total || total <= 0.0 {
+            break;
+        }
+        let (mut sum, mut p_sum, mut count) = (Vec3::ZERO, 0.0f32, 0);
         for &c in &free {
             if g.center(c).angle_between(axis) <= radius {
                 taken[c as usize] = true;
@@ -78,11 +83,35 @@ pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<
                 count += 1;
             }
         }
-        let est = sum.normalize_or(axis);
+        clusters.push((sum.normalize_or(axis), p_sum, count));
+    }
+
+    // ---- Match each true light to the nearest unmatched cluster ----
+    let mut used = vec![false; clusters.len()];
+    let mut out = Vec::new();
+    for (true_power, light) in order {
+        let truth = (light.center - scene_center).normalize();
+        let best = (0..clusters.len()).filter(|&k| !used[k]).min_by(|&a, &b| {
+            clusters[a]
+                .0
+                .angle_between(truth)
+                .total_cmp(&clusters[b].0.angle_between(truth))
+        });
+        let (est, p_sum, count) = match best {
+            Some(k) => {
+                used[k] = true;
+                clusters[k]
+            }
+            None => (Vec3::ZERO, 0.0, 0),
+        };
         out.push(LightRecovery {
             true_direction: truth.to_array(),
             estimated_direction: est.to_array(),
-            angle_error_degrees: truth.angle_between(est).to_degrees(),
+            angle_error_degrees: if count > 0 {
+                truth.angle_between(est).to_degrees()
+            } else {
+                f32::NAN
+            },
             power_ratio: if true_power > 0.0 {
                 p_sum / true_power
             } else {
