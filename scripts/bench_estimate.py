@@ -162,7 +162,8 @@ def run_timed(cmd: list) -> dict:
 
 
 def lp_estimate(bin_: Path, scene: Path, ref: Path, out: Path, rings: int,
-                spp: int | None) -> dict:
+                spp: int | None, wait: float = 0.0) -> dict:
+    idle = wait_idle(wait) if wait else None
     cmd = [bin_, "estimate", scene, "--out", out, "--reference", ref, "--rings", rings,
            "--quiet", "--json"]
     if spp:
@@ -183,7 +184,7 @@ def lp_estimate(bin_: Path, scene: Path, ref: Path, out: Path, rings: int,
         "peak_bytes": rep["memory"]["peak_bytes"], "memory": rep["memory"],
         "max_rss_bytes": r["max_rss_bytes"], "threads": rep.get("threads"),
         "light_recovery": rep.get("light_recovery"), "out": str(out),
-        "cpu": cm.result,
+        "cpu": cm.result, "wait_idle": idle,
     }
 
 
@@ -216,7 +217,7 @@ def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
         if spp == main["transport_spp"]:
             continue
         r = lp_estimate(args.bin, args.scene, ref, work / f"lp_r{args.rings}_spp{spp}",
-                        args.rings, spp)
+                        args.rings, spp, args.wait_idle)
         curve.append(r)
         log(f"  lightprobe rings {args.rings} spp {spp}: relMAE {r['rel_mae']:.4f} fit "
             f"{r['fit_seconds']:.2f} s, process wall {r['process_wall_seconds']:.2f} s; other "
@@ -225,7 +226,7 @@ def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
     res["curve"] = sorted(curve, key=lambda r: r["transport_spp"])
     if args.big_rings:
         r = lp_estimate(args.bin, args.scene, ref, work / f"lp_r{args.big_rings}",
-                        args.big_rings, None)
+                        args.big_rings, None, args.wait_idle)
         res["big"] = r
         log(f"  lightprobe rings {args.big_rings} ({r['cells']} cells): relMAE "
             f"{r['rel_mae']:.4f} fit {r['fit_seconds']:.2f} s, process wall "
@@ -572,8 +573,10 @@ def main() -> int:
     ap.add_argument("--mi-integrator", default="prb")
     ap.add_argument("--no-crosscheck", dest="crosscheck", action="store_false")
     ap.add_argument("--wait-idle", type=float, default=0.0, metavar="SECONDS",
-                    help="before each timed phase wait up to this long for other processes "
-                         "to use < 0.2 cores (a concurrent build skews timings)")
+                    help="before each timed run (every lightprobe process, each Mitsuba "
+                         "optimisation) wait up to this long for other processes to use < 0.2 "
+                         "cores (a concurrent build skews timings); what they used during each "
+                         "run is recorded either way")
     ap.add_argument("--replot", type=Path, default=None,
                     help="only redraw the chart from a bench_estimate.json (into --out)")
     ap.add_argument("--quick", action="store_true",
@@ -614,10 +617,6 @@ def main() -> int:
 
     # 2. lightprobe
     idle = {}
-    if args.wait_idle:
-        idle["lightprobe"] = wait_idle(args.wait_idle)
-        log(f"waited {idle['lightprobe']['waited_seconds']:.0f} s for an idle machine: other "
-            f"processes at {idle['lightprobe']['other_cores_last_window']:.2f} cores")
     log(f"lightprobe estimate (load {load()}):")
     lp = run_lightprobe_suite(args, ref, work)
     loads += [lp["load_before"], lp["load_after"]]
