@@ -175,6 +175,7 @@ def lp_estimate(bin_: Path, scene: Path, ref: Path, out: Path, rings: int,
     evaluation = t.get("noise_floor_seconds", 0.0) + t.get("rerender_seconds", 0.0)
     return {
         "rings": rings, "cells": rep["cells"], "transport_spp": rep["transport_spp"],
+        "rounds": rep.get("rounds"), "solver": rep.get("solver"),
         "rel_mae": rep["rel_mae"], "noise_floor_rel_mae": rep["noise_floor_rel_mae"],
         "view_rel_mae": {v["view"]: v["estimate"]["rel_mae"] for v in rep["views"]},
         "fit_seconds": t["fit_seconds"], "total_seconds": t["total_seconds"],
@@ -235,6 +236,24 @@ def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
             f"processes {r['cpu']['other_cores']:.2f} cores")
     res["load_after"] = load()
     return res
+
+
+def binary_provenance(path: Path) -> dict:
+    """Which build was measured (the binary is rebuilt while people work)."""
+    import hashlib
+    wait_for_binary(path)
+    st = path.stat()
+    h = hashlib.sha256(path.read_bytes()).hexdigest()
+    try:
+        head = subprocess.run(["git", "-C", str(ms.REPO), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(ms.REPO), "status", "--porcelain", "--", "src"],
+                               capture_output=True, text=True).stdout.strip()
+        head += " (src/ modified)" if dirty else ""
+    except OSError:
+        head = None
+    return {"path": str(path), "mtime": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(st.st_mtime)),
+            "sha256": h, "git_head": head}
 
 
 # --------------------------------------------------------------------------
@@ -475,8 +494,8 @@ def chart(path: Path, lp: dict, mitsuba: list[dict], tte: dict, meta: dict) -> N
                       f"spp/step, lr {m['lr']}, {m['loss'].upper()}); step 0 = init")
         b = m["best"]
         ax.annotate(f"best {b['rel_mae']:.4f}\n(step {b['step']})", (b["seconds"], b["rel_mae"]),
-                    textcoords="offset points", xytext=(6, -22), fontsize=8, color=col)
-    cur = lp["curve"]
+                    textcoords="offset points", xytext=(-30, -26), fontsize=8, color=col)
+    cur = sorted(lp["curve"], key=lambda r: r["transport_spp"])
     ax.plot([r["fit_seconds"] for r in cur], [r["rel_mae"] for r in cur], "s-", color="tab:red",
             ms=7, lw=1.2, label=f"lightprobe estimate, {lp['main']['rings']} rings: fit time "
                                  f"(transport + solve); labels = transport spp")
@@ -605,6 +624,9 @@ def main() -> int:
     info = ms.lightprobe_info(args.scene, args.bin)
     st = info["settings"]
     views = [c["name"] for c in info["cameras"]]
+    binary = binary_provenance(args.bin)
+    log(f"lightprobe binary {binary['path']} built {binary['mtime']} sha256 "
+        f"{binary['sha256'][:12]}; repo HEAD {binary['git_head']}")
 
     # 1. references, once
     ref = work / "reference"
@@ -619,6 +641,7 @@ def main() -> int:
     idle = {}
     log(f"lightprobe estimate (load {load()}):")
     lp = run_lightprobe_suite(args, ref, work)
+    binary_after = binary_provenance(args.bin)
     loads += [lp["load_before"], lp["load_after"]]
 
     # 3. Mitsuba
@@ -693,7 +716,8 @@ def main() -> int:
 
     result = {
         "scene": str(args.scene), "views": views, "settings": st, "cpus": os.cpu_count(),
-        "loadavg_samples": loads, "wait_idle": idle, "reference": {"dir": str(ref), "seconds": rr["wall_seconds"]},
+        "loadavg_samples": loads, "wait_idle": idle, "lightprobe_binary": binary,
+        "lightprobe_binary_after_lightprobe_runs": binary_after, "reference": {"dir": str(ref), "seconds": rr["wall_seconds"]},
         "lightprobe": lp, "mitsuba": mitsuba, "mitsuba_version": mi.__version__,
         "mitsuba_variant": variant, "mitsuba_threads": dr.thread_count(),
         "mitsuba_python_max_rss_bytes": mi_rss, "crosscheck": cc, "time_to_error": tte,
@@ -705,7 +729,11 @@ def main() -> int:
 
     # 5. summary
     log("\n=== summary ===")
-    log(f"lightprobe {args.rings} rings ({mn['cells']} cells), {mn['threads']} threads:")
+    log(f"lightprobe {args.rings} rings ({mn['cells']} cells), solver {mn['solver']}, rounds "
+        f"{mn['rounds']}, {mn['threads']} threads:")
+    if binary_after["sha256"] != binary["sha256"]:
+        log(f"  WARNING: the lightprobe binary was rebuilt during the lightprobe runs "
+            f"({binary_after['mtime']}): they may not all be of the same build")
     for r in lp["curve"]:
         log(f"  spp {r['transport_spp']:4d}: relMAE {r['rel_mae']:.4f}  fit {r['fit_seconds']:.2f} s"
             f"  report total {r['total_seconds']:.2f} s  process wall "

@@ -893,3 +893,86 @@ fn estimate_runs_end_to_end_and_reports() {
     let env2 = lightprobe::envmap::Envmap::load(&out2.join("envmap.ron")).unwrap();
     assert_eq!(env.radiance(), env2.radiance());
 }
+
+/// The committed corpus of broken glTF/GLB files (tests/bad/, written by
+/// scripts/make_bad_corpus.py): each, named by a sidecar, must fail cleanly with this fragment.
+#[test]
+fn gltf_corpus_fails_cleanly() {
+    let bad = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bad");
+    let cases = [
+        ("glb_bad_magic.glb", "not a valid glTF"),
+        ("glb_bad_chunk_length.glb", "not a valid glTF"),
+        ("glb_json_not_json.glb", "not a valid glTF"),
+        ("glb_truncated.glb", "not a valid glTF"),
+        (
+            "gltf_missing_buffer.gltf",
+            "\"missing.bin\", which does not exist",
+        ),
+        ("gltf_buffer_outside.gltf", "points outside"),
+        ("gltf_buffer_absolute.gltf", "points outside"),
+        (
+            "gltf_accessor_out_of_range.gltf",
+            "gltf_accessor_out_of_range.gltf",
+        ),
+        ("gltf_lines.gltf", "only triangle lists"),
+        ("gltf_no_camera.gltf", "has no perspective camera"),
+        ("gltf_no_mesh.gltf", "has no triangles"),
+        (
+            "gltf_missing_texture.gltf",
+            "\"missing.png\", which does not exist",
+        ),
+        ("gltf_bad_texture.gltf", "not a valid glTF"),
+        ("gltf_not_json.gltf", "not a valid glTF"),
+        (
+            "gltf_index_out_of_range.gltf",
+            "has index 7 but only 3 vertices",
+        ),
+    ];
+    let mut failures = Vec::new();
+    for (file, expect) in cases {
+        let tmp = tempfile::tempdir().unwrap();
+        let d = tmp.path();
+        std::fs::copy(bad.join(file), d.join(file)).unwrap();
+        std::fs::write(d.join("s.ron"), format!("Scene(gltf: {file:?}, image: (width: 8, height: 6), lights: [{LIGHT}], render: (spp: 1))")).unwrap();
+        for cmd in [
+            &["render-reference", "s.ron", "--out", "out", "--quiet"][..],
+            &["info", "s.ron"],
+        ] {
+            let o = bin().args(cmd).current_dir(d).output().unwrap();
+            let err = String::from_utf8_lossy(&o.stderr).into_owned();
+            let ok = !o.status.success()
+                && err.trim().lines().count() == 1
+                && err.contains(expect)
+                && !err.contains("panicked")
+                && !d.join("out").join("cam.exr").exists();
+            if !ok || files_in(&d.join("out")).iter().any(|f| !f.starts_with('.')) {
+                failures.push(format!(
+                    "{file} ({}): exit {:?}, stderr: {}",
+                    cmd[0],
+                    o.status.code(),
+                    err.trim()
+                ));
+            }
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "{} corpus cases failed:\n{}",
+        failures.len(),
+        failures.join("\n")
+    );
+    // The control case of the corpus renders.
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::copy(
+        bad.join("good_triangle.gltf"),
+        tmp.path().join("good_triangle.gltf"),
+    )
+    .unwrap();
+    std::fs::write(tmp.path().join("s.ron"), format!("Scene(gltf: \"good_triangle.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}], render: (spp: 1))")).unwrap();
+    let o = bin()
+        .args(["render-reference", "s.ron", "--out", "out", "--quiet"])
+        .current_dir(tmp.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}

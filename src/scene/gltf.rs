@@ -21,11 +21,94 @@ pub(super) struct Loaded {
 
 /// Loads a `.gltf` or `.glb`; cameras get the image size (`width`, `height`).
 pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
-    let (doc, buffers, images) = gltf::import(path).map_err(|e| match e {
+    check_uris(path)?;
+    let imported = gltf::import(path).map_err(|e| match e {
         gltf::Error::Io(io) => Error::io(path, io),
         other => Error::file(path, format!("not a valid glTF 2.0 file: {other}")),
     })?;
+    build(path, imported, width, height)
+}
 
+/// Loads glTF or GLB bytes that need no external files (`label` names them in errors).
+pub(super) fn load_slice(bytes: &[u8], label: &Path, width: u32, height: u32) -> Result<Loaded> {
+    let imported = gltf::import_slice(bytes)
+        .map_err(|e| Error::file(label, format!("not a valid glTF 2.0 file: {e}")))?;
+    build(label, imported, width, height)
+}
+
+/// Refuses buffer and image URIs that would read outside the glTF's folder (absolute paths,
+/// `..`), before anything is read.
+fn check_uris(path: &Path) -> Result<()> {
+    let Ok(gltf) = gltf::Gltf::open(path) else {
+        return Ok(()); // the import reports the real problem
+    };
+    let uris = gltf
+        .buffers()
+        .filter_map(|b| match b.source() {
+            gltf::buffer::Source::Uri(u) => Some(u.to_string()),
+            gltf::buffer::Source::Bin => None,
+        })
+        .chain(gltf.images().filter_map(|i| match i.source() {
+            gltf::image::Source::Uri { uri, .. } => Some(uri.to_string()),
+            gltf::image::Source::View { .. } => None,
+        }));
+    for uri in uris {
+        if uri.starts_with("data:") {
+            continue;
+        }
+        let p = Path::new(&uri);
+        let escapes = p.is_absolute()
+            || uri.contains("://")
+            || p.components()
+                .any(|c| matches!(c, std::path::Component::ParentDir));
+        if escapes {
+            return Err(Error::file(
+                path,
+                format!("refuses URI {uri:?}: it points outside the glTF's folder"),
+            ));
+        }
+        let file = path
+            .parent()
+            .unwrap_or(Path::new(""))
+            .join(percent_decode(&uri));
+        if !file.is_file() {
+            return Err(Error::file(
+                path,
+                format!("refers to {uri:?}, which does not exist next to it"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Decodes `%XX` escapes of a relative URI (glTF URIs are RFC 3986).
+fn percent_decode(uri: &str) -> String {
+    let b = uri.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%'
+            && i + 2 < b.len()
+            && let Ok(v) =
+                u8::from_str_radix(std::str::from_utf8(&b[i + 1..i + 3]).unwrap_or("zz"), 16)
+        {
+            out.push(v);
+            i += 3;
+        } else {
+            out.push(b[i]);
+            i += 1;
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+type Imported = (
+    gltf::Document,
+    Vec<gltf::buffer::Data>,
+    Vec<gltf::image::Data>,
+);
+
+fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32) -> Result<Loaded> {
     let textures: Vec<Arc<Texture>> = images
         .iter()
         .map(|img| Arc::new(decode_image(img)))
@@ -162,6 +245,19 @@ fn load_primitive(
         .map(Vec3::from)
         .collect();
     let n = positions.len();
+    // The reader stops at the end of a buffer view; an accessor that claims more is broken.
+    let short = |what: &str, accessor: Option<gltf::Accessor>, got: usize| match accessor {
+        Some(a) if a.count() != got => Err(Error::file(
+            path,
+            format!(
+                "{what} accessor #{} claims {} elements but its buffer view holds {got}",
+                a.index(),
+                a.count()
+            ),
+        )),
+        _ => Ok(()),
+    };
+    short("POSITION", prim.get(&gltf::Semantic::Positions), n)?;
     if positions.iter().any(|p| !p.is_finite()) {
         return Err(Error::file(
             path,
@@ -172,6 +268,15 @@ fn load_primitive(
         Some(ix) => ix.into_u32().collect(),
         None => (0..n as u32).collect(),
     };
+    short(
+        "index",
+        prim.indices(),
+        if prim.indices().is_some() {
+            indices.len()
+        } else {
+            0
+        },
+    )?;
     if !indices.len().is_multiple_of(3) {
         return Err(Error::file(
             path,

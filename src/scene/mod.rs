@@ -349,6 +349,18 @@ impl Scene {
     }
 }
 
+/// Loads geometry, materials and cameras from glTF/GLB bytes that need no external files
+/// (for fuzzing and embedding): (mesh, materials, cameras). `label` names the bytes in errors.
+pub fn load_gltf_bytes(
+    bytes: &[u8],
+    label: &Path,
+    width: u32,
+    height: u32,
+) -> Result<(Mesh, Vec<Material>, Vec<Camera>)> {
+    let l = gltf::load_slice(bytes, label, width, height)?;
+    Ok((l.mesh, l.materials, l.cameras))
+}
+
 /// Loads an sRGB-encoded albedo image (PNG or JPEG) as linear RGB.
 pub fn load_albedo_map(path: &Path) -> Result<Texture> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;

@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Fuzzes lightprobe's input parsers with libFuzzer (cargo fuzz, nightly toolchain):
+#   sidecar  any bytes -> the RON sidecar parser
+#   gltf     any bytes -> the glTF/GLB loader (geometry, materials, cameras)
+#   envmap   any bytes -> the envmap.ron parser, then a lat-long export
+# Usage: scripts/fuzz.sh [SECONDS_PER_TARGET] [TARGET...]   (default 60 s, all targets)
+# Crashes are left in fuzz/artifacts/<target>/; the summary prints executions and crashes.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+secs="${1:-60}"; shift || true
+targets=("$@"); [ ${#targets[@]} -gt 0 ] || targets=(sidecar gltf envmap)
+rustup toolchain list | grep -q nightly || rustup toolchain install nightly --profile minimal
+command -v cargo-fuzz >/dev/null 2>&1 || cargo install cargo-fuzz --locked
+export RUSTFLAGS=""   # the sanitizer build sets its own flags
+summary=()
+for t in "${targets[@]}"; do
+  corpus="fuzz/corpus/$t"; mkdir -p "$corpus" "fuzz/artifacts/$t"
+  cp -n fuzz/seeds/"$t"/* "$corpus"/ 2>/dev/null || true
+  log="fuzz/artifacts/$t/last-run.log"
+  set +e
+  cargo +nightly fuzz run "$t" "$corpus" -- -max_total_time="$secs" -rss_limit_mb=2048 -timeout=10 2>&1 | tee "$log" | grep -E "^#[0-9]+ +(DONE|pulse)|ERROR|panicked" | tail -3
+  status=${PIPESTATUS[0]}
+  set -e
+  execs=$(grep -oE "^#[0-9]+" "$log" | tail -1 | tr -d '#')
+  crashes=$(find "fuzz/artifacts/$t" -name 'crash-*' -o -name 'oom-*' -o -name 'timeout-*' | wc -l)
+  summary+=("$t: ${execs:-0} executions in ${secs} s, exit $status, crash/oom/timeout files: $crashes")
+done
+printf '\n== fuzz summary ==\n'; printf '%s\n' "${summary[@]}"
