@@ -976,3 +976,26 @@ fn gltf_corpus_fails_cleanly() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
+
+#[test]
+fn estimate_is_bit_identical_at_one_and_two_threads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    let mut outs = Vec::new();
+    for threads in ["1", "2"] {
+        let out = tmp.path().join(format!("t{threads}"));
+        let o = bin()
+            .args(["estimate", scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--rings", "7", "--spp", "16", "--quiet"])
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        outs.push((
+            std::fs::read(out.join("envmap.ron")).unwrap(),
+            std::fs::read(out.join("envmap.exr")).unwrap(),
+            std::fs::read(out.join("estimate/cam_side.exr")).unwrap(),
+        ));
+    }
+    assert!(outs[0].0 == outs[1].0, "envmap.ron differs between 1 and 2 threads");
+    assert!(outs[0].1 == outs[1].1 && outs[0].2 == outs[1].2, "EXR outputs differ between 1 and 2 threads");
+}
