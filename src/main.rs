@@ -315,6 +315,19 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
             a.scene.display()
         );
     }
+    // One view at a time: its image (RGB + coverage), the per-tile results and the EXR encoder.
+    let need = (scene.settings.width as u64 * scene.settings.height as u64) * 40;
+    if let Some(avail) = available_memory_bytes()
+        && need > avail / 10 * 9
+    {
+        bail!(
+            "{}×{} images would need about {:.1} GiB each, but only {:.1} GiB is available",
+            scene.settings.width,
+            scene.settings.height,
+            need as f64 / (1u64 << 30) as f64,
+            avail as f64 / (1u64 << 30) as f64
+        );
+    }
     prepare_out_dir(&a.out)?;
     let load_s = t_load.elapsed().as_secs_f64();
 

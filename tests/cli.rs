@@ -210,6 +210,22 @@ struct Case {
     expect: &'static str,
 }
 
+/// An EXR with a single luminance channel "Y" (no R, G, B).
+fn luminance_only_exr() -> Vec<u8> {
+    use exr::prelude::*;
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("y.exr");
+    let channel = AnyChannel::new("Y", FlatSamples::F32(vec![0.5f32; 12]));
+    let layer = Layer::new(
+        (4, 3),
+        LayerAttributes::default(),
+        Encoding::UNCOMPRESSED,
+        AnyChannels::sort(vec![channel].into()),
+    );
+    Image::from_layer(layer).write().to_file(&p).unwrap();
+    std::fs::read(p).unwrap()
+}
+
 /// An RGB EXR of `w × h` pixels, all `value`.
 fn tiny_exr(w: u32, h: u32, value: f32) -> Vec<u8> {
     let dir = tempfile::tempdir().unwrap();
@@ -681,6 +697,57 @@ fn cases() -> Vec<Case> {
             .to_vec(),
             "cam_side.exr: no such file",
         ),
+        c(
+            "compare exr without RGB channels",
+            vec![
+                ("y.exr", luminance_only_exr()),
+                ("b.exr", tiny_exr(4, 3, 0.5)),
+            ],
+            &["compare", "{d}/y.exr", "{d}/b.exr"].to_vec(),
+            "y.exr: cannot read",
+        ),
+        c(
+            "compare truncated exr",
+            vec![
+                ("t.exr", {
+                    let e = tiny_exr(16, 12, 0.5);
+                    e[..e.len() / 2].to_vec()
+                }),
+                ("b.exr", tiny_exr(16, 12, 0.5)),
+            ],
+            &["compare", "{d}/t.exr", "{d}/b.exr"].to_vec(),
+            "t.exr: cannot read",
+        ),
+        c(
+            "compare sizes differ",
+            vec![
+                ("a.exr", tiny_exr(8, 6, 0.5)),
+                ("b.exr", tiny_exr(16, 12, 0.5)),
+            ],
+            &["compare", "{d}/a.exr", "{d}/b.exr"].to_vec(),
+            "is 8×6 but the reference",
+        ),
+        c(
+            "estimate truncated reference",
+            vec![
+                ("scene.ron", sidecar("  views: [\"cam_front\"],\n", LIGHT)),
+                ("ref/cam_front.exr", {
+                    let e = tiny_exr(16, 12, 0.5);
+                    e[..e.len() / 2].to_vec()
+                }),
+            ],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--reference",
+                "{d}/ref",
+                "--quiet",
+            ]
+            .to_vec(),
+            "cam_front.exr: cannot read",
+        ),
     ]
 }
 
@@ -985,7 +1052,17 @@ fn estimate_is_bit_identical_at_one_and_two_threads() {
     for threads in ["1", "2"] {
         let out = tmp.path().join(format!("t{threads}"));
         let o = bin()
-            .args(["estimate", scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--rings", "7", "--spp", "16", "--quiet"])
+            .args([
+                "estimate",
+                scene.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--rings",
+                "7",
+                "--spp",
+                "16",
+                "--quiet",
+            ])
             .env("RAYON_NUM_THREADS", threads)
             .output()
             .unwrap();
@@ -996,6 +1073,12 @@ fn estimate_is_bit_identical_at_one_and_two_threads() {
             std::fs::read(out.join("estimate/cam_side.exr")).unwrap(),
         ));
     }
-    assert!(outs[0].0 == outs[1].0, "envmap.ron differs between 1 and 2 threads");
-    assert!(outs[0].1 == outs[1].1 && outs[0].2 == outs[1].2, "EXR outputs differ between 1 and 2 threads");
+    assert!(
+        outs[0].0 == outs[1].0,
+        "envmap.ron differs between 1 and 2 threads"
+    );
+    assert!(
+        outs[0].1 == outs[1].1 && outs[0].2 == outs[1].2,
+        "EXR outputs differ between 1 and 2 threads"
+    );
 }
