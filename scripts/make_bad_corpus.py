@@ -104,6 +104,9 @@ def main():
         "glb_bad_chunk_length.glb": seed[:12] + struct.pack("<I", 10**9) + seed[16:],
         "glb_json_not_json.glb": glb({"asset": 1}, b)[:20] + b"{ not json at all }" + b" " * 9,
         "glb_truncated.glb": seed[: len(seed) // 2],
+        # Found by fuzzing: a declared length under 12 made the gltf crate underflow.
+        "glb_length_underflow.glb": struct.pack("<4sII", b"glTF", 2, 5) + seed[12:],
+        "glb_version_1.glb": struct.pack("<4sII", b"glTF", 1, len(seed)) + seed[12:],
         "gltf_missing_buffer.gltf": json.dumps(base_gltf("missing.bin")),
         "gltf_buffer_outside.gltf": json.dumps(base_gltf("../outside.bin")),
         "gltf_buffer_absolute.gltf": json.dumps(base_gltf("/etc/hostname")),

@@ -971,6 +971,8 @@ fn gltf_corpus_fails_cleanly() {
         ("glb_bad_chunk_length.glb", "not a valid glTF"),
         ("glb_json_not_json.glb", "not a valid glTF"),
         ("glb_truncated.glb", "not a valid glTF"),
+        ("glb_length_underflow.glb", "declares a length of 5 bytes"),
+        ("glb_version_1.glb", "GLB version 1"),
         (
             "gltf_missing_buffer.gltf",
             "\"missing.bin\", which does not exist",

@@ -21,6 +21,9 @@ pub(super) struct Loaded {
 
 /// Loads a `.gltf` or `.glb`; cameras get the image size (`width`, `height`).
 pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
+    let mut head = [0u8; 12];
+    let n = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)).map_err(|e| Error::io(path, e))?;
+    check_glb_header(&head[..n], path)?;
     check_uris(path)?;
     let imported = gltf::import(path).map_err(|e| match e {
         gltf::Error::Io(io) => Error::io(path, io),
@@ -31,9 +34,29 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
 
 /// Loads glTF or GLB bytes that need no external files (`label` names them in errors).
 pub(super) fn load_slice(bytes: &[u8], label: &Path, width: u32, height: u32) -> Result<Loaded> {
+    check_glb_header(bytes, label)?;
     let imported = gltf::import_slice(bytes)
         .map_err(|e| Error::file(label, format!("not a valid glTF 2.0 file: {e}")))?;
     build(label, imported, width, height)
+}
+
+/// Checks a GLB header before the gltf crate does arithmetic on it (gltf 1.4 subtracts 12
+/// from the declared length unchecked: found by fuzzing). Text glTF passes through.
+fn check_glb_header(head: &[u8], path: &Path) -> Result<()> {
+    if !head.starts_with(b"glTF") {
+        return Ok(());
+    }
+    if head.len() < 12 {
+        return Err(Error::file(path, "not a valid glTF 2.0 file: truncated GLB header"));
+    }
+    let word = |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
+    if word(4) != 2 {
+        return Err(Error::file(path, format!("not a valid glTF 2.0 file: GLB version {} (only 2 is supported)", word(4))));
+    }
+    if word(8) < 12 {
+        return Err(Error::file(path, format!("not a valid glTF 2.0 file: GLB declares a length of {} bytes", word(8))));
+    }
+    Ok(())
 }
 
 /// Refuses buffer and image URIs that would read outside the glTF's folder (absolute paths,
