@@ -118,6 +118,10 @@ def main():
         "gltf_bad_texture.gltf": json.dumps(base_gltf(data_uri(b), image={"uri": data_uri(b"\x89PNG\r\n\x1a\nnope", "image/png")})),
         "gltf_not_json.gltf": "{ this is not json",
     }
+    # Found by fuzzing: a POSITION accessor index out of range panicked inside gltf-json.
+    dangling = base_gltf(data_uri(b))
+    dangling["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = 9
+    cases["gltf_dangling_accessor.gltf"] = json.dumps(dangling)
     # An index beyond the vertex count (a valid accessor whose values are out of range).
     bad_idx = b[:96] + struct.pack("<3I", 0, 1, 7)
     cases["gltf_index_out_of_range.gltf"] = json.dumps(base_gltf(data_uri(bad_idx)))

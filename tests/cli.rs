@@ -984,6 +984,10 @@ fn gltf_corpus_fails_cleanly() {
             "gltf_accessor_out_of_range.gltf",
         ),
         ("gltf_lines.gltf", "only triangle lists"),
+        (
+            "gltf_dangling_accessor.gltf",
+            "refers to objects that do not exist",
+        ),
         ("gltf_no_camera.gltf", "has no perspective camera"),
         ("gltf_no_mesh.gltf", "has no triangles"),
         (

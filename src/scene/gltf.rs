@@ -22,10 +22,12 @@ pub(super) struct Loaded {
 /// Loads a `.gltf` or `.glb`; cameras get the image size (`width`, `height`).
 pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
     let mut head = [0u8; 12];
-    let n = std::fs::File::open(path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)).map_err(|e| Error::io(path, e))?;
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+        .map_err(|e| Error::io(path, e))?;
     check_glb_header(&head[..n], path)?;
     check_uris(path)?;
-    let imported = gltf::import(path).map_err(|e| match e {
+    let imported = contain(path, || gltf::import(path))?.map_err(|e| match e {
         gltf::Error::Io(io) => Error::io(path, io),
         other => Error::file(path, format!("not a valid glTF 2.0 file: {other}")),
     })?;
@@ -35,9 +37,26 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
 /// Loads glTF or GLB bytes that need no external files (`label` names them in errors).
 pub(super) fn load_slice(bytes: &[u8], label: &Path, width: u32, height: u32) -> Result<Loaded> {
     check_glb_header(bytes, label)?;
-    let imported = gltf::import_slice(bytes)
+    let imported = contain(label, || gltf::import_slice(bytes))?
         .map_err(|e| Error::file(label, format!("not a valid glTF 2.0 file: {e}")))?;
     build(label, imported, width, height)
+}
+
+/// Runs the gltf crate's parser, turning a panic inside it into an error. gltf 1.4 indexes
+/// unchecked references in some validation hooks (found by fuzzing: a POSITION accessor index
+/// out of range panics even in release builds); a malformed file must give an error, not a
+/// crash. The panic hook is silenced for the duration (the parser runs on the calling thread).
+fn contain<T>(path: &Path, parse: impl FnOnce() -> T) -> Result<T> {
+    let hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(|_| {}));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(parse));
+    std::panic::set_hook(hook);
+    result.map_err(|_| {
+        Error::file(
+            path,
+            "not a valid glTF 2.0 file: it refers to objects that do not exist",
+        )
+    })
 }
 
 /// Checks a GLB header before the gltf crate does arithmetic on it (gltf 1.4 subtracts 12
@@ -47,14 +66,29 @@ fn check_glb_header(head: &[u8], path: &Path) -> Result<()> {
         return Ok(());
     }
     if head.len() < 12 {
-        return Err(Error::file(path, "not a valid glTF 2.0 file: truncated GLB header"));
+        return Err(Error::file(
+            path,
+            "not a valid glTF 2.0 file: truncated GLB header",
+        ));
     }
     let word = |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
     if word(4) != 2 {
-        return Err(Error::file(path, format!("not a valid glTF 2.0 file: GLB version {} (only 2 is supported)", word(4))));
+        return Err(Error::file(
+            path,
+            format!(
+                "not a valid glTF 2.0 file: GLB version {} (only 2 is supported)",
+                word(4)
+            ),
+        ));
     }
     if word(8) < 12 {
-        return Err(Error::file(path, format!("not a valid glTF 2.0 file: GLB declares a length of {} bytes", word(8))));
+        return Err(Error::file(
+            path,
+            format!(
+                "not a valid glTF 2.0 file: GLB declares a length of {} bytes",
+                word(8)
+            ),
+        ));
     }
     Ok(())
 }
@@ -62,7 +96,7 @@ fn check_glb_header(head: &[u8], path: &Path) -> Result<()> {
 /// Refuses buffer and image URIs that would read outside the glTF's folder (absolute paths,
 /// `..`), before anything is read.
 fn check_uris(path: &Path) -> Result<()> {
-    let Ok(gltf) = gltf::Gltf::open(path) else {
+    let Ok(gltf) = contain(path, || gltf::Gltf::open(path))? else {
         return Ok(()); // the import reports the real problem
     };
     let uris = gltf
