@@ -122,6 +122,10 @@ def main():
     dangling = base_gltf(data_uri(b))
     dangling["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = 9
     cases["gltf_dangling_accessor.gltf"] = json.dumps(dangling)
+    # Found by fuzzing: an accessor of the wrong type (VEC3 texture coordinates).
+    wrong_type = base_gltf(data_uri(b), image={"uri": data_uri(png_2x2(), "image/png")})
+    wrong_type["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"] = 1
+    cases["gltf_wrong_accessor_type.gltf"] = json.dumps(wrong_type)
     # An index beyond the vertex count (a valid accessor whose values are out of range).
     bad_idx = b[:96] + struct.pack("<3I", 0, 1, 7)
     cases["gltf_index_out_of_range.gltf"] = json.dumps(base_gltf(data_uri(bad_idx)))

@@ -3,6 +3,8 @@
 use std::f64::consts::PI;
 
 use glam::Vec3;
+mod common;
+use common::{icosphere, plane};
 use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
 use lightprobe::scene::{Albedo, Camera, Material, Mesh, Scene, SceneSettings, SphereLight};
 
@@ -35,88 +37,6 @@ fn settings(spp: u32, max_bounces: u32, strategy: Strategy) -> RenderSettings {
         strategy,
         hide_emitters: true,
     }
-}
-
-/// A square of side 2·half at height y, facing +Y (two triangles).
-fn plane(half: f32, y: f32) -> Mesh {
-    let mut m = Mesh::default();
-    let p = [
-        Vec3::new(-half, y, -half),
-        Vec3::new(half, y, -half),
-        Vec3::new(half, y, half),
-        Vec3::new(-half, y, half),
-    ];
-    m.push(&p, None, None, &[0, 2, 1, 0, 3, 2], 0);
-    m
-}
-
-/// An icosphere of radius r about c with `levels` subdivisions and smooth normals.
-fn icosphere(c: Vec3, r: f32, levels: u32) -> Mesh {
-    let t = (1.0 + 5f32.sqrt()) / 2.0;
-    let mut v: Vec<Vec3> = [
-        (-1.0, t, 0.0),
-        (1.0, t, 0.0),
-        (-1.0, -t, 0.0),
-        (1.0, -t, 0.0),
-        (0.0, -1.0, t),
-        (0.0, 1.0, t),
-        (0.0, -1.0, -t),
-        (0.0, 1.0, -t),
-        (t, 0.0, -1.0),
-        (t, 0.0, 1.0),
-        (-t, 0.0, -1.0),
-        (-t, 0.0, 1.0),
-    ]
-    .iter()
-    .map(|&(x, y, z)| Vec3::new(x, y, z).normalize())
-    .collect();
-    let mut f: Vec<[u32; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..levels {
-        let mut mid = std::collections::HashMap::new();
-        let mut midpoint = |a: u32, b: u32, v: &mut Vec<Vec3>| {
-            *mid.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                v.push(((v[a as usize] + v[b as usize]) * 0.5).normalize());
-                v.len() as u32 - 1
-            })
-        };
-        f = f
-            .iter()
-            .flat_map(|&[a, b, c]| {
-                let (ab, bc, ca) = (
-                    midpoint(a, b, &mut v),
-                    midpoint(b, c, &mut v),
-                    midpoint(c, a, &mut v),
-                );
-                [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-            })
-            .collect();
-    }
-    let mut m = Mesh::default();
-    let positions: Vec<Vec3> = v.iter().map(|&d| c + d * r).collect();
-    let indices: Vec<u32> = f.into_iter().flatten().collect();
-    m.push(&positions, Some(&v), None, &indices, 0);
-    m
 }
 
 /// Irradiance at a point with normal n from a uniform sphere wholly above its horizon:
@@ -182,13 +102,7 @@ fn mis_light_only_and_bsdf_only_agree() {
     let cam = Camera::look_at("cam", Vec3::new(0.0, 1.0, 3.0), Vec3::ZERO, 0.9, 16, 12);
     let mut mesh = plane(3.0, 0.0);
     let ball = icosphere(Vec3::new(-0.4, 0.35, 0.3), 0.35, 3);
-    mesh.push(
-        &ball.positions,
-        Some(&ball.normals),
-        None,
-        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
-        0,
-    );
+    mesh.append(&ball, 0);
     let sc = scene(mesh, Vec3::splat(0.7), cam.clone(), vec![light]);
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
@@ -289,13 +203,7 @@ fn same_image_at_any_thread_count() {
     let cam = Camera::look_at("cam", Vec3::new(0.0, 1.0, 2.0), Vec3::ZERO, 0.8, 37, 23);
     let mut mesh = plane(2.0, 0.0);
     let ball = icosphere(Vec3::new(0.0, 0.3, 0.0), 0.3, 2);
-    mesh.push(
-        &ball.positions,
-        Some(&ball.normals),
-        None,
-        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
-        0,
-    );
+    mesh.append(&ball, 0);
     let sc = scene(mesh, Vec3::splat(0.5), cam.clone(), vec![light]);
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
@@ -402,13 +310,7 @@ fn white_furnace_is_invisible() {
     );
     let mut mesh = plane(20.0, 0.0);
     let ball = icosphere(Vec3::new(0.0, 0.5, 0.0), 0.5, 3);
-    mesh.push(
-        &ball.positions,
-        Some(&ball.normals),
-        None,
-        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
-        0,
-    );
+    mesh.append(&ball, 0);
     let sc = scene(mesh, Vec3::ONE, cam.clone(), vec![]);
     let img = render_env(
         &sc,
@@ -480,13 +382,7 @@ fn envmap_strategies_agree() {
     let cam = Camera::look_at("cam", Vec3::new(0.0, 1.0, 3.0), Vec3::ZERO, 0.9, 16, 12);
     let mut mesh = plane(3.0, 0.0);
     let ball = icosphere(Vec3::new(-0.4, 0.35, 0.3), 0.35, 3);
-    mesh.push(
-        &ball.positions,
-        Some(&ball.normals),
-        None,
-        &ball.triangles.iter().flatten().copied().collect::<Vec<_>>(),
-        0,
-    );
+    mesh.append(&ball, 0);
     let sc = scene(mesh, Vec3::splat(0.6), cam.clone(), vec![]);
     let means: Vec<Vec3> = [Strategy::Mis, Strategy::LightOnly, Strategy::BsdfOnly]
         .iter()

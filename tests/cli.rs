@@ -984,6 +984,7 @@ fn gltf_corpus_fails_cleanly() {
             "gltf_accessor_out_of_range.gltf",
         ),
         ("gltf_lines.gltf", "only triangle lists"),
+        ("gltf_wrong_accessor_type.gltf", "not a valid TEXCOORD"),
         (
             "gltf_dangling_accessor.gltf",
             "refers to objects that do not exist",

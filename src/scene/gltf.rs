@@ -31,7 +31,7 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
         gltf::Error::Io(io) => Error::io(path, io),
         other => Error::file(path, format!("not a valid glTF 2.0 file: {other}")),
     })?;
-    build(path, imported, width, height)
+    contain(path, || build(path, imported, width, height))?
 }
 
 /// Loads glTF or GLB bytes that need no external files (`label` names them in errors).
@@ -39,7 +39,7 @@ pub(super) fn load_slice(bytes: &[u8], label: &Path, width: u32, height: u32) ->
     check_glb_header(bytes, label)?;
     let imported = contain(label, || gltf::import_slice(bytes))?
         .map_err(|e| Error::file(label, format!("not a valid glTF 2.0 file: {e}")))?;
-    build(label, imported, width, height)
+    contain(label, || build(label, imported, width, height))?
 }
 
 /// Runs the gltf crate's parser, turning a panic inside it into an error. gltf 1.4 indexes
@@ -295,6 +295,7 @@ fn load_primitive(
             ),
         ));
     }
+    check_accessor_types(path, what, prim, texcoord_set)?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
     let positions: Vec<Vec3> = reader
         .read_positions()
@@ -406,6 +407,58 @@ fn load_primitive(
         material,
     );
     Ok(())
+}
+
+/// Checks that each attribute's accessor has the type the spec requires before reading it
+/// (the gltf crate's reader assumes it: found by fuzzing).
+fn check_accessor_types(
+    path: &Path,
+    what: &str,
+    prim: &gltf::Primitive,
+    texcoord_set: u32,
+) -> Result<()> {
+    use gltf::accessor::{DataType as D, Dimensions as Dim};
+    let check = |name: &str,
+                 a: Option<gltf::Accessor>,
+                 dims: Dim,
+                 ok: &dyn Fn(D, bool) -> bool|
+     -> Result<()> {
+        match a {
+            Some(a) if a.dimensions() != dims || !ok(a.data_type(), a.normalized()) => {
+                Err(Error::file(
+                    path,
+                    format!(
+                        "{what}: {name} accessor #{} is {:?} {:?}, not a valid {name}",
+                        a.index(),
+                        a.dimensions(),
+                        a.data_type()
+                    ),
+                ))
+            }
+            _ => Ok(()),
+        }
+    };
+    check(
+        "POSITION",
+        prim.get(&gltf::Semantic::Positions),
+        Dim::Vec3,
+        &|d, _| d == D::F32,
+    )?;
+    check(
+        "NORMAL",
+        prim.get(&gltf::Semantic::Normals),
+        Dim::Vec3,
+        &|d, _| d == D::F32,
+    )?;
+    check(
+        "TEXCOORD",
+        prim.get(&gltf::Semantic::TexCoords(texcoord_set)),
+        Dim::Vec2,
+        &|d, n| d == D::F32 || (n && matches!(d, D::U8 | D::U16)),
+    )?;
+    check("index", prim.indices(), Dim::Scalar, &|d, n| {
+        !n && matches!(d, D::U8 | D::U16 | D::U32)
+    })
 }
 
 /// Converts a decoded glTF image to a linear texture (baseColor images are sRGB-encoded).

@@ -203,6 +203,19 @@ impl Mesh {
         }
     }
 
+    /// Appends another mesh's triangles with material `material` (its normals and texture
+    /// coordinates are kept).
+    pub fn append(&mut self, other: &Mesh, material: u32) {
+        let indices: Vec<u32> = other.triangles.iter().flatten().copied().collect();
+        self.push(
+            &other.positions,
+            Some(&other.normals),
+            Some(&other.uvs),
+            &indices,
+            material,
+        );
+    }
+
     /// Axis-aligned bounds (min, max), world space.
     pub fn bounds(&self) -> (Vec3, Vec3) {
         let mut lo = Vec3::splat(f32::INFINITY);
