@@ -13,8 +13,9 @@ report.json calls `rel_mae`.
 lightprobe: `estimate --reference REFDIR --rings 9` (the issue's setting),
   timed from outside (process wall, max RSS by wait4) and from report.json
   (timings.fit_seconds = transport + solve; total_seconds; memory.peak_bytes).
-  The same at --spp 64/128/256 (transport spp; the re-render stays at the
-  sidecar's spp) gives more (time, error) points, and --rings 25 once gives
+  The same at --spp 64/128/256 (the transport's total spp budget, over its
+  SMC rounds; the re-render stays at the sidecar's spp) gives more (time,
+  error) points, and --rings 25 once gives
   the peak memory. The whole process also renders a noise-floor pair and the
   re-render for its own report: "process wall excl. evaluation" subtracts
   timings.noise_floor_seconds + rerender_seconds, like Mitsuba's clock below
@@ -49,19 +50,27 @@ lightprobe. Goals from the issue, each reported as met or not: lightprobe >=
 20x faster at equal or lower error, lightprobe under 5 s wall clock, peak
 memory at 25 rings under 1 GiB.
 
-Writes OUT/estimate_vs_mitsuba.png (relMAE vs time, log time axis) and
-OUT/bench_estimate.json. Takes ~3-4 min on 2 cores with the defaults.
+Writes OUT/estimate_vs_mitsuba.png (relMAE vs time, log axes) and
+OUT/bench_estimate.json (every number, the lightprobe build measured, and
+how many cores other processes used during each timed run: /proc/stat minus
+our own CPU time). On an idle 2-core machine the defaults take ~1.5 min,
+with --mi-res 32x16,64x32 --lp-repeat 3 ~2.5 min. A concurrent build skews
+timings: --wait-idle S waits up to S seconds before every timed run for
+other processes to use < 0.2 cores. lr 0.3 / L2 / 16 spp: lr 0.1 is slower,
+0.6 and 1.0 reach lightprobe's error in the same number of steps (measured);
+L1 ends slightly worse.
 
 Usage: .venv/bin/python scripts/bench_estimate.py [--out DIR] [--mi-res 32x16,64x32]
        [--mi-steps 200] [--mi-spp 16] [--mi-lr 0.3] [--mi-loss l2] [--mi-eval-every 10]
-       [--curve-spp 64,128,256] [--lp-repeat 1] [--big-rings 25] [--quick]
+       [--curve-spp 64,128,256] [--lp-repeat 3] [--big-rings 25] [--wait-idle 600]
+       [--quick]                          (smoke test, ~40 s)
+       --replot OUT/bench_estimate.json --out OUT   (redraw the chart only)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import subprocess
@@ -476,6 +485,15 @@ def time_to_error(lp: dict, mitsuba: list[dict]) -> dict:
                 "ratio_process_wall_excl_evaluation":
                     t_mi / lp_run["process_wall_excl_evaluation_seconds"] if t_mi else None,
             })
+        # every lightprobe point: how long Mitsuba needs for the same error
+        row["per_lightprobe_point"] = []
+        for r in sorted(lp["curve"], key=lambda r: r["transport_spp"]):
+            t, tp = first_at_or_below(mi_pts, r["rel_mae"])
+            row["per_lightprobe_point"].append({
+                "transport_spp": r["transport_spp"], "rel_mae": r["rel_mae"],
+                "lightprobe_fit_seconds": r["fit_seconds"], "mitsuba_seconds": t,
+                "mitsuba_seconds_previous_checkpoint": tp,
+                "ratio_fit": t / r["fit_seconds"] if t else None})
         out["per_resolution"].append(row)
     return out
 
@@ -489,12 +507,11 @@ def chart(path: Path, lp: dict, mitsuba: list[dict], tte: dict, meta: dict) -> N
     for m, col in zip(mitsuba, colours):
         pts = [(c["seconds"], c["rel_mae"]) for c in m["curve"]]
         w, h = m["resolution"]
+        b = m["best"]
         ax.plot([p[0] for p in pts], [p[1] for p in pts], "-o", color=col, ms=3, lw=1.6,
                 label=f"Mitsuba 3 Adam, {w}x{h} envmap ({m['integrator']}, {m['spp_per_step']} "
-                      f"spp/step, lr {m['lr']}, {m['loss'].upper()}); step 0 = init")
-        b = m["best"]
-        ax.annotate(f"best {b['rel_mae']:.4f}\n(step {b['step']})", (b["seconds"], b["rel_mae"]),
-                    textcoords="offset points", xytext=(-30, -26), fontsize=8, color=col)
+                      f"spp/step, lr {m['lr']}, {m['loss'].upper()}); step 0 = init; best "
+                      f"{b['rel_mae']:.4f} (step {b['step']}, {b['seconds']:.1f} s)")
     cur = sorted(lp["curve"], key=lambda r: r["transport_spp"])
     ax.plot([r["fit_seconds"] for r in cur], [r["rel_mae"] for r in cur], "s-", color="tab:red",
             ms=7, lw=1.2, label=f"lightprobe estimate, {lp['main']['rings']} rings: fit time "
@@ -570,8 +587,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", type=Path, default=ms.DEFAULT_SCENE)
     ap.add_argument("--bin", type=Path, default=ms.DEFAULT_BIN, help="lightprobe binary")
-    ap.add_argument("--out", type=Path, default=Path("bench_estimate_out"),
-                    help="chart + JSON go here (default ./bench_estimate_out)")
+    ap.add_argument("--out", type=Path, default=ms.REPO / "out" / "bench_estimate",
+                    help="chart + JSON go here (default <repo>/out/bench_estimate, git-ignored)")
     ap.add_argument("--workdir", type=Path, default=None,
                     help="references and lightprobe outputs (default: a new temp dir)")
     ap.add_argument("--rings", type=int, default=9)
@@ -605,8 +622,10 @@ def main() -> int:
         j = json.loads(args.replot.read_text())
         args.out.mkdir(parents=True, exist_ok=True)
         png = args.out / "estimate_vs_mitsuba.png"
+        j["time_to_error"] = time_to_error(j["lightprobe"], j["mitsuba"])   # pure: recomputed
         chart(png, j["lightprobe"], j["mitsuba"], j["time_to_error"], j["meta"])
-        log(f"wrote {png}")
+        (args.out / "bench_estimate.json").write_text(json.dumps(j, indent=2, default=float) + "\n")
+        log(f"wrote {png} and {args.out / 'bench_estimate.json'}")
         return 0
     if args.quick:
         args.mi_steps, args.curve_spp, args.big_rings = 30, "", 0
@@ -759,6 +778,14 @@ def main() -> int:
                 f"wall {row['lightprobe_process_wall_seconds']:.2f} s -> ratio "
                 f"{row['ratio_fit']:.1f}x (fit), {row['ratio_process_wall']:.1f}x (process wall), "
                 f"{row['ratio_process_wall_excl_evaluation']:.1f}x (wall excl. evaluation)")
+    for row in tte["per_resolution"]:
+        w, h = row["resolution"]
+        pts = [f"{q['rel_mae']:.4f}: lightprobe {q['lightprobe_fit_seconds']:.2f} s (spp "
+               f"{q['transport_spp']}) vs Mitsuba {q['mitsuba_seconds']:.1f} s = "
+               f"{q['ratio_fit']:.1f}x" if q["mitsuba_seconds"] else
+               f"{q['rel_mae']:.4f}: Mitsuba {w}x{h} never reaches it"
+               for q in row["per_lightprobe_point"]]
+        log(f"Mitsuba {w}x{h} time to each lightprobe point's error: " + "; ".join(pts))
     g = goals["speed_20x_at_equal_or_lower_error"]
     log(f"GOAL >= 20x faster at equal or lower error: {'MET' if g['met'] else 'NOT MET'} "
         f"(fit ratio {g['ratio_fit'] and round(g['ratio_fit'], 1)}, process-wall ratio "
