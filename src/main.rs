@@ -156,6 +156,10 @@ struct EstimateArgs {
     /// transport with 8× the samples (slower).
     #[arg(long)]
     oracle: bool,
+    /// Only fit and write the envmap: skip the noise floor and the re-render of the estimate
+    /// (and their errors in report.json), for speed.
+    #[arg(long, conflicts_with = "oracle")]
+    fit_only: bool,
     /// Time budget per channel solve, seconds.
     #[arg(long, default_value_t = 60.0)]
     time_limit: f64,
@@ -759,7 +763,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     // ---- Noise floor: the reference lighting again, another seed ----
     let t = Instant::now();
     let mut noise_floor = Vec::new();
-    if !scene.lights.is_empty() {
+    if !scene.lights.is_empty() && !a.fit_only {
         let pb = bar("noise floor", 1);
         let mut st = settings;
         st.seed = st.seed.wrapping_add(7919);
@@ -828,7 +832,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     std::fs::create_dir_all(a.out.join("estimate"))
         .map_err(|e| lightprobe::Error::io(a.out.join("estimate"), e))?;
     let mut errors = Vec::new();
-    for (i, cam) in views.iter().enumerate() {
+    for (i, cam) in views.iter().enumerate().filter(|_| !a.fit_only) {
         let img = est_renderer.render_radiance(cam, i as u64, &st, &|k| pb.inc(k));
         imageio::write_exr(
             &a.out.join("estimate").join(format!("{}.exr", cam.name)),
@@ -885,14 +889,14 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         .iter()
         .enumerate()
         .map(|(i, cam)| {
-            let e = &errors[i];
+            let e = errors.get(i);
             json!({
                 "view": cam.name,
-                "estimate": metrics_json(e),
+                "estimate": e.map(metrics_json),
                 "noise_floor": noise_floor.get(i).map(metrics_json),
                 "representation_limit": limit.get(i).map(metrics_json),
-                "rel_mae_over_noise_floor": noise_floor.get(i).map(|n| e.rel_mae / n.rel_mae),
-                "rel_mae_over_representation_limit": limit.get(i).map(|l| e.rel_mae / l.rel_mae),
+                "rel_mae_over_noise_floor": e.zip(noise_floor.get(i)).map(|(e, n)| e.rel_mae / n.rel_mae),
+                "rel_mae_over_representation_limit": e.zip(limit.get(i)).map(|(e, l)| e.rel_mae / l.rel_mae),
             })
         })
         .collect();
@@ -944,7 +948,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         fit.envmap.grid.cell_count(),
         a.solver
     );
-    for (i, cam) in views.iter().enumerate() {
+    for (i, cam) in views.iter().enumerate().filter(|(i, _)| *i < errors.len()) {
         let mut line = format!("{:<12} relMAE {:.2}%", cam.name, 100.0 * errors[i].rel_mae);
         if let Some(nf) = noise_floor.get(i) {
             line += &format!(

@@ -959,6 +959,31 @@ fn estimate_runs_end_to_end_and_reports() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let env2 = lightprobe::envmap::Envmap::load(&out2.join("envmap.ron")).unwrap();
     assert_eq!(env.radiance(), env2.radiance());
+    // --fit-only: the same envmap, no evaluation renders and no errors in the report.
+    let out3 = tmp.path().join("out3");
+    let o = run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--out",
+        out3.to_str().unwrap(),
+        "--rings",
+        "5",
+        "--spp",
+        "16",
+        "--quiet",
+        "--fit-only",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(report["rel_mae"].is_null() && report["views"][0]["estimate"].is_null());
+    assert!(!out3.join("estimate/cam_front.exr").exists());
+    assert_eq!(
+        lightprobe::envmap::Envmap::load(&out3.join("envmap.ron"))
+            .unwrap()
+            .radiance(),
+        env.radiance()
+    );
 }
 
 /// The committed corpus of broken glTF/GLB files (tests/bad/, written by
