@@ -18,6 +18,49 @@ use lightprobe::metrics;
 use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
 use lightprobe::scene::{Scene, sidecar};
 
+/// Mirrors a library option enum as a clap value enum (the library does not depend on clap);
+/// variant doc comments become the values' help.
+macro_rules! cli_enum {
+    ($cli:ident => $lib:ident { $($(#[$doc:meta])* $v:ident),+ $(,)? }) => {
+        #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+        enum $cli { $($(#[$doc])* $v),+ }
+        impl From<$cli> for $lib {
+            fn from(c: $cli) -> Self {
+                match c { $($cli::$v => $lib::$v),+ }
+            }
+        }
+    };
+}
+
+cli_enum!(StrategyArg => Strategy {
+    /// Emitter sampling and BSDF sampling combined by the power heuristic.
+    Mis,
+    /// Emitter sampling only.
+    LightOnly,
+    /// BSDF sampling only.
+    BsdfOnly,
+});
+cli_enum!(SolverArg => Solver {
+    /// Exact non-negative least squares (active set) on the normal equations.
+    Nnls,
+    /// The paper's projected gradient descent with sequential Monte Carlo re-sampling.
+    Gradient,
+});
+cli_enum!(TargetArg => Target {
+    /// Mitsuba 3's envmap: +Y up, poles on the first and last rows.
+    Mitsuba,
+    /// Blender's World Environment Texture, for a scene imported from the glTF (Z up).
+    Blender,
+    /// pbrt-v3's lat-long infinite light (Z up, same axis change as Blender's importer).
+    PbrtV3,
+});
+cli_enum!(FilterArg => Filter {
+    /// The cell under each pixel centre.
+    Box,
+    /// Interpolated between grid points.
+    Smooth,
+});
+
 #[derive(Parser)]
 #[command(name = "lightprobe", version, about = "Estimate the lighting of a 3D scene from images of it.", long_about = None)]
 struct Cli {
@@ -74,8 +117,8 @@ struct RenderArgs {
     #[arg(long)]
     max_bounces: Option<u32>,
     /// Light transport estimator.
-    #[arg(long, value_enum, default_value_t = Strategy::Mis)]
-    strategy: Strategy,
+    #[arg(long, value_enum, default_value_t = StrategyArg::Mis)]
+    strategy: StrategyArg,
     /// Show emitters seen directly by the camera (default: black, like Mitsuba's hide_emitters).
     #[arg(long)]
     show_emitters: bool,
@@ -133,8 +176,8 @@ struct EstimateArgs {
     /// Rings of the envmap (default: the sidecar's).
     #[arg(long)]
     rings: Option<u32>,
-    #[arg(long, value_enum, default_value_t = Solver::Nnls)]
-    solver: Solver,
+    #[arg(long, value_enum, default_value_t = SolverArg::Nnls)]
+    solver: SolverArg,
     /// Samples per pixel of the transport estimate, over all rounds (default: the sidecar's).
     #[arg(long)]
     spp: Option<u32>,
@@ -184,12 +227,12 @@ struct ExportArgs {
     #[arg(long, default_value_t = 4096)]
     width: u32,
     /// Whose lat-long convention to write.
-    #[arg(long, value_enum, default_value_t = Target::Mitsuba)]
-    target: Target,
+    #[arg(long, value_enum, default_value_t = TargetArg::Mitsuba)]
+    target: TargetArg,
     /// `box`: the cell under each pixel centre (import-envmap gives the cells back exactly);
     /// `smooth`: interpolated between grid points.
-    #[arg(long, value_enum, default_value_t = Filter::Box)]
-    filter: Filter,
+    #[arg(long, value_enum, default_value_t = FilterArg::Box)]
+    filter: FilterArg,
 }
 
 #[derive(clap::Args)]
@@ -203,8 +246,8 @@ struct ImportArgs {
     #[arg(long, short)]
     out: PathBuf,
     /// Whose lat-long convention the image follows.
-    #[arg(long, value_enum, default_value_t = Target::Mitsuba)]
-    target: Target,
+    #[arg(long, value_enum, default_value_t = TargetArg::Mitsuba)]
+    target: TargetArg,
 }
 
 fn main() -> ExitCode {
@@ -290,7 +333,7 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
     if let Some(seed) = a.seed {
         settings.seed = seed;
     }
-    settings.strategy = a.strategy;
+    settings.strategy = a.strategy.into();
     settings.hide_emitters = !a.show_emitters;
     if !a.views.is_empty() {
         let mut picked = Vec::new();
@@ -555,6 +598,7 @@ fn info(path: &Path) -> anyhow::Result<()> {
 }
 
 fn export_envmap(a: ExportArgs) -> anyhow::Result<()> {
+    let (target, filter): (Target, Filter) = (a.target.into(), a.filter.into());
     if !(8..=16384).contains(&a.width) {
         bail!(
             "--width must be between 8 and 16384 pixels, got {}",
@@ -562,7 +606,7 @@ fn export_envmap(a: ExportArgs) -> anyhow::Result<()> {
         );
     }
     let env = Envmap::load(&a.envmap)?;
-    let img = latlong::export(&env, a.target, a.filter, a.width);
+    let img = latlong::export(&env, target, filter, a.width);
     let attributes = exr::meta::header::LayerAttributes {
         environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
         ..Default::default()
@@ -573,8 +617,8 @@ fn export_envmap(a: ExportArgs) -> anyhow::Result<()> {
         a.out.display(),
         img.width,
         img.height,
-        a.target,
-        a.filter,
+        target,
+        filter,
         env.grid.rings(),
         env.grid.cell_count()
     );
@@ -582,6 +626,7 @@ fn export_envmap(a: ExportArgs) -> anyhow::Result<()> {
 }
 
 fn import_envmap(a: ImportArgs) -> anyhow::Result<()> {
+    let target: Target = a.target.into();
     if !(1..=sidecar::MAX_RINGS).contains(&a.rings) {
         bail!(
             "--rings must be between 1 and {}, got {}",
@@ -590,8 +635,8 @@ fn import_envmap(a: ImportArgs) -> anyhow::Result<()> {
         );
     }
     let img = imageio::read_exr(&a.image)?;
-    let env = latlong::import(&img, a.target, a.rings)
-        .map_err(|m| lightprobe::Error::file(&a.image, m))?;
+    let env =
+        latlong::import(&img, target, a.rings).map_err(|m| lightprobe::Error::file(&a.image, m))?;
     env.save(&a.out)?;
     println!(
         "{}: {} rings / {} cells from {}×{} {}",
@@ -635,6 +680,7 @@ fn metrics_json(m: &metrics::Metrics) -> serde_json::Value {
 }
 
 fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
+    let solver: Solver = a.solver.into();
     let t_all = Instant::now();
     let scene = Scene::load(&a.scene)?;
     let rings = a.rings.unwrap_or(scene.settings.rings);
@@ -657,7 +703,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     if !(a.time_limit.is_finite() && a.time_limit > 0.0) {
         bail!("--time-limit must be a positive number of seconds");
     }
-    let rounds = a.rounds.unwrap_or(match a.solver {
+    let rounds = a.rounds.unwrap_or(match solver {
         Solver::Nnls => 2,
         Solver::Gradient => 3,
     });
@@ -782,7 +828,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let fit_settings = FitSettings {
         rings,
         transport: transport_settings,
-        solver: a.solver,
+        solver,
         smooth: a.smooth,
         ridge: a.ridge,
         rounds,
@@ -803,7 +849,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         if !c.converged {
             eprintln!(
                 "lightprobe: warning: the {:?} solver did not converge in channel {} within {} iterations / {} s (KKT violation {:.2e})",
-                a.solver,
+                solver,
                 ["R", "G", "B"][ch],
                 c.iterations,
                 a.time_limit,
@@ -912,7 +958,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "scene": a.scene,
         "rings": rings,
         "cells": fit.envmap.grid.cell_count(),
-        "solver": a.solver,
+        "solver": solver,
         "smooth": a.smooth,
         "ridge": a.ridge,
         "transport_spp": spp,
@@ -946,7 +992,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     println!(
         "{rings} rings ({} cells), {:?} solver, transport {spp} spp",
         fit.envmap.grid.cell_count(),
-        a.solver
+        solver
     );
     for (i, cam) in views.iter().enumerate().filter(|(i, _)| *i < errors.len()) {
         let mut line = format!("{:<12} relMAE {:.2}%", cam.name, 100.0 * errors[i].rel_mae);

@@ -20,7 +20,7 @@ use super::grid::{angles, direction};
 use crate::imageio::Image;
 
 /// Which renderer's lat-long convention to write.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Target {
     Mitsuba,
@@ -29,7 +29,7 @@ pub enum Target {
 }
 
 /// How pixels sample the piecewise-constant map.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Filter {
     /// The cell under the pixel centre (exact round trip).

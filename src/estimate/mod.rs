@@ -25,7 +25,7 @@ use crate::scene::Camera;
 pub use transport::{Transport, estimate_transport};
 
 /// Which solver fits λ.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Solver {
     /// Exact non-negative least squares (active set) on the normal equations.

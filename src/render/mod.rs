@@ -34,7 +34,7 @@ use sampling::{Rng, mix64};
 pub const TILE: u32 = 16;
 
 /// Which light-transport estimator to use at each surface vertex.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Strategy {
     /// Emitter sampling and BSDF sampling combined by the power heuristic (default).
