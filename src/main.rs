@@ -12,7 +12,7 @@ use serde_json::json;
 
 use lightprobe::envmap::latlong::{self, Filter, Target};
 use lightprobe::envmap::{Envmap, RingGrid};
-use lightprobe::estimate::{self, FitSettings, Solver};
+use lightprobe::estimate::{self, FitSettings, Solver, pipeline};
 use lightprobe::imageio::{self, Image};
 use lightprobe::metrics;
 use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
@@ -749,102 +749,69 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
 
     // ---- References ----
     let t = Instant::now();
-    let mut references = Vec::new();
-    match &a.reference {
-        Some(dir) => {
-            for cam in &views {
-                let p = dir.join(format!("{}.exr", cam.name));
-                let img = imageio::read_exr(&p)?;
-                if (img.width, img.height) != (w, h) {
-                    bail!(
-                        "{}: is {}×{}, but the sidecar's image is {w}×{h}",
-                        p.display(),
-                        img.width,
-                        img.height
-                    );
-                }
-                if let Some(i) = img.rgb.iter().position(|c| !c.is_finite()) {
-                    bail!(
-                        "{}: pixel ({}, {}) is not finite",
-                        p.display(),
-                        i as u32 % w,
-                        i as u32 / w
-                    );
-                }
-                references.push(img);
-            }
-        }
+    let references = match &a.reference {
+        Some(dir) => pipeline::load_references(dir, &views, w, h)?,
         None => {
             let pb = bar("references", 1);
-            std::fs::create_dir_all(a.out.join("reference"))
-                .map_err(|e| lightprobe::Error::io(a.out.join("reference"), e))?;
-            for (i, cam) in views.iter().enumerate() {
-                let img = renderer.render_radiance(cam, i as u64, &settings, &|k| pb.inc(k));
-                imageio::write_exr(
-                    &a.out.join("reference").join(format!("{}.exr", cam.name)),
-                    &img,
-                )?;
-                references.push(img);
-            }
+            let refs = pipeline::render_views(&renderer, &views, &settings, &|k| pb.inc(k));
             pb.finish_and_clear();
+            let dir = a.out.join("reference");
+            std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;
+            for (img, cam) in refs.iter().zip(&views) {
+                imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
+            }
+            refs
         }
-    }
+    };
     let reference_seconds = t.elapsed().as_secs_f64();
-    // The geometry mask: the reference's coverage alpha, else pixel centres that hit geometry.
-    let masks: Vec<Vec<bool>> = references
-        .iter()
-        .zip(&views)
-        .map(|(img, cam)| match &img.alpha {
-            Some(_) => metrics::mask_of(img),
-            None => renderer
-                .aovs(cam)
-                .depth
-                .rgb
-                .iter()
-                .map(|d| d.x > 0.0)
-                .collect(),
-        })
-        .collect();
+    let masks = pipeline::geometry_masks(&renderer, &views, &references);
 
     // ---- Noise floor: the reference lighting again, another seed ----
     let t = Instant::now();
     let mut noise_floor = Vec::new();
     if !scene.lights.is_empty() && !a.fit_only {
         let pb = bar("noise floor", 1);
-        let mut st = settings;
-        st.seed = st.seed.wrapping_add(7919);
-        for (i, cam) in views.iter().enumerate() {
-            let img = renderer.render_radiance(cam, i as u64, &st, &|k| pb.inc(k));
-            noise_floor.push(metrics::compare(&img, &references[i], &masks[i])?);
-        }
+        noise_floor =
+            pipeline::noise_floor(&renderer, &views, &references, &masks, &settings, &|k| {
+                pb.inc(k)
+            })?;
         pb.finish_and_clear();
     }
     let noise_seconds = t.elapsed().as_secs_f64();
 
-    // ---- Fit ----
+    // ---- Fit, re-render, representation limit ----
     let mut transport_settings = settings;
     transport_settings.spp = (spp / rounds).max(1);
     transport_settings.seed = settings.seed.wrapping_add(1);
-    let fit_settings = FitSettings {
-        rings,
-        transport: transport_settings,
-        solver,
-        smooth: a.smooth,
-        ridge: a.ridge,
-        rounds,
-        time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+    let options = pipeline::EstimateOptions {
+        fit: FitSettings {
+            rings,
+            transport: transport_settings,
+            solver,
+            smooth: a.smooth,
+            ridge: a.ridge,
+            rounds,
+            time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+        },
+        evaluate: !a.fit_only,
+        oracle: a.oracle,
     };
-    let passes = rounds as u64;
-    let pb = bar("transport", passes);
-    let fit = estimate::fit(
+    let pb = bar("estimate", options.passes(0));
+    let outcome = pipeline::run(
         &renderer,
         &views,
         &references,
         &masks,
-        &fit_settings,
+        &scene.lights,
+        scene.center(),
+        &options,
+        &settings,
+        None,
         &|k| pb.inc(k),
-    );
+    )?;
     pb.finish_and_clear();
+    let fit = &outcome.fit;
+    let (errors, limit) = (&outcome.errors, &outcome.limit);
     for (ch, c) in fit.channels.iter().enumerate() {
         if !c.converged {
             eprintln!(
@@ -867,70 +834,29 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         &latlong::export(&fit.envmap, Target::Mitsuba, Filter::Box, 4096),
         attributes,
     )?;
-
-    // ---- Re-render the estimate with a seed the fit never saw ----
-    let t = Instant::now();
-    let est_lights = Lights::env(fit.envmap.clone());
-    let est_renderer = renderer.with_lights(&est_lights);
-    let mut st = settings;
-    st.seed = settings.seed.wrapping_add(104_729);
-    let pb = bar("re-render", 1);
-    std::fs::create_dir_all(a.out.join("estimate"))
-        .map_err(|e| lightprobe::Error::io(a.out.join("estimate"), e))?;
-    let mut errors = Vec::new();
-    for (i, cam) in views.iter().enumerate().filter(|_| !a.fit_only) {
-        let img = est_renderer.render_radiance(cam, i as u64, &st, &|k| pb.inc(k));
-        imageio::write_exr(
-            &a.out.join("estimate").join(format!("{}.exr", cam.name)),
-            &img,
-        )?;
-        imageio::write_png(
-            &a.out.join("estimate").join(format!("{}.png", cam.name)),
-            &img,
-            imageio::auto_exposure(&references[i]),
-        )?;
-        metrics::write_heatmap(
-            &a.out
-                .join("estimate")
-                .join(format!("{}.error.png", cam.name)),
-            &img,
-            &references[i],
-            &masks[i],
-            None,
-        )?;
-        errors.push(metrics::compare(&img, &references[i], &masks[i])?);
-    }
-    pb.finish_and_clear();
-    let rerender_seconds = t.elapsed().as_secs_f64();
-
-    // ---- Representation limit (optional) ----
-    let t = Instant::now();
-    let mut limit = Vec::new();
-    if a.oracle {
-        let mut oracle_settings = fit_settings;
-        oracle_settings.solver = Solver::Nnls;
-        oracle_settings.transport.spp = (spp.saturating_mul(8) / rounds).clamp(1, sidecar::MAX_SPP);
-        oracle_settings.transport.seed = settings.seed.wrapping_add(31_337);
-        let pb = bar("oracle", 8);
-        let best = estimate::fit(
-            &renderer,
-            &views,
-            &references,
-            &masks,
-            &oracle_settings,
-            &|k| pb.inc(k),
-        );
-        pb.finish_and_clear();
-        let best_lights = Lights::env(best.envmap.clone());
-        let best_renderer = renderer.with_lights(&best_lights);
-        for (i, cam) in views.iter().enumerate() {
-            let img = best_renderer.render_radiance(cam, i as u64, &st, &|_| {});
-            limit.push(metrics::compare(&img, &references[i], &masks[i])?);
+    if !outcome.renders.is_empty() {
+        let dir = a.out.join("estimate");
+        std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;
+        for (i, (img, cam)) in outcome.renders.iter().zip(&views).enumerate() {
+            imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
+            imageio::write_png(
+                &dir.join(format!("{}.png", cam.name)),
+                img,
+                imageio::auto_exposure(&references[i]),
+            )?;
+            metrics::write_heatmap(
+                &dir.join(format!("{}.error.png", cam.name)),
+                img,
+                &references[i],
+                &masks[i],
+                None,
+            )?;
         }
     }
-    let oracle_seconds = t.elapsed().as_secs_f64();
+    let rerender_seconds = outcome.rerender_seconds;
+    let oracle_seconds = outcome.oracle_seconds;
 
-    let recovery = estimate::recovery::recover(&fit.envmap, &scene.lights, scene.center());
+    let recovery = &outcome.recovery;
     let per_view: Vec<_> = views
         .iter()
         .enumerate()
@@ -946,13 +872,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
             })
         })
         .collect();
-    let mean = |v: &[metrics::Metrics]| {
-        if v.is_empty() {
-            None
-        } else {
-            Some(v.iter().map(|m| m.rel_mae).sum::<f64>() / v.len() as f64)
-        }
-    };
+    let mean = pipeline::mean_rel_mae;
     let report = json!({
         "lightprobe_version": lightprobe::VERSION,
         "scene": a.scene,
@@ -964,9 +884,9 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "transport_spp": spp,
         "rounds": rounds,
         "settings": settings,
-        "rel_mae": mean(&errors),
+        "rel_mae": mean(errors),
         "noise_floor_rel_mae": mean(&noise_floor),
-        "representation_limit_rel_mae": mean(&limit),
+        "representation_limit_rel_mae": mean(limit),
         "views": per_view,
         "channels": fit.channels,
         "light_recovery": recovery,

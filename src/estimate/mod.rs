@@ -10,6 +10,7 @@
 //!   (sequential Monte Carlo).
 
 pub mod nnls;
+pub mod pipeline;
 pub mod recovery;
 pub mod transport;
 
@@ -201,6 +202,47 @@ pub fn fit(
     settings: &FitSettings,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Fit {
+    fit_reusing(
+        renderer, cameras, references, masks, settings, None, progress,
+    )
+}
+
+/// The first round's transport of [`fit`]: cells sampled by solid angle, so it depends on the
+/// scene, views, masks and settings but not on the lighting. Scenarios that differ only in
+/// their lights can share it ([`fit_reusing`]); the fit is then bit-identical.
+pub fn first_round_transport(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    masks: &[Vec<bool>],
+    settings: &FitSettings,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Transport {
+    let sampling = Envmap::constant(settings.rings, Vec3::ONE);
+    estimate_transport(
+        renderer,
+        cameras,
+        masks,
+        &sampling,
+        &settings.transport,
+        TRANSPORT_STREAMS,
+        progress,
+    )
+}
+
+/// Random streams of the transport renders (apart from the images' streams 0..views).
+const TRANSPORT_STREAMS: u64 = 1000;
+
+/// [`fit`], with the first round's transport given when it is already known (from
+/// [`first_round_transport`] with the same renderer geometry, cameras, masks and settings).
+pub fn fit_reusing(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    settings: &FitSettings,
+    first: Option<&Transport>,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Fit {
     let rings = settings.rings;
     let grid = RingGrid::new(rings);
     let n = grid.cell_count();
@@ -227,7 +269,18 @@ pub fn fit(
         let t0 = Instant::now();
         let mut st = settings.transport;
         st.seed = st.seed.wrapping_add(round as u64 * 0x9E37_79B9);
-        let tr = estimate_transport(renderer, cameras, masks, &sampling, &st, 1000, progress);
+        let tr = match first {
+            Some(t) if round == 0 && t.cells == n => t.clone(),
+            _ => estimate_transport(
+                renderer,
+                cameras,
+                masks,
+                &sampling,
+                &st,
+                TRANSPORT_STREAMS,
+                progress,
+            ),
+        };
         transport_seconds += t0.elapsed().as_secs_f64();
         transport_bytes = transport_bytes.max(tr.memory_bytes() * if rounds > 1 { 2 } else { 1 });
         let tr = match (settings.solver, t_avg.take()) {

@@ -1,0 +1,253 @@
+//! An estimate from references to figures: the steps the `estimate` command and the sweep
+//! share — references, geometry masks, noise floor, fit, re-render of the estimate,
+//! representation limit and light recovery. Files are the caller's business.
+//!
+//! Seeds: references use the sidecar's seed; the noise floor, the transport, the re-render and
+//! the oracle each offset it, so no two of them share random numbers.
+
+use std::path::Path;
+use std::time::Instant;
+
+use glam::Vec3;
+
+use super::recovery::{self, LightRecovery};
+use super::{Fit, FitSettings, Solver, Transport, fit_reusing};
+use crate::error::{Error, Result};
+use crate::imageio::{self, Image};
+use crate::metrics::{self, Metrics};
+use crate::render::{Lights, RenderSettings, Renderer};
+use crate::scene::sidecar::MAX_SPP;
+use crate::scene::{Camera, SphereLight};
+
+/// Renders radiance for each view (random stream = view index).
+pub fn render_views(
+    renderer: &Renderer,
+    views: &[&Camera],
+    settings: &RenderSettings,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Vec<Image> {
+    views
+        .iter()
+        .enumerate()
+        .map(|(i, cam)| renderer.render_radiance(cam, i as u64, settings, progress))
+        .collect()
+}
+
+/// Reads `<dir>/<view>.exr` for each view, checking size and finiteness.
+pub fn load_references(
+    dir: &Path,
+    views: &[&Camera],
+    width: u32,
+    height: u32,
+) -> Result<Vec<Image>> {
+    views
+        .iter()
+        .map(|cam| {
+            let p = dir.join(format!("{}.exr", cam.name));
+            let img = imageio::read_exr(&p)?;
+            if (img.width, img.height) != (width, height) {
+                return Err(Error::file(
+                    &p,
+                    format!(
+                        "is {}×{}, but the sidecar's image is {width}×{height}",
+                        img.width, img.height
+                    ),
+                ));
+            }
+            if let Some(i) = img.rgb.iter().position(|c| !c.is_finite()) {
+                return Err(Error::file(
+                    &p,
+                    format!(
+                        "pixel ({}, {}) is not finite",
+                        i as u32 % width,
+                        i as u32 / width
+                    ),
+                ));
+            }
+            Ok(img)
+        })
+        .collect()
+}
+
+/// The pixels every error counts: the reference's coverage alpha where it has one, else the
+/// pixel centres that hit geometry.
+pub fn geometry_masks(
+    renderer: &Renderer,
+    views: &[&Camera],
+    references: &[Image],
+) -> Vec<Vec<bool>> {
+    references
+        .iter()
+        .zip(views)
+        .map(|(img, cam)| match &img.alpha {
+            Some(_) => metrics::mask_of(img),
+            None => renderer
+                .aovs(cam)
+                .depth
+                .rgb
+                .iter()
+                .map(|d| d.x > 0.0)
+                .collect(),
+        })
+        .collect()
+}
+
+/// Error of each image against its reference.
+pub fn compare_views(
+    images: &[Image],
+    references: &[Image],
+    masks: &[Vec<bool>],
+) -> Result<Vec<Metrics>> {
+    images
+        .iter()
+        .zip(references)
+        .zip(masks)
+        .map(|((x, r), m)| metrics::compare(x, r, m))
+        .collect()
+}
+
+/// Settings of the noise floor's second render of the reference lighting.
+pub fn noise_floor_settings(settings: &RenderSettings) -> RenderSettings {
+    RenderSettings {
+        seed: settings.seed.wrapping_add(7919),
+        ..*settings
+    }
+}
+
+/// Settings of the re-render of an estimate: a seed the fit never saw.
+pub fn evaluation_settings(settings: &RenderSettings) -> RenderSettings {
+    RenderSettings {
+        seed: settings.seed.wrapping_add(104_729),
+        ..*settings
+    }
+}
+
+/// The noise floor: error of a second, independent render of the reference lighting.
+pub fn noise_floor(
+    renderer: &Renderer,
+    views: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    settings: &RenderSettings,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Vec<Metrics>> {
+    let again = render_views(renderer, views, &noise_floor_settings(settings), progress);
+    compare_views(&again, references, masks)
+}
+
+/// What to do after the fit.
+#[derive(Debug, Clone, Copy)]
+pub struct EstimateOptions {
+    pub fit: FitSettings,
+    /// Re-render the estimate and measure its error.
+    pub evaluate: bool,
+    /// Also fit with 8× the samples (NNLS) and measure that: the representation limit.
+    pub oracle: bool,
+}
+
+impl EstimateOptions {
+    /// Image-sized passes [`run`] makes (rounds, re-render, oracle), for progress bars.
+    pub fn passes(&self, rounds_done: u32) -> u64 {
+        let all = self.fit.rounds.max(1) as u64;
+        let rounds = all.saturating_sub(rounds_done as u64);
+        rounds + self.evaluate as u64 + if self.oracle { 8 * all + 1 } else { 0 }
+    }
+}
+
+/// An estimate and its figures.
+pub struct Outcome {
+    pub fit: Fit,
+    /// The estimate re-rendered, per view (empty without `evaluate`).
+    pub renders: Vec<Image>,
+    pub errors: Vec<Metrics>,
+    /// Error of the best envmap of this resolution, per view (empty without `oracle`).
+    pub limit: Vec<Metrics>,
+    pub recovery: Vec<LightRecovery>,
+    pub rerender_seconds: f64,
+    pub oracle_seconds: f64,
+}
+
+impl Outcome {
+    /// Mean relMAE over views of the estimate (None without evaluation).
+    pub fn rel_mae(&self) -> Option<f64> {
+        mean_rel_mae(&self.errors)
+    }
+}
+
+/// Mean relMAE over views.
+pub fn mean_rel_mae(v: &[Metrics]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().map(|m| m.rel_mae).sum::<f64>() / v.len() as f64)
+}
+
+/// Fits, then optionally re-renders and measures, then matches bright clusters to `truth`
+/// (the sphere lights that made the references, if known) seen from `center`.
+/// `render` holds the references' render settings; `first` a shared first-round transport.
+#[allow(clippy::too_many_arguments)]
+pub fn run(
+    renderer: &Renderer,
+    views: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    truth: &[SphereLight],
+    center: Vec3,
+    options: &EstimateOptions,
+    render: &RenderSettings,
+    first: Option<&Transport>,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Outcome> {
+    let fit = fit_reusing(
+        renderer,
+        views,
+        references,
+        masks,
+        &options.fit,
+        first,
+        progress,
+    );
+    if fit.envmap.radiance().iter().any(|c| !c.is_finite()) {
+        return Err(Error::Invalid(format!(
+            "the {:?} solver produced a non-finite envmap",
+            options.fit.solver
+        )));
+    }
+
+    let t = Instant::now();
+    let eval = evaluation_settings(render);
+    let (mut renders, mut errors) = (Vec::new(), Vec::new());
+    if options.evaluate {
+        let lights = Lights::env(fit.envmap.clone());
+        renders = render_views(&renderer.with_lights(&lights), views, &eval, progress);
+        errors = compare_views(&renders, references, masks)?;
+    }
+    let rerender_seconds = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let mut limit = Vec::new();
+    if options.oracle {
+        let mut o = options.fit;
+        o.solver = Solver::Nnls;
+        o.transport.spp = options
+            .fit
+            .transport
+            .spp
+            .saturating_mul(8)
+            .clamp(1, MAX_SPP);
+        o.transport.seed = render.seed.wrapping_add(31_337);
+        let best = fit_reusing(renderer, views, references, masks, &o, None, progress);
+        let lights = Lights::env(best.envmap.clone());
+        let imgs = render_views(&renderer.with_lights(&lights), views, &eval, progress);
+        limit = compare_views(&imgs, references, masks)?;
+    }
+    let oracle_seconds = t.elapsed().as_secs_f64();
+
+    let recovery = recovery::recover(&fit.envmap, truth, center);
+    Ok(Outcome {
+        fit,
+        renders,
+        errors,
+        limit,
+        recovery,
+        rerender_seconds,
+        oracle_seconds,
+    })
+}
