@@ -13,6 +13,7 @@ use serde_json::json;
 use lightprobe::envmap::latlong::{self, Filter, Target};
 use lightprobe::envmap::{Envmap, RingGrid};
 use lightprobe::estimate::{self, FitSettings, Solver, pipeline};
+use lightprobe::experiment::scenarios;
 use lightprobe::imageio::{self, Image};
 use lightprobe::metrics;
 use lightprobe::render::{Lights, RenderSettings, Renderer, Strategy};
@@ -96,6 +97,12 @@ enum Command {
         /// The scene sidecar (.ron).
         scene: PathBuf,
     },
+    /// Generate random illumination scenarios of a scene (the paper's experiment): one sidecar
+    /// per scenario with one or two sphere lights, and scenarios.json describing them.
+    Scenarios(ScenariosArgs),
+    /// Run estimates over scenarios × samples × rings × solvers (the paper's experiment),
+    /// appending one JSON line per trial to OUT/trials*.jsonl; resumable and shardable.
+    Sweep(SweepArgs),
     /// Print the JSON Schema of the scene sidecar (RON).
     Schema,
 }
@@ -236,6 +243,60 @@ struct ExportArgs {
 }
 
 #[derive(clap::Args)]
+struct ScenariosArgs {
+    /// The template sidecar: its glTF, views, image and settings are kept, its lights replaced.
+    #[arg(long, default_value = "scenes/tabletop/tabletop.ron")]
+    scene: PathBuf,
+    /// How many scenarios.
+    #[arg(long, default_value_t = 55)]
+    count: usize,
+    /// Random seed; the same seed gives the same scenarios.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Output folder for s00.ron, s01.ron, … and scenarios.json.
+    #[arg(long, short)]
+    out: PathBuf,
+}
+
+#[derive(clap::Args)]
+struct SweepArgs {
+    /// Scenario sidecars, or folders of them (every *.ron inside, sorted).
+    #[arg(required = true)]
+    scenarios: Vec<PathBuf>,
+    /// Output folder: trials*.jsonl, and references/<scenario>/ rendered once and reused.
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Envmap resolutions (rings).
+    #[arg(long, value_delimiter = ',', default_value = "3,5,7,9,11,13,15,17,19,21,23,25,27")]
+    rings: Vec<u32>,
+    /// Solvers.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "nnls")]
+    solver: Vec<SolverArg>,
+    /// Transport samples per pixel (over all rounds); references keep the sidecar's.
+    #[arg(long, value_delimiter = ',', default_value = "512")]
+    spp: Vec<u32>,
+    /// Run one slice: the scenarios at positions ≡ i (mod n), 0 <= i < n, into
+    /// trials.shard-i-of-n.jsonl (e.g. --shard $SLURM_ARRAY_TASK_ID/8).
+    #[arg(long, default_value = "0/1")]
+    shard: String,
+    /// Smoothness weight (as for estimate).
+    #[arg(long, default_value_t = 0.0)]
+    smooth: f64,
+    /// Ridge weight (as for estimate).
+    #[arg(long, default_value_t = 1e-2)]
+    ridge: f64,
+    /// Time budget per channel solve, seconds.
+    #[arg(long, default_value_t = 60.0)]
+    time_limit: f64,
+    /// Exit 0 even when some trials failed (they are recorded either way).
+    #[arg(long)]
+    allow_failures: bool,
+    /// No progress bar.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+#[derive(clap::Args)]
 struct ImportArgs {
     /// A lat-long RGB OpenEXR.
     image: PathBuf,
@@ -278,6 +339,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::ExportEnvmap(args) => export_envmap(args),
         Command::ImportEnvmap(args) => import_envmap(args),
         Command::Info { scene } => info(&scene),
+        Command::Scenarios(a) => scenarios(a),
+        Command::Sweep(a) => sweep(a),
         Command::Schema => {
             print!("{}", sidecar::json_schema());
             Ok(())
@@ -364,7 +427,7 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
     }
     // One view at a time: its image (RGB + coverage), the per-tile results and the EXR encoder.
     let need = (scene.settings.width as u64 * scene.settings.height as u64) * 40;
-    if let Some(avail) = available_memory_bytes()
+    if let Some(avail) = lightprobe::memory::available_bytes()
         && need > avail / 10 * 9
     {
         bail!(
@@ -650,29 +713,128 @@ fn import_envmap(a: ImportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Peak resident memory of this process, bytes (Linux; 0 elsewhere).
-fn peak_memory_bytes() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
-        })
-        .map_or(0, |kb| kb * 1024)
+fn scenarios(a: ScenariosArgs) -> anyhow::Result<()> {
+    if !(1..=10_000).contains(&a.count) {
+        bail!("--count must be between 1 and 10000");
+    }
+    let scene = Scene::load(&a.scene)?;
+    let list = scenarios::generate(&scene, a.count, a.seed)?;
+    prepare_out_dir(&a.out)?;
+    for sc in &list {
+        let text = scenarios::sidecar_text(&a.scene, sc, &a.out)?;
+        imageio::write_bytes(&a.out.join(format!("{}.ron", sc.name)), text.as_bytes())?;
+    }
+    let manifest = json!({
+        "lightprobe_version": lightprobe::VERSION,
+        "template": a.scene,
+        "seed": a.seed,
+        "scenarios": list,
+    });
+    let text = serde_json::to_string_pretty(&manifest)? + "\n";
+    imageio::write_bytes(&a.out.join("scenarios.json"), text.as_bytes())?;
+    let two = list.iter().filter(|s| s.lights.len() == 2).count();
+    println!(
+        "{} scenarios ({} with two lights) in {}",
+        list.len(),
+        two,
+        a.out.display()
+    );
+    Ok(())
 }
 
-/// Memory this machine can still give, bytes (Linux; None elsewhere).
-fn available_memory_bytes() -> Option<u64> {
-    let s = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let kb: u64 = s
-        .lines()
-        .find(|l| l.starts_with("MemAvailable:"))?
-        .split_whitespace()
-        .nth(1)?
-        .parse()
-        .ok()?;
-    Some(kb * 1024)
+/// Sidecars named on the command line: files as given, folders as their *.ron files, sorted.
+fn sidecar_files(args: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for p in args {
+        if p.is_dir() {
+            let mut v: Vec<PathBuf> = std::fs::read_dir(p)
+                .map_err(|e| lightprobe::Error::io(p, e))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|f| f.extension().is_some_and(|x| x == "ron"))
+                .collect();
+            if v.is_empty() {
+                bail!("{}: holds no .ron sidecars", p.display());
+            }
+            v.sort();
+            files.extend(v);
+        } else {
+            files.push(p.clone());
+        }
+    }
+    Ok(files)
+}
+
+fn sweep(a: SweepArgs) -> anyhow::Result<()> {
+    use lightprobe::experiment::sweep::{self, Shard, SweepSettings};
+    if !(a.smooth.is_finite() && a.smooth >= 0.0) {
+        bail!("--smooth must be a finite number >= 0");
+    }
+    if !(a.ridge.is_finite() && a.ridge >= 0.0) {
+        bail!("--ridge must be a finite number >= 0");
+    }
+    if !(a.time_limit.is_finite() && a.time_limit > 0.0) {
+        bail!("--time-limit must be a positive number of seconds");
+    }
+    let settings = SweepSettings {
+        rings: a.rings.clone(),
+        solvers: a.solver.iter().map(|&s| s.into()).collect(),
+        spp: a.spp.clone(),
+        shard: Shard::parse(&a.shard)?,
+        smooth: a.smooth,
+        ridge: a.ridge,
+        time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+    };
+    let files = sidecar_files(&a.scenarios)?;
+    prepare_out_dir(&a.out)?;
+    let bar = if a.quiet {
+        ProgressBar::hidden()
+    } else {
+        let b = ProgressBar::new(0);
+        b.set_style(
+            ProgressStyle::with_template(
+                "{pos}/{len} trials [{bar:30}] {elapsed_precise} eta {eta}  {msg}",
+            )
+            .expect("a valid template")
+            .progress_chars("=> "),
+        );
+        b
+    };
+    let summary = sweep::run(&files, &settings, &a.out, &mut |p| {
+        bar.set_length(p.total as u64);
+        bar.set_position(p.done as u64);
+        if p.skipped > 0 && p.done == p.skipped {
+            bar.reset_eta();
+        }
+        match p.record {
+            Some(r) => bar.set_message(format!(
+                "{} {} rings: relMAE {}",
+                r.scenario,
+                r.rings,
+                r.rel_mae
+                    .map_or("failed".to_string(), |e| format!("{:.2}%", 100.0 * e))
+            )),
+            None => bar.set_message(p.phase.to_string()),
+        }
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "{} trials planned, {} already done, {} run ({} failed, {} not converged) in {:.1} s: {}",
+        summary.planned,
+        summary.skipped,
+        summary.ran,
+        summary.failed,
+        summary.not_converged,
+        summary.wall_seconds,
+        summary.trials_file.display()
+    );
+    if summary.failed > 0 && !a.allow_failures {
+        bail!(
+            "{} trials failed (see \"error\" in {}); pass --allow-failures to exit 0 anyway",
+            summary.failed,
+            summary.trials_file.display()
+        );
+    }
+    Ok(())
 }
 
 fn metrics_json(m: &metrics::Metrics) -> serde_json::Value {
@@ -703,10 +865,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     if !(a.time_limit.is_finite() && a.time_limit > 0.0) {
         bail!("--time-limit must be a positive number of seconds");
     }
-    let rounds = a.rounds.unwrap_or(match solver {
-        Solver::Nnls => 2,
-        Solver::Gradient => 3,
-    });
+    let rounds = a.rounds.unwrap_or(solver.default_rounds());
     if rounds == 0 || rounds > 100 {
         bail!("--rounds must be between 1 and 100");
     }
@@ -728,7 +887,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         + (w * h) as u64 * scene.cameras.len() as u64 * n * 8
         + (w * h) as u64 * n * 12
         + n * n * 16;
-    if let Some(avail) = available_memory_bytes()
+    if let Some(avail) = lightprobe::memory::available_bytes()
         && need > avail / 10 * 9
     {
         bail!(
@@ -780,18 +939,12 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let noise_seconds = t.elapsed().as_secs_f64();
 
     // ---- Fit, re-render, representation limit ----
-    let mut transport_settings = settings;
-    transport_settings.spp = (spp / rounds).max(1);
-    transport_settings.seed = settings.seed.wrapping_add(1);
     let options = pipeline::EstimateOptions {
         fit: FitSettings {
-            rings,
-            transport: transport_settings,
-            solver,
             smooth: a.smooth,
             ridge: a.ridge,
-            rounds,
             time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+            ..FitSettings::new(&settings, rings, solver, spp, rounds)
         },
         evaluate: !a.fit_only,
         oracle: a.oracle,
@@ -900,7 +1053,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
             "oracle_seconds": oracle_seconds,
             "total_seconds": t_all.elapsed().as_secs_f64(),
         },
-        "memory": { "transport_bytes": fit.transport_bytes, "peak_bytes": peak_memory_bytes() },
+        "memory": { "transport_bytes": fit.transport_bytes, "peak_bytes": lightprobe::memory::peak_bytes() },
         "threads": rayon::current_num_threads(),
     });
     let text = serde_json::to_string_pretty(&report)? + "\n";
@@ -944,7 +1097,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         fit.transport_seconds,
         fit.solve_seconds,
         t_all.elapsed().as_secs_f64(),
-        peak_memory_bytes() as f64 / (1u64 << 20) as f64,
+        lightprobe::memory::peak_bytes() as f64 / (1u64 << 20) as f64,
         a.out.join("report.json").display()
     );
     Ok(())

@@ -26,13 +26,25 @@ use crate::scene::Camera;
 pub use transport::{Transport, estimate_transport};
 
 /// Which solver fits λ.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Solver {
     /// Exact non-negative least squares (active set) on the normal equations.
     Nnls,
     /// The paper's projected gradient descent with sequential Monte Carlo re-sampling.
     Gradient,
+}
+
+impl Solver {
+    /// Transport rounds by default: NNLS averages two (measured on the bundled scene: closer to
+    /// the representation limit than one round at equal samples); the gradient solver
+    /// continues from its estimate over three.
+    pub fn default_rounds(self) -> u32 {
+        match self {
+            Solver::Nnls => 2,
+            Solver::Gradient => 3,
+        }
+    }
 }
 
 /// How to fit.
@@ -54,6 +66,27 @@ pub struct FitSettings {
     pub rounds: u32,
     /// Wall-clock budget of each channel's solve.
     pub time_limit: Duration,
+}
+
+impl FitSettings {
+    /// Settings for `spp` transport samples per pixel in all, split over `rounds`, with the
+    /// transport's own seed (the references' + 1); no smoothing, ridge 0.01, 60 s per solve.
+    pub fn new(render: &RenderSettings, rings: u32, solver: Solver, spp: u32, rounds: u32) -> Self {
+        let rounds = rounds.max(1);
+        FitSettings {
+            rings,
+            transport: RenderSettings {
+                spp: (spp / rounds).max(1),
+                seed: render.seed.wrapping_add(1),
+                ..*render
+            },
+            solver,
+            smooth: 0.0,
+            ridge: 1e-2,
+            rounds,
+            time_limit: Duration::from_secs(60),
+        }
+    }
 }
 
 /// One channel's solve.

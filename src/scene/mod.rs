@@ -322,21 +322,7 @@ impl Scene {
             picked
         };
 
-        let lights = sidecar
-            .lights
-            .iter()
-            .map(|l| match l {
-                sidecar::LightDesc::Sphere {
-                    center,
-                    radius,
-                    radiance,
-                } => SphereLight {
-                    center: Vec3::new(center.0.0, center.0.1, center.0.2),
-                    radius: radius.0,
-                    radiance: Vec3::new(radiance.0.0, radiance.0.1, radiance.0.2),
-                },
-            })
-            .collect();
+        let lights = sidecar.sphere_lights();
 
         Ok(Scene {
             mesh: loaded.mesh,
@@ -359,6 +345,26 @@ impl Scene {
     pub fn center(&self) -> Vec3 {
         let (lo, hi) = self.mesh.bounds();
         0.5 * (lo + hi)
+    }
+}
+
+impl Sidecar {
+    /// The reference sphere lights, in world space.
+    pub fn sphere_lights(&self) -> Vec<SphereLight> {
+        self.lights
+            .iter()
+            .map(|l| match l {
+                sidecar::LightDesc::Sphere {
+                    center,
+                    radius,
+                    radiance,
+                } => SphereLight {
+                    center: Vec3::new(center.0.0, center.0.1, center.0.2),
+                    radius: radius.0,
+                    radiance: Vec3::new(radiance.0.0, radiance.0.1, radiance.0.2),
+                },
+            })
+            .collect()
     }
 }
 
