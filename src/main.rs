@@ -103,6 +103,16 @@ enum Command {
     /// Run estimates over scenarios × samples × rings × solvers (the paper's experiment),
     /// appending one JSON line per trial to OUT/trials*.jsonl; resumable and shardable.
     Sweep(SweepArgs),
+    /// Charts (PNG) and a markdown summary of a sweep's trials, all shards merged:
+    /// error against rings (the paper's Fig. 4), speed against accuracy with the Pareto
+    /// front, error against light distance.
+    Report {
+        /// The sweep's output folder.
+        dir: PathBuf,
+        /// Print summary.json to stdout.
+        #[arg(long)]
+        json: bool,
+    },
     /// Print the JSON Schema of the scene sidecar (RON).
     Schema,
 }
@@ -267,7 +277,11 @@ struct SweepArgs {
     #[arg(long, short)]
     out: PathBuf,
     /// Envmap resolutions (rings).
-    #[arg(long, value_delimiter = ',', default_value = "3,5,7,9,11,13,15,17,19,21,23,25,27")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "3,5,7,9,11,13,15,17,19,21,23,25,27"
+    )]
     rings: Vec<u32>,
     /// Solvers.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "nnls")]
@@ -341,6 +355,26 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Info { scene } => info(&scene),
         Command::Scenarios(a) => scenarios(a),
         Command::Sweep(a) => sweep(a),
+        Command::Report { dir, json } => {
+            let s = lightprobe::experiment::report::report(&dir)?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&s)?);
+            } else {
+                println!(
+                    "{} trials ({} failed) over {} scenarios: {} in {}",
+                    s.trials,
+                    s.failed,
+                    s.scenarios,
+                    s.charts
+                        .iter()
+                        .map(|c| c.file_name().unwrap_or_default().to_string_lossy())
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    dir.display()
+                );
+            }
+            Ok(())
+        }
         Command::Schema => {
             print!("{}", sidecar::json_schema());
             Ok(())

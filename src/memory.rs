@@ -24,4 +24,3 @@ pub fn available_bytes() -> Option<u64> {
         .ok()?;
     Some(kb * 1024)
 }
-

@@ -2,5 +2,6 @@
 //! resumable, shardable sweep of estimates over them ([`sweep`]), and charts of the results
 //! ([`report`]).
 
+pub mod report;
 pub mod scenarios;
 pub mod sweep;

@@ -25,8 +25,8 @@ use crate::error::{Error, Result};
 use crate::estimate::pipeline::{self, EstimateOptions};
 use crate::estimate::{FitSettings, Solver, Transport, first_round_transport};
 use crate::imageio::{self, Image};
-use crate::render::{Lights, RenderSettings, Renderer};
 use crate::render::sampling::mix64;
+use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::sidecar::{self, Sidecar};
 use crate::scene::{Camera, Scene, SphereLight};
 
@@ -42,9 +42,16 @@ impl Shard {
 
     /// Parses `i/n` with 0 ≤ i < n.
     pub fn parse(s: &str) -> Result<Shard> {
-        let bad = || Error::Invalid(format!("--shard {s:?}: expected i/n with 0 <= i < n, e.g. 0/4"));
+        let bad = || {
+            Error::Invalid(format!(
+                "--shard {s:?}: expected i/n with 0 <= i < n, e.g. 0/4"
+            ))
+        };
         let (i, n) = s.split_once('/').ok_or_else(bad)?;
-        let (index, count) = (i.trim().parse().map_err(|_| bad())?, n.trim().parse().map_err(|_| bad())?);
+        let (index, count) = (
+            i.trim().parse().map_err(|_| bad())?,
+            n.trim().parse().map_err(|_| bad())?,
+        );
         if count == 0 || index >= count {
             return Err(bad());
         }
@@ -274,10 +281,16 @@ pub fn run(
             .ok_or_else(|| Error::file(f, "has no file name"))?
             .to_string();
         if !names.insert(name.clone()) {
-            return Err(Error::file(f, format!("another scenario is also named {name:?}")));
+            return Err(Error::file(
+                f,
+                format!("another scenario is also named {name:?}"),
+            ));
         }
         if sc.lights.is_empty() {
-            return Err(Error::file(f, "has no sphere lights to render references from"));
+            return Err(Error::file(
+                f,
+                "has no sphere lights to render references from",
+            ));
         }
         let key = scene_key(&sc, f)?;
         let group = match keys.iter().position(|k| *k == key) {
@@ -297,12 +310,18 @@ pub fn run(
     }
     for &r in &settings.rings {
         if !(1..=sidecar::MAX_RINGS).contains(&r) {
-            return Err(Error::Invalid(format!("--rings: {r} is not in 1..={}", sidecar::MAX_RINGS)));
+            return Err(Error::Invalid(format!(
+                "--rings: {r} is not in 1..={}",
+                sidecar::MAX_RINGS
+            )));
         }
     }
     for &s in &settings.spp {
         if !(1..=sidecar::MAX_SPP).contains(&s) {
-            return Err(Error::Invalid(format!("--spp: {s} is not in 1..={}", sidecar::MAX_SPP)));
+            return Err(Error::Invalid(format!(
+                "--spp: {s} is not in 1..={}",
+                sidecar::MAX_SPP
+            )));
         }
     }
 
@@ -325,7 +344,9 @@ pub fn run(
     let todo: Vec<_> = plan
         .iter()
         .copied()
-        .filter(|&(s, spp, rings, solver)| !done.contains(&trial_id(&scenarios[s].name, spp, rings, solver)))
+        .filter(|&(s, spp, rings, solver)| {
+            !done.contains(&trial_id(&scenarios[s].name, spp, rings, solver))
+        })
         .collect();
     let skipped = plan.len() - todo.len();
     let trials_file = out.join(settings.shard.file_name());
@@ -338,7 +359,13 @@ pub fn run(
         wall_seconds: 0.0,
         trials_file: trials_file.clone(),
     };
-    progress(Progress { done: skipped, total: plan.len(), skipped, record: None, phase: "loading" });
+    progress(Progress {
+        done: skipped,
+        total: plan.len(),
+        skipped,
+        record: None,
+        phase: "loading",
+    });
     if todo.is_empty() {
         summary.wall_seconds = t_all.elapsed().as_secs_f64();
         return Ok(summary);
@@ -348,11 +375,18 @@ pub fn run(
     // ---- Scenes: loaded and BVH-built once per group ----
     let needed: HashSet<usize> = todo.iter().map(|t| scenarios[t.0].group).collect();
     let scenes: Vec<Option<Scene>> = (0..keys.len())
-        .map(|g| needed.contains(&g).then(|| Scene::load(&group_files[g])).transpose())
+        .map(|g| {
+            needed
+                .contains(&g)
+                .then(|| Scene::load(&group_files[g]))
+                .transpose()
+        })
         .collect::<Result<_>>()?;
     let no_lights = Lights::new(Vec::new());
-    let renderers: Vec<Option<Renderer>> =
-        scenes.iter().map(|s| s.as_ref().map(|s| Renderer::new(s, &no_lights))).collect();
+    let renderers: Vec<Option<Renderer>> = scenes
+        .iter()
+        .map(|s| s.as_ref().map(|s| Renderer::new(s, &no_lights)))
+        .collect();
 
     let mut observed: HashMap<usize, Arc<Observed>> = HashMap::new();
     type SharedKey = (usize, u32, u32, u32, u64, u64, Solver);
@@ -368,7 +402,13 @@ pub fn run(
         let lights = Lights::new(sf.lights.clone());
         let renderer = base.with_lights(&lights);
         let report = |phase: &str, p: &mut dyn FnMut(Progress)| {
-            p(Progress { done: skipped + k, total: plan.len(), skipped, record: None, phase })
+            p(Progress {
+                done: skipped + k,
+                total: plan.len(),
+                skipped,
+                record: None,
+                phase,
+            })
         };
 
         // References, masks and noise floor: once per scenario, kept on disk.
@@ -376,7 +416,12 @@ pub fn run(
             Some(o) => o.clone(),
             None => {
                 report(&format!("{} references", sf.name), progress);
-                let o = Arc::new(observe(&renderer, &views, &render, &out.join("references").join(&sf.name))?);
+                let o = Arc::new(observe(
+                    &renderer,
+                    &views,
+                    &render,
+                    &out.join("references").join(&sf.name),
+                )?);
                 observed.insert(s, o.clone());
                 o
             }
@@ -393,20 +438,38 @@ pub fn run(
             time_limit: settings.time_limit,
             ..FitSettings::new(&render, rings, solver, spp, solver.default_rounds())
         };
-        let key = (sf.group, rings, fit.transport.spp, fit.transport.max_bounces, obs.mask_hash, fit.transport.seed, solver);
+        let key = (
+            sf.group,
+            rings,
+            fit.transport.spp,
+            fit.transport.max_bounces,
+            obs.mask_hash,
+            fit.transport.seed,
+            solver,
+        );
         let (first, first_seconds, was_shared) = match shared.get(&key) {
             Some((t, secs)) => (t.clone(), *secs, true),
             None => {
                 report(&format!("{rings} rings transport"), progress);
                 let t = Instant::now();
-                let tr = Arc::new(first_round_transport(base, &views, &obs.masks, &fit, &|_| {}));
+                let tr = Arc::new(first_round_transport(
+                    base,
+                    &views,
+                    &obs.masks,
+                    &fit,
+                    &|_| {},
+                ));
                 let secs = t.elapsed().as_secs_f64();
                 shared.insert(key, (tr.clone(), secs));
                 (tr, secs, false)
             }
         };
         report(&format!("{} {rings} rings {solver:?}", sf.name), progress);
-        let options = EstimateOptions { fit, evaluate: true, oracle: false };
+        let options = EstimateOptions {
+            fit,
+            evaluate: true,
+            oracle: false,
+        };
         let outcome = pipeline::run(
             &renderer,
             &views,
@@ -453,7 +516,11 @@ pub fn run(
                 .collect(),
             iterations: 0,
             kkt_violation: 0.0,
-            timings: Timings { first_round_seconds: first_seconds, first_round_shared: was_shared, ..Default::default() },
+            timings: Timings {
+                first_round_seconds: first_seconds,
+                first_round_shared: was_shared,
+                ..Default::default()
+            },
             transport_bytes: 0,
             peak_bytes: 0,
             threads: rayon::current_num_threads(),
@@ -484,14 +551,19 @@ pub fn run(
                 for r in &o.recovery {
                     let dir = Vec3::from(r.true_direction);
                     if let Some(lf) = record.lights.iter_mut().zip(&sf.lights).find(|(lf, l)| {
-                        lf.angle_error_degrees.is_none() && (l.center - center).normalize().dot(dir) > 0.99999
+                        lf.angle_error_degrees.is_none()
+                            && (l.center - center).normalize().dot(dir) > 0.99999
                     }) {
                         lf.0.angle_error_degrees = Some(r.angle_error_degrees);
                         lf.0.power_ratio = Some(r.power_ratio);
                     }
                 }
                 record.iterations = f.channels.iter().map(|c| c.iterations).sum();
-                record.kkt_violation = f.channels.iter().map(|c| c.kkt_violation).fold(0.0, f64::max);
+                record.kkt_violation = f
+                    .channels
+                    .iter()
+                    .map(|c| c.kkt_violation)
+                    .fold(0.0, f64::max);
                 if f.channels.iter().any(|c| !c.converged) {
                     record.status = Status::NotConverged;
                     summary.not_converged += 1;
@@ -513,14 +585,30 @@ pub fn run(
         }
         record.timings.trial_seconds = t_trial.elapsed().as_secs_f64();
         record.peak_bytes = crate::memory::peak_bytes();
-        let line = serde_json::to_string(&record).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
+        let line =
+            serde_json::to_string(&record).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
         sink.write_all(line.as_bytes())
             .and_then(|_| sink.flush())
             .map_err(|e| Error::io(&trials_file, e))?;
         summary.ran += 1;
-        progress(Progress { done: skipped + k + 1, total: plan.len(), skipped, record: Some(&record), phase: "" });
+        progress(Progress {
+            done: skipped + k + 1,
+            total: plan.len(),
+            skipped,
+            record: Some(&record),
+            phase: "",
+        });
     }
     summary.wall_seconds = t_all.elapsed().as_secs_f64();
+    // The run's wall time (references included), for the report's total.
+    let run = serde_json::json!({
+        "shard": settings.shard.file_name(),
+        "ran": summary.ran,
+        "wall_seconds": summary.wall_seconds,
+        "threads": rayon::current_num_threads(),
+    });
+    let mut log = open_append(&out.join("runs.jsonl"))?;
+    writeln!(log, "{run}").map_err(|e| Error::io(out.join("runs.jsonl"), e))?;
     Ok(summary)
 }
 
@@ -552,7 +640,12 @@ struct NoiseFile {
 }
 
 /// A scenario's references and noise floor, from `dir` when a previous run left them there.
-fn observe(renderer: &Renderer, views: &[&Camera], render: &RenderSettings, dir: &Path) -> Result<Observed> {
+fn observe(
+    renderer: &Renderer,
+    views: &[&Camera],
+    render: &RenderSettings,
+    dir: &Path,
+) -> Result<Observed> {
     let names: Vec<String> = views.iter().map(|c| c.name.clone()).collect();
     let noise_path = dir.join("noise.json");
     let cached = std::fs::read_to_string(&noise_path)
@@ -561,7 +654,10 @@ fn observe(renderer: &Renderer, views: &[&Camera], render: &RenderSettings, dir:
         .filter(|n| n.views == names);
     let (w, h) = (views[0].width, views[0].height);
     let (references, noise_floor) = match cached {
-        Some(n) => (pipeline::load_references(dir, views, w, h)?, n.noise_floor_rel_mae),
+        Some(n) => (
+            pipeline::load_references(dir, views, w, h)?,
+            n.noise_floor_rel_mae,
+        ),
         None => {
             let refs = pipeline::render_views(renderer, views, render, &|_| {});
             let masks = pipeline::geometry_masks(renderer, views, &refs);
@@ -570,8 +666,12 @@ fn observe(renderer: &Renderer, views: &[&Camera], render: &RenderSettings, dir:
             for (img, cam) in refs.iter().zip(views) {
                 imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
             }
-            let n = NoiseFile { views: names, noise_floor_rel_mae: nf.iter().map(|m| m.rel_mae).collect() };
-            let text = serde_json::to_string_pretty(&n).map_err(|e| Error::Invalid(e.to_string()))?;
+            let n = NoiseFile {
+                views: names,
+                noise_floor_rel_mae: nf.iter().map(|m| m.rel_mae).collect(),
+            };
+            let text =
+                serde_json::to_string_pretty(&n).map_err(|e| Error::Invalid(e.to_string()))?;
             imageio::write_bytes(&noise_path, text.as_bytes())?;
             (refs, n.noise_floor_rel_mae)
         }
@@ -581,5 +681,10 @@ fn observe(renderer: &Renderer, views: &[&Camera], render: &RenderSettings, dir:
         .iter()
         .flatten()
         .fold(0x1234_5678u64, |h, &b| mix64(h ^ b as u64));
-    Ok(Observed { references, masks, noise_floor, mask_hash })
+    Ok(Observed {
+        references,
+        masks,
+        noise_floor,
+        mask_hash,
+    })
 }

@@ -1,0 +1,517 @@
+//! Charts and a markdown summary of a sweep's trials (`trials*.jsonl`, all shards merged):
+//!
+//! - `error_vs_rings.png` — the paper's Fig. 4: relMAE (mean ± std over scenarios) against
+//!   rings, per solver × spp, with the mean noise floor;
+//! - `speed_vs_accuracy.png` — stand-alone fit time against mean relMAE for every setting
+//!   tried, the Pareto front joined;
+//! - `error_vs_distance.png` — each scenario's best relMAE over rings against its nearest
+//!   light's distance (in scene sizes): where the infinite-distance model breaks down;
+//! - `report.md` and `summary.json`.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use plotters::prelude::*;
+use serde::Serialize;
+
+use super::sweep::{Status, TrialRecord, read_records};
+use crate::error::{Error, Result};
+use crate::estimate::Solver;
+
+const FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+const SIZE: (u32, u32) = (900, 600);
+
+/// A series of the charts: one solver at one transport spp.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+pub struct SeriesKey {
+    pub solver: SolverName,
+    pub spp: u32,
+}
+
+/// Solver, ordered and printable.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SolverName {
+    Nnls,
+    Gradient,
+}
+
+impl From<Solver> for SolverName {
+    fn from(s: Solver) -> Self {
+        match s {
+            Solver::Nnls => SolverName::Nnls,
+            Solver::Gradient => SolverName::Gradient,
+        }
+    }
+}
+
+impl SeriesKey {
+    fn label(&self) -> String {
+        format!(
+            "{} {} spp",
+            format!("{:?}", self.solver).to_lowercase(),
+            self.spp
+        )
+    }
+}
+
+/// Mean and spread of one setting over scenarios.
+#[derive(Debug, Clone, Serialize)]
+pub struct Cell {
+    pub series: SeriesKey,
+    pub rings: u32,
+    pub scenarios: usize,
+    pub rel_mae_mean: f64,
+    pub rel_mae_std: f64,
+    pub noise_floor_mean: f64,
+    /// Mean stand-alone fit time, seconds.
+    pub fit_seconds_mean: f64,
+    pub on_pareto_front: bool,
+}
+
+/// What `report` found.
+#[derive(Debug, Clone, Serialize)]
+pub struct Summary {
+    pub trials: usize,
+    pub failed: usize,
+    pub not_converged: usize,
+    pub scenarios: usize,
+    pub cells: Vec<Cell>,
+    /// Sum of the trials' wall times, seconds (references not included).
+    pub trial_seconds: f64,
+    /// Wall time of the sweep runs recorded in runs.jsonl, seconds.
+    pub sweep_wall_seconds: Option<f64>,
+    pub charts: Vec<PathBuf>,
+}
+
+fn mean_std(v: &[f64]) -> (f64, f64) {
+    let n = v.len().max(1) as f64;
+    let m = v.iter().sum::<f64>() / n;
+    let var = v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+    (m, var.sqrt())
+}
+
+fn plot_err<E: std::fmt::Debug>(what: &Path) -> impl FnOnce(E) -> Error + '_ {
+    move |e| Error::file(what, format!("cannot draw the chart: {e:?}"))
+}
+
+/// Colour of series `i`.
+fn colour(i: usize) -> RGBColor {
+    const C: [RGBColor; 6] = [
+        RGBColor(31, 119, 180),
+        RGBColor(214, 39, 40),
+        RGBColor(44, 160, 44),
+        RGBColor(148, 103, 189),
+        RGBColor(255, 127, 14),
+        RGBColor(23, 190, 207),
+    ];
+    C[i % C.len()]
+}
+
+/// Draws with `draw` into an RGB buffer and writes it as PNG, atomically.
+fn chart(
+    path: &Path,
+    draw: impl FnOnce(&DrawingArea<BitMapBackend, plotters::coord::Shift>) -> Result<()>,
+) -> Result<()> {
+    static REGISTERED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let ok = *REGISTERED.get_or_init(|| {
+        plotters::style::register_font("sans-serif", FontStyle::Normal, FONT).is_ok()
+    });
+    if !ok {
+        return Err(Error::Invalid(
+            "the bundled chart font does not load".into(),
+        ));
+    }
+    let mut buf = vec![255u8; (SIZE.0 * SIZE.1 * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, SIZE).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_err(path))?;
+        draw(&root)?;
+        root.present().map_err(plot_err(path))?;
+    }
+    crate::imageio::write_rgb8_png(path, SIZE.0, SIZE.1, buf)
+}
+
+/// Reads the trials in `dir` and writes the charts, report.md and summary.json there.
+pub fn report(dir: &Path) -> Result<Summary> {
+    let records = read_records(dir)?;
+    if records.is_empty() {
+        return Err(Error::file(
+            dir,
+            "holds no trials (trials*.jsonl); run `lightprobe sweep` first",
+        ));
+    }
+    let ok: Vec<&TrialRecord> = records
+        .iter()
+        .filter(|r| r.status != Status::Failed && r.rel_mae.is_some_and(f64::is_finite))
+        .collect();
+    let failed = records
+        .iter()
+        .filter(|r| r.status == Status::Failed)
+        .count();
+    let not_converged = records
+        .iter()
+        .filter(|r| r.status == Status::NotConverged)
+        .count();
+
+    // ---- Aggregate per (series, rings) ----
+    let mut groups: BTreeMap<(SeriesKey, u32), Vec<&TrialRecord>> = BTreeMap::new();
+    for r in &ok {
+        let key = SeriesKey {
+            solver: r.solver.into(),
+            spp: r.spp,
+        };
+        groups.entry((key, r.rings)).or_default().push(r);
+    }
+    let mut cells: Vec<Cell> = groups
+        .iter()
+        .map(|((series, rings), rs)| {
+            let errs: Vec<f64> = rs.iter().filter_map(|r| r.rel_mae).collect();
+            let (m, s) = mean_std(&errs);
+            let nf: Vec<f64> = rs.iter().filter_map(|r| r.noise_floor_rel_mae).collect();
+            let fit: Vec<f64> = rs.iter().map(|r| r.timings.fit_seconds).collect();
+            Cell {
+                series: *series,
+                rings: *rings,
+                scenarios: rs.len(),
+                rel_mae_mean: m,
+                rel_mae_std: s,
+                noise_floor_mean: mean_std(&nf).0,
+                fit_seconds_mean: mean_std(&fit).0,
+                on_pareto_front: false,
+            }
+        })
+        .collect();
+    // Pareto front: no other setting is both faster and more accurate.
+    let snapshot: Vec<(f64, f64)> = cells
+        .iter()
+        .map(|c| (c.fit_seconds_mean, c.rel_mae_mean))
+        .collect();
+    for (i, c) in cells.iter_mut().enumerate() {
+        c.on_pareto_front = !snapshot.iter().enumerate().any(|(j, &(t, e))| {
+            j != i
+                && t <= snapshot[i].0
+                && e <= snapshot[i].1
+                && (t < snapshot[i].0 || e < snapshot[i].1)
+        });
+    }
+    let series: Vec<SeriesKey> = {
+        let mut v: Vec<SeriesKey> = cells.iter().map(|c| c.series).collect();
+        v.dedup();
+        v
+    };
+    let mut charts = Vec::new();
+
+    // ---- Fig. 4: error against rings ----
+    let path = dir.join("error_vs_rings.png");
+    let max_rings = cells.iter().map(|c| c.rings).max().unwrap_or(1);
+    let y_max = cells
+        .iter()
+        .map(|c| 100.0 * (c.rel_mae_mean + c.rel_mae_std))
+        .fold(1.0, f64::max)
+        * 1.1;
+    chart(&path, |root| {
+        let e = plot_err(&path);
+        let mut ch = ChartBuilder::on(root)
+            .caption(
+                "Photometric error against envmap resolution (mean ± std over scenarios)",
+                ("sans-serif", 20),
+            )
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0u32..max_rings + 2, 0f64..y_max)
+            .map_err(plot_err(&path))?;
+        ch.configure_mesh()
+            .x_desc("rings")
+            .y_desc("relMAE (%)")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(plot_err(&path))?;
+        for (i, s) in series.iter().enumerate() {
+            let col = colour(i);
+            let pts: Vec<&Cell> = cells.iter().filter(|c| c.series == *s).collect();
+            let offset = |r: u32| r; // same x for every series; error bars stay readable
+            ch.draw_series(LineSeries::new(
+                pts.iter()
+                    .map(|c| (offset(c.rings), 100.0 * c.rel_mae_mean)),
+                col.stroke_width(2),
+            ))
+            .map_err(plot_err(&path))?
+            .label(s.label())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2)));
+            ch.draw_series(pts.iter().map(|c| {
+                PathElement::new(
+                    vec![
+                        (c.rings, 100.0 * (c.rel_mae_mean - c.rel_mae_std).max(0.0)),
+                        (c.rings, 100.0 * (c.rel_mae_mean + c.rel_mae_std)),
+                    ],
+                    col.stroke_width(1),
+                )
+            }))
+            .map_err(plot_err(&path))?;
+            ch.draw_series(
+                pts.iter()
+                    .map(|c| Circle::new((c.rings, 100.0 * c.rel_mae_mean), 4, col.filled())),
+            )
+            .map_err(plot_err(&path))?;
+        }
+        let nf: Vec<&Cell> = cells
+            .iter()
+            .filter(|c| Some(&c.series) == series.first())
+            .collect();
+        ch.draw_series(LineSeries::new(
+            nf.iter().map(|c| (c.rings, 100.0 * c.noise_floor_mean)),
+            BLACK.stroke_width(1),
+        ))
+        .map_err(plot_err(&path))?
+        .label("noise floor (two reference renders)")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
+        ch.configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font(("sans-serif", 15))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(e)?;
+        Ok(())
+    })?;
+    charts.push(path);
+
+    // ---- Speed against accuracy ----
+    let path = dir.join("speed_vs_accuracy.png");
+    // x is log10(seconds) on a linear axis, labelled in seconds: plotters' log axis shows no
+    // labels over less than a decade.
+    let lt = |c: &Cell| c.fit_seconds_mean.max(1e-4).log10();
+    let t_min = cells.iter().map(lt).fold(f64::INFINITY, f64::min) - 0.1;
+    let t_max = cells
+        .iter()
+        .map(lt)
+        .fold(f64::NEG_INFINITY, f64::max)
+        .max(t_min + 0.3)
+        + 0.1;
+    let y_max = cells
+        .iter()
+        .map(|c| 100.0 * c.rel_mae_mean)
+        .fold(1.0, f64::max)
+        * 1.15;
+    chart(&path, |root| {
+        let mut ch = ChartBuilder::on(root)
+            .caption(
+                "Speed against accuracy: every setting tried (mean over scenarios)",
+                ("sans-serif", 20),
+            )
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(60)
+            .build_cartesian_2d(t_min..t_max, 0f64..y_max)
+            .map_err(plot_err(&path))?;
+        ch.configure_mesh()
+            .x_label_formatter(&|x| {
+                let t = 10f64.powf(*x);
+                if t < 10.0 {
+                    format!("{t:.2}")
+                } else {
+                    format!("{t:.0}")
+                }
+            })
+            .x_desc("stand-alone fit time per estimate (s, log scale, 2 cores)")
+            .y_desc("relMAE (%)")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(plot_err(&path))?;
+        let mut front: Vec<&Cell> = cells.iter().filter(|c| c.on_pareto_front).collect();
+        front.sort_by(|a, b| a.fit_seconds_mean.total_cmp(&b.fit_seconds_mean));
+        ch.draw_series(LineSeries::new(
+            front.iter().map(|c| (lt(c), 100.0 * c.rel_mae_mean)),
+            BLACK.stroke_width(1),
+        ))
+        .map_err(plot_err(&path))?
+        .label("Pareto front")
+        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
+        for (i, s) in series.iter().enumerate() {
+            let col = colour(i);
+            let pts: Vec<&Cell> = cells.iter().filter(|c| c.series == *s).collect();
+            ch.draw_series(pts.iter().map(|c| {
+                EmptyElement::at((lt(c), 100.0 * c.rel_mae_mean))
+                    + Circle::new((0, 0), if c.on_pareto_front { 6 } else { 4 }, col.filled())
+                    + Text::new(format!("{}", c.rings), (6, -14), ("sans-serif", 12))
+            }))
+            .map_err(plot_err(&path))?
+            .label(format!("{} (labels: rings)", s.label()))
+            .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+        }
+        ch.configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font(("sans-serif", 15))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(plot_err(&path))?;
+        Ok(())
+    })?;
+    charts.push(path);
+
+    // ---- Error against light distance (first series: best over rings, per scenario) ----
+    let path = dir.join("error_vs_distance.png");
+    let mut best: BTreeMap<&str, &TrialRecord> = BTreeMap::new();
+    if let Some(s0) = series.first() {
+        for r in ok.iter().filter(|r| {
+            SeriesKey {
+                solver: r.solver.into(),
+                spp: r.spp,
+            } == *s0
+        }) {
+            let e = best.entry(r.scenario.as_str()).or_insert(r);
+            if r.rel_mae < e.rel_mae {
+                *e = r;
+            }
+        }
+    }
+    let nearest = |r: &TrialRecord| {
+        r.lights
+            .iter()
+            .map(|l| l.distance_over_size)
+            .fold(f32::INFINITY, f32::min) as f64
+    };
+    let x_max = best.values().map(|r| nearest(r)).fold(1.0, f64::max) * 1.2;
+    let y_max = best.values().filter_map(|r| r.rel_mae).fold(0.01, f64::max) * 110.0;
+    chart(&path, |root| {
+        let mut ch = ChartBuilder::on(root)
+            .caption(
+                format!(
+                    "Best error over rings against the nearest light's distance ({})",
+                    series.first().map(|s| s.label()).unwrap_or_default()
+                ),
+                ("sans-serif", 20),
+            )
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(60)
+            .build_cartesian_2d((0.8f64..x_max).log_scale(), 0f64..y_max)
+            .map_err(plot_err(&path))?;
+        ch.configure_mesh()
+            .x_desc("nearest light's distance from the scene centre / scene size (log scale)")
+            .y_desc("relMAE (%)")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(plot_err(&path))?;
+        for (lights, col, label) in [(1, colour(0), "one light"), (2, colour(1), "two lights")] {
+            ch.draw_series(best.values().filter(|r| r.lights.len() == lights).map(|r| {
+                Circle::new(
+                    (nearest(r), 100.0 * r.rel_mae.unwrap_or(0.0)),
+                    4,
+                    col.filled(),
+                )
+            }))
+            .map_err(plot_err(&path))?
+            .label(label)
+            .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+        }
+        ch.draw_series(best.values().map(|r| {
+            Cross::new(
+                (nearest(r), 100.0 * r.noise_floor_rel_mae.unwrap_or(0.0)),
+                3,
+                BLACK.stroke_width(1),
+            )
+        }))
+        .map_err(plot_err(&path))?
+        .label("noise floor")
+        .legend(|(x, y)| Cross::new((x + 10, y), 3, BLACK.stroke_width(1)));
+        ch.configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font(("sans-serif", 15))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(plot_err(&path))?;
+        Ok(())
+    })?;
+    charts.push(path);
+
+    // ---- Markdown and JSON ----
+    let sweep_wall_seconds = read_run_seconds(dir);
+    let summary = Summary {
+        trials: records.len(),
+        failed,
+        not_converged,
+        scenarios: records
+            .iter()
+            .map(|r| r.scenario.as_str())
+            .collect::<std::collections::BTreeSet<_>>()
+            .len(),
+        cells,
+        trial_seconds: records.iter().map(|r| r.timings.trial_seconds).sum(),
+        sweep_wall_seconds,
+        charts,
+    };
+    let md = markdown(&summary, &best);
+    crate::imageio::write_bytes(&dir.join("report.md"), md.as_bytes())?;
+    let json =
+        serde_json::to_string_pretty(&summary).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
+    crate::imageio::write_bytes(&dir.join("summary.json"), json.as_bytes())?;
+    Ok(summary)
+}
+
+/// Total wall time of the sweep runs logged in `runs.jsonl`.
+fn read_run_seconds(dir: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(dir.join("runs.jsonl")).ok()?;
+    let total: f64 = text
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| v["wall_seconds"].as_f64())
+        .sum();
+    (total > 0.0).then_some(total)
+}
+
+fn markdown(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
+    let mut md = String::from("# Sweep report\n\n");
+    md += &format!(
+        "{} trials over {} scenarios; {} failed, {} did not converge. Trial time {:.0} s",
+        s.trials, s.scenarios, s.failed, s.not_converged, s.trial_seconds
+    );
+    if let Some(w) = s.sweep_wall_seconds {
+        md += &format!(
+            "; sweep wall time {:.1} min (runs.jsonl, references included)",
+            w / 60.0
+        );
+    }
+    md += ".\n\n![error against rings](error_vs_rings.png)\n\n";
+    md += "| series | rings | scenarios | relMAE mean | std | noise floor | fit (s) | Pareto |\n|---|---:|---:|---:|---:|---:|---:|:-:|\n";
+    for c in &s.cells {
+        md += &format!(
+            "| {} | {} | {} | {:.2}% | {:.2}% | {:.2}% | {:.2} | {} |\n",
+            c.series.label(),
+            c.rings,
+            c.scenarios,
+            100.0 * c.rel_mae_mean,
+            100.0 * c.rel_mae_std,
+            100.0 * c.noise_floor_mean,
+            c.fit_seconds_mean,
+            if c.on_pareto_front { "●" } else { "" }
+        );
+    }
+    md += "\n![speed against accuracy](speed_vs_accuracy.png)\n\n![error against distance](error_vs_distance.png)\n\n";
+    let mut worst: Vec<&&TrialRecord> = best.values().collect();
+    worst.sort_by(|a, b| {
+        b.rel_mae
+            .unwrap_or(0.0)
+            .total_cmp(&a.rel_mae.unwrap_or(0.0))
+    });
+    md += "Hardest scenarios (best relMAE over rings, first series):\n\n| scenario | lights | nearest distance / size | best rings | relMAE | noise floor |\n|---|---:|---:|---:|---:|---:|\n";
+    for r in worst.iter().take(8) {
+        md += &format!(
+            "| {} | {} | {:.2} | {} | {:.2}% | {:.2}% |\n",
+            r.scenario,
+            r.lights.len(),
+            r.lights
+                .iter()
+                .map(|l| l.distance_over_size)
+                .fold(f32::INFINITY, f32::min),
+            r.rings,
+            100.0 * r.rel_mae.unwrap_or(0.0),
+            100.0 * r.noise_floor_rel_mae.unwrap_or(0.0)
+        );
+    }
+    md
+}
