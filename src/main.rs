@@ -62,6 +62,22 @@ cli_enum!(FilterArg => Filter {
     Smooth,
 });
 
+/// `--rings`: a ring count or `auto`.
+#[derive(Clone, Copy, Debug)]
+enum RingsArg {
+    Auto,
+    Fixed(u32),
+}
+
+fn parse_rings(s: &str) -> Result<RingsArg, String> {
+    if s == "auto" {
+        return Ok(RingsArg::Auto);
+    }
+    s.parse()
+        .map(RingsArg::Fixed)
+        .map_err(|_| format!("expected a ring count or `auto`, got {s:?}"))
+}
+
 #[derive(Parser)]
 #[command(name = "lightprobe", version, about = "Estimate the lighting of a 3D scene from images of it.", long_about = None)]
 struct Cli {
@@ -190,9 +206,18 @@ struct EstimateArgs {
     /// sphere lights into OUT/reference/).
     #[arg(long)]
     reference: Option<PathBuf>,
-    /// Rings of the envmap (default: the sidecar's).
-    #[arg(long)]
-    rings: Option<u32>,
+    /// Rings of the envmap (default: the sidecar's), or `auto`: fit each of
+    /// --rings-candidates on three quarters of the pixels and take the smallest whose error
+    /// on the held-out quarter is within one standard error of the best.
+    #[arg(long, value_parser = parse_rings)]
+    rings: Option<RingsArg>,
+    /// Resolutions `--rings auto` chooses from.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "3,5,7,9,11,13,15,17,19,21,23,25,27"
+    )]
+    rings_candidates: Vec<u32>,
     #[arg(long, value_enum, default_value_t = SolverArg::Nnls)]
     solver: SolverArg,
     /// Samples per pixel of the transport estimate, over all rounds (default: the sidecar's).
@@ -302,6 +327,14 @@ struct SweepArgs {
     /// Time budget per channel solve, seconds.
     #[arg(long, default_value_t = 60.0)]
     time_limit: f64,
+    /// Also run a `--rings auto` trial per scenario, choosing among --rings.
+    #[arg(long)]
+    auto: bool,
+    /// Fit with imperfect albedos: each value e (e.g. 0.05,0.1,0.2) scales every material's
+    /// albedo per channel by a fixed random factor in [1 − e, 1 + e]; the estimate is judged
+    /// in the true scene. 0 = the true albedos.
+    #[arg(long, value_delimiter = ',', default_value = "0")]
+    albedo_error: Vec<f32>,
     /// Exit 0 even when some trials failed (they are recorded either way).
     #[arg(long)]
     allow_failures: bool,
@@ -817,7 +850,16 @@ fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         smooth: a.smooth,
         ridge: a.ridge,
         time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+        auto: a.auto,
+        albedo_errors: a.albedo_error.clone(),
     };
+    if let Some(e) = a
+        .albedo_error
+        .iter()
+        .find(|e| !(e.is_finite() && (0.0..1.0).contains(*e)))
+    {
+        bail!("--albedo-error must be in [0, 1), got {e}");
+    }
     let files = sidecar_files(&a.scenarios)?;
     prepare_out_dir(&a.out)?;
     let bar = if a.quiet {
@@ -879,12 +921,29 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let solver: Solver = a.solver.into();
     let t_all = Instant::now();
     let scene = Scene::load(&a.scene)?;
-    let rings = a.rings.unwrap_or(scene.settings.rings);
-    if !(1..=sidecar::MAX_RINGS).contains(&rings) {
+    let auto = matches!(a.rings, Some(RingsArg::Auto));
+    // The largest model the job may fit (for the memory check).
+    let mut rings = match a.rings {
+        Some(RingsArg::Fixed(r)) => r,
+        Some(RingsArg::Auto) => a.rings_candidates.iter().copied().max().unwrap_or(0),
+        None => scene.settings.rings,
+    };
+    let candidates = if auto {
+        &a.rings_candidates[..]
+    } else {
+        &[rings][..]
+    };
+    if let Some(r) = candidates
+        .iter()
+        .find(|r| !(1..=sidecar::MAX_RINGS).contains(*r))
+    {
         bail!(
-            "--rings must be between 1 and {}, got {rings}",
+            "--rings must be between 1 and {}, got {r}",
             sidecar::MAX_RINGS
         );
+    }
+    if auto && a.rings_candidates.is_empty() {
+        bail!("--rings auto needs at least one --rings-candidates value");
     }
     let spp = a.spp.unwrap_or(scene.settings.spp);
     if !(1..=sidecar::MAX_SPP).contains(&spp) {
@@ -972,14 +1031,35 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     }
     let noise_seconds = t.elapsed().as_secs_f64();
 
+    // ---- Resolution from the data ----
+    let template = FitSettings {
+        smooth: a.smooth,
+        ridge: a.ridge,
+        time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+        ..FitSettings::new(&settings, rings, solver, spp, rounds)
+    };
+    let mut selection = None;
+    if auto {
+        let pb = bar("choosing rings", candidates.len() as u64 * rounds as u64);
+        let s = estimate::select::select_rings(
+            &renderer,
+            &views,
+            &references,
+            &masks,
+            candidates,
+            &template,
+            &mut |_| None,
+            &|k| pb.inc(k),
+        )
+        .context("--rings auto: no candidate")?;
+        pb.finish_and_clear();
+        rings = s.rings;
+        selection = Some(s);
+    }
+
     // ---- Fit, re-render, representation limit ----
     let options = pipeline::EstimateOptions {
-        fit: FitSettings {
-            smooth: a.smooth,
-            ridge: a.ridge,
-            time_limit: std::time::Duration::from_secs_f64(a.time_limit),
-            ..FitSettings::new(&settings, rings, solver, spp, rounds)
-        },
+        fit: FitSettings { rings, ..template },
         evaluate: !a.fit_only,
         oracle: a.oracle,
     };
@@ -995,7 +1075,8 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         &settings,
         None,
         &|k| pb.inc(k),
-    )?;
+    )
+    .with_context(|| a.scene.display().to_string())?;
     pb.finish_and_clear();
     let fit = &outcome.fit;
     let (errors, limit) = (&outcome.errors, &outcome.limit);
@@ -1064,6 +1145,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "lightprobe_version": lightprobe::VERSION,
         "scene": a.scene,
         "rings": rings,
+        "rings_selection": selection,
         "cells": fit.envmap.grid.cell_count(),
         "solver": solver,
         "smooth": a.smooth,
@@ -1082,6 +1164,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
             "noise_floor_seconds": noise_seconds,
             "transport_seconds": fit.transport_seconds,
             "solve_seconds": fit.solve_seconds,
+            "rings_selection_seconds": selection.as_ref().map(|s| s.seconds),
             "fit_seconds": fit.transport_seconds + fit.solve_seconds,
             "rerender_seconds": rerender_seconds,
             "oracle_seconds": oracle_seconds,
@@ -1101,6 +1184,19 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         fit.envmap.grid.cell_count(),
         solver
     );
+    if let Some(sel) = &selection {
+        println!(
+            "rings auto: {} (held-out relMAE {}; lowest at {} rings), {:.1} s",
+            sel.rings,
+            sel.candidates
+                .iter()
+                .map(|c| format!("{}: {:.2}%", c.rings, 100.0 * c.validation_rel_mae))
+                .collect::<Vec<_>>()
+                .join(", "),
+            sel.best_rings,
+            sel.seconds
+        );
+    }
     for (i, cam) in views.iter().enumerate().filter(|(i, _)| *i < errors.len()) {
         let mut line = format!("{:<12} relMAE {:.2}%", cam.name, 100.0 * errors[i].rel_mae);
         if let Some(nf) = noise_floor.get(i) {

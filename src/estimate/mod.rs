@@ -12,6 +12,7 @@
 pub mod nnls;
 pub mod pipeline;
 pub mod recovery;
+pub mod select;
 pub mod transport;
 
 use std::time::{Duration, Instant};
@@ -66,6 +67,31 @@ pub struct FitSettings {
     pub rounds: u32,
     /// Wall-clock budget of each channel's solve.
     pub time_limit: Duration,
+    /// Fit on three quarters of the pixels only and measure the error on the held-out
+    /// quarter ([`is_held_out`]): for choosing the resolution ([`select`]).
+    pub holdout: bool,
+}
+
+/// The fixed quarter of the pixels a hold-out fit leaves out, by (view, pixel index): a hash,
+/// so held-out pixels are scattered over every view.
+pub fn is_held_out((view, pixel): (usize, u32)) -> bool {
+    crate::render::sampling::mix64(((view as u64) << 32 | pixel as u64) ^ 0x401D).is_multiple_of(4)
+}
+
+/// Error of a hold-out fit on the held-out pixels.
+#[derive(Debug, Clone)]
+pub struct Validation {
+    /// Per held-out pixel: Σ over channels of |T·λ − reference|.
+    pub abs_error: Vec<f64>,
+    /// Σ over held-out pixels and channels of |reference|.
+    pub reference_abs: f64,
+}
+
+impl Validation {
+    /// relMAE over the held-out pixels.
+    pub fn rel_mae(&self) -> f64 {
+        self.abs_error.iter().sum::<f64>() / self.reference_abs.max(f64::MIN_POSITIVE)
+    }
 }
 
 impl FitSettings {
@@ -85,6 +111,7 @@ impl FitSettings {
             ridge: 1e-2,
             rounds,
             time_limit: Duration::from_secs(60),
+            holdout: false,
         }
     }
 }
@@ -106,6 +133,8 @@ pub struct Fit {
     pub transport_seconds: f64,
     pub solve_seconds: f64,
     pub transport_bytes: usize,
+    /// With `holdout`: the error on the held-out pixels.
+    pub validation: Option<Validation>,
 }
 
 /// Pairs of neighbouring cells: adjacent in a ring, or overlapping in azimuth across rings.
@@ -138,13 +167,14 @@ fn normal_equations(
     tr: &Transport,
     ch: usize,
     y: &[f64],
+    rows: &[usize],
     smooth_pairs: &[(u32, u32)],
     smooth: f64,
     ridge: f64,
 ) -> (Vec<f64>, Vec<f64>, f64) {
-    let (m, n) = (tr.rows, tr.cells);
-    let t = faer::Mat::<f64>::from_fn(m, n, |i, j| tr.t[ch][i * n + j] as f64);
-    let yv = faer::Mat::<f64>::from_fn(m, 1, |i, _| y[i]);
+    let (m, n) = (rows.len(), tr.cells);
+    let t = faer::Mat::<f64>::from_fn(m, n, |i, j| tr.t[ch][rows[i] * n + j] as f64);
+    let yv = faer::Mat::<f64>::from_fn(m, 1, |i, _| y[rows[i]]);
     let gram = t.transpose() * &t;
     let tb = t.transpose() * &yv;
     let mut g = vec![0.0; n * n];
@@ -170,7 +200,7 @@ fn normal_equations(
         }
     }
     let b: Vec<f64> = (0..n).map(|i| tb[(i, 0)]).collect();
-    (g, b, y.iter().map(|v| v * v).sum())
+    (g, b, rows.iter().map(|&i| y[i] * y[i]).sum())
 }
 
 /// The values of the masked pixels of every reference, in transport row order, per channel.
@@ -196,10 +226,20 @@ fn solve_all(
     let n = tr.cells;
     let y = observed(tr, references);
     let rounds = settings.rounds.max(1);
+    let rows: Vec<usize> = (0..tr.rows)
+        .filter(|&r| !settings.holdout || !is_held_out(tr.pixel_of_row[r]))
+        .collect();
     (0..3)
         .map(|ch| {
-            let (g, b, yy) =
-                normal_equations(tr, ch, &y[ch], pairs, settings.smooth, settings.ridge);
+            let (g, b, yy) = normal_equations(
+                tr,
+                ch,
+                &y[ch],
+                &rows,
+                pairs,
+                settings.smooth,
+                settings.ridge,
+            );
             let s = match settings.solver {
                 Solver::Nnls => nnls::nnls(&g, &b, 1e-9, 20 * n + 100, settings.time_limit),
                 Solver::Gradient => nnls::projected_gradient(
@@ -298,6 +338,7 @@ pub fn fit_reusing(
     let rounds = settings.rounds.max(1);
     // NNLS averages the rounds' transports (each an unbiased estimate of the same T).
     let mut t_avg: Option<Transport> = None;
+    let mut validation = None;
     for round in 0..rounds {
         let t0 = Instant::now();
         let mut st = settings.transport;
@@ -342,6 +383,9 @@ pub fn fit_reusing(
             record.then_some(&mut channels),
         );
         solve_seconds += t1.elapsed().as_secs_f64();
+        if last && settings.holdout {
+            validation = Some(validate(&tr, references, &lambda));
+        }
         if settings.solver == Solver::Nnls {
             t_avg = Some(tr);
         }
@@ -372,6 +416,33 @@ pub fn fit_reusing(
         transport_seconds,
         solve_seconds,
         transport_bytes,
+        validation,
+    }
+}
+
+/// The error of λ on the held-out rows of `tr`.
+fn validate(tr: &Transport, references: &[Image], lambda: &[Vec<f64>]) -> Validation {
+    let y = observed(tr, references);
+    let n = tr.cells;
+    let mut abs_error = Vec::new();
+    let mut reference_abs = 0.0;
+    for r in (0..tr.rows).filter(|&r| is_held_out(tr.pixel_of_row[r])) {
+        let mut e = 0.0;
+        for ch in 0..3 {
+            let row = &tr.t[ch][r * n..(r + 1) * n];
+            let pred: f64 = row
+                .iter()
+                .zip(&lambda[ch])
+                .map(|(&t, &l)| t as f64 * l)
+                .sum();
+            e += (pred - y[ch][r]).abs();
+            reference_abs += y[ch][r].abs();
+        }
+        abs_error.push(e);
+    }
+    Validation {
+        abs_error,
+        reference_abs,
     }
 }
 

@@ -195,6 +195,40 @@ pub fn run(
     first: Option<&Transport>,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Outcome> {
+    run_with(
+        renderer, renderer, views, references, masks, truth, center, options, render, first,
+        progress,
+    )
+}
+
+/// [`run`], fitting in the scene of `renderer` but re-rendering the estimate in the scene of
+/// `truth_renderer` (same geometry and views): e.g. fit with perturbed albedos, judge the
+/// lighting in the true scene.
+#[allow(clippy::too_many_arguments)]
+pub fn run_with(
+    renderer: &Renderer,
+    truth_renderer: &Renderer,
+    views: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    truth: &[SphereLight],
+    center: Vec3,
+    options: &EstimateOptions,
+    render: &RenderSettings,
+    first: Option<&Transport>,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<Outcome> {
+    let seen: f64 = references
+        .iter()
+        .zip(masks)
+        .flat_map(|(r, m)| r.rgb.iter().zip(m).filter(|(_, m)| **m))
+        .map(|(c, _)| c.abs().element_sum() as f64)
+        .sum();
+    if seen <= 0.0 {
+        return Err(Error::Invalid(
+            "the references are black wherever they see geometry: no light reaches what the views see, so the lighting is unobservable".into(),
+        ));
+    }
     let fit = fit_reusing(
         renderer,
         views,
@@ -216,7 +250,7 @@ pub fn run(
     let (mut renders, mut errors) = (Vec::new(), Vec::new());
     if options.evaluate {
         let lights = Lights::env(fit.envmap.clone());
-        renders = render_views(&renderer.with_lights(&lights), views, &eval, progress);
+        renders = render_views(&truth_renderer.with_lights(&lights), views, &eval, progress);
         errors = compare_views(&renders, references, masks)?;
     }
     let rerender_seconds = t.elapsed().as_secs_f64();
@@ -235,7 +269,7 @@ pub fn run(
         o.transport.seed = render.seed.wrapping_add(31_337);
         let best = fit_reusing(renderer, views, references, masks, &o, None, progress);
         let lights = Lights::env(best.envmap.clone());
-        let imgs = render_views(&renderer.with_lights(&lights), views, &eval, progress);
+        let imgs = render_views(&truth_renderer.with_lights(&lights), views, &eval, progress);
         limit = compare_views(&imgs, references, masks)?;
     }
     let oracle_seconds = t.elapsed().as_secs_f64();

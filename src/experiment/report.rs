@@ -21,11 +21,13 @@ use crate::estimate::Solver;
 const FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
 const SIZE: (u32, u32) = (900, 600);
 
-/// A series of the charts: one solver at one transport spp.
+/// A series of the charts: one solver at one transport spp and albedo error.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
 pub struct SeriesKey {
     pub solver: SolverName,
     pub spp: u32,
+    /// The fit's albedo error, percent (0 = true albedos).
+    pub albedo_error_percent: u32,
 }
 
 /// Solver, ordered and printable.
@@ -46,7 +48,23 @@ impl From<Solver> for SolverName {
 }
 
 impl SeriesKey {
+    fn of(r: &TrialRecord) -> Self {
+        SeriesKey {
+            solver: r.solver.into(),
+            spp: r.spp,
+            albedo_error_percent: (r.albedo_error * 100.0).round() as u32,
+        }
+    }
+
     fn label(&self) -> String {
+        if self.albedo_error_percent > 0 {
+            return format!(
+                "{} {} spp, albedo ±{}%",
+                format!("{:?}", self.solver).to_lowercase(),
+                self.spp,
+                self.albedo_error_percent
+            );
+        }
         format!(
             "{} {} spp",
             format!("{:?}", self.solver).to_lowercase(),
@@ -79,9 +97,54 @@ pub struct Summary {
     pub cells: Vec<Cell>,
     /// Sum of the trials' wall times, seconds (references not included).
     pub trial_seconds: f64,
-    /// Wall time of the sweep runs recorded in runs.jsonl, seconds.
+    /// Wall time of the sweep runs recorded in runs*.jsonl (shards summed), seconds.
     pub sweep_wall_seconds: Option<f64>,
+    /// `--rings auto` trials against the best fixed resolution of their scenario and series.
+    pub auto: Vec<AutoFigures>,
+    /// Fraction of scenarios where auto is within 10% of the best fixed resolution's error.
+    pub auto_within_10_percent: Option<f64>,
     pub charts: Vec<PathBuf>,
+}
+
+/// One scenario's `--rings auto` trial against its best fixed resolution.
+#[derive(Debug, Clone, Serialize)]
+pub struct AutoFigures {
+    pub scenario: String,
+    pub series: SeriesKey,
+    pub auto_rings: u32,
+    pub auto_rel_mae: f64,
+    pub best_rings: u32,
+    pub best_rel_mae: f64,
+    /// Mean stand-alone time of `--rings auto` (selection + fit), seconds.
+    pub auto_fit_seconds: f64,
+}
+
+fn auto_against_best(ok: &[&TrialRecord]) -> Vec<AutoFigures> {
+    ok.iter()
+        .filter(|r| r.auto.is_some())
+        .filter_map(|a| {
+            let series = SeriesKey::of(a);
+            let best = ok
+                .iter()
+                .filter(|r| {
+                    r.auto.is_none() && r.scenario == a.scenario && SeriesKey::of(r) == series
+                })
+                .min_by(|x, y| {
+                    x.rel_mae
+                        .unwrap_or(f64::INFINITY)
+                        .total_cmp(&y.rel_mae.unwrap_or(f64::INFINITY))
+                })?;
+            Some(AutoFigures {
+                scenario: a.scenario.clone(),
+                series,
+                auto_rings: a.rings,
+                auto_rel_mae: a.rel_mae?,
+                best_rings: best.rings,
+                best_rel_mae: best.rel_mae?,
+                auto_fit_seconds: a.timings.fit_seconds,
+            })
+        })
+        .collect()
 }
 
 fn mean_std(v: &[f64]) -> (f64, f64) {
@@ -156,11 +219,8 @@ pub fn report(dir: &Path) -> Result<Summary> {
 
     // ---- Aggregate per (series, rings) ----
     let mut groups: BTreeMap<(SeriesKey, u32), Vec<&TrialRecord>> = BTreeMap::new();
-    for r in &ok {
-        let key = SeriesKey {
-            solver: r.solver.into(),
-            spp: r.spp,
-        };
+    for r in ok.iter().filter(|r| r.auto.is_none()) {
+        let key = SeriesKey::of(r);
         groups.entry((key, r.rings)).or_default().push(r);
     }
     let mut cells: Vec<Cell> = groups
@@ -356,12 +416,10 @@ pub fn report(dir: &Path) -> Result<Summary> {
     let path = dir.join("error_vs_distance.png");
     let mut best: BTreeMap<&str, &TrialRecord> = BTreeMap::new();
     if let Some(s0) = series.first() {
-        for r in ok.iter().filter(|r| {
-            SeriesKey {
-                solver: r.solver.into(),
-                spp: r.spp,
-            } == *s0
-        }) {
+        for r in ok
+            .iter()
+            .filter(|r| r.auto.is_none() && SeriesKey::of(r) == *s0)
+        {
             let e = best.entry(r.scenario.as_str()).or_insert(r);
             if r.rel_mae < e.rel_mae {
                 *e = r;
@@ -429,6 +487,66 @@ pub fn report(dir: &Path) -> Result<Summary> {
     })?;
     charts.push(path);
 
+    // ---- `--rings auto` against each scenario's best fixed resolution ----
+    let auto = auto_against_best(&ok);
+    if !auto.is_empty() {
+        let path = dir.join("auto_vs_best.png");
+        let top = auto
+            .iter()
+            .map(|a| a.auto_rel_mae.max(a.best_rel_mae))
+            .fold(0.01, f64::max)
+            * 110.0;
+        chart(&path, |root| {
+            let mut ch = ChartBuilder::on(root)
+                .caption(
+                    "--rings auto against the best fixed resolution, per scenario",
+                    ("sans-serif", 20),
+                )
+                .margin(15)
+                .x_label_area_size(45)
+                .y_label_area_size(60)
+                .build_cartesian_2d(0f64..top, 0f64..top)
+                .map_err(plot_err(&path))?;
+            ch.configure_mesh()
+                .x_desc("best relMAE over the fixed resolutions (%)")
+                .y_desc("relMAE with --rings auto (%)")
+                .label_style(("sans-serif", 15))
+                .draw()
+                .map_err(plot_err(&path))?;
+            for (k, style, label) in [
+                (1.0, BLACK.stroke_width(1), "equal"),
+                (1.1, RED.stroke_width(1), "10% worse"),
+            ] {
+                ch.draw_series(LineSeries::new([(0.0, 0.0), (top / k, top)], style))
+                    .map_err(plot_err(&path))?
+                    .label(label)
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
+            }
+            let col = colour(0);
+            ch.draw_series(auto.iter().map(|a| {
+                EmptyElement::at((100.0 * a.best_rel_mae, 100.0 * a.auto_rel_mae))
+                    + Circle::new((0, 0), 4, col.filled())
+                    + Text::new(
+                        format!("{}→{}", a.best_rings, a.auto_rings),
+                        (5, -12),
+                        ("sans-serif", 11),
+                    )
+            }))
+            .map_err(plot_err(&path))?
+            .label("scenario (labels: best rings → chosen rings)")
+            .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+            ch.configure_series_labels()
+                .position(SeriesLabelPosition::UpperLeft)
+                .label_font(("sans-serif", 15))
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .draw()
+                .map_err(plot_err(&path))?;
+            Ok(())
+        })?;
+        charts.push(path);
+    }
+
     // ---- Markdown and JSON ----
     let sweep_wall_seconds = read_run_seconds(dir);
     let summary = Summary {
@@ -443,6 +561,13 @@ pub fn report(dir: &Path) -> Result<Summary> {
         cells,
         trial_seconds: records.iter().map(|r| r.timings.trial_seconds).sum(),
         sweep_wall_seconds,
+        auto_within_10_percent: (!auto.is_empty()).then(|| {
+            auto.iter()
+                .filter(|a| a.auto_rel_mae <= 1.1 * a.best_rel_mae)
+                .count() as f64
+                / auto.len() as f64
+        }),
+        auto,
         charts,
     };
     let md = markdown(&summary, &best);
@@ -453,14 +578,21 @@ pub fn report(dir: &Path) -> Result<Summary> {
     Ok(summary)
 }
 
-/// Total wall time of the sweep runs logged in `runs.jsonl`.
+/// Total wall time of the sweep runs logged in `runs*.jsonl` (all shards, summed).
 fn read_run_seconds(dir: &Path) -> Option<f64> {
-    let text = std::fs::read_to_string(dir.join("runs.jsonl")).ok()?;
-    let total: f64 = text
-        .lines()
-        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        .filter_map(|v| v["wall_seconds"].as_f64())
-        .sum();
+    let mut total = 0.0;
+    for entry in std::fs::read_dir(dir).ok()?.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if !(name.starts_with("runs") && name.ends_with(".jsonl")) {
+            continue;
+        }
+        let text = std::fs::read_to_string(entry.path()).ok()?;
+        total += text
+            .lines()
+            .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+            .filter_map(|v| v["wall_seconds"].as_f64())
+            .sum::<f64>();
+    }
     (total > 0.0).then_some(total)
 }
 
@@ -472,7 +604,7 @@ fn markdown(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
     );
     if let Some(w) = s.sweep_wall_seconds {
         md += &format!(
-            "; sweep wall time {:.1} min (runs.jsonl, references included)",
+            "; sweep wall time {:.1} min (runs*.jsonl, shards summed, references included)",
             w / 60.0
         );
     }
@@ -492,6 +624,22 @@ fn markdown(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
         );
     }
     md += "\n![speed against accuracy](speed_vs_accuracy.png)\n\n![error against distance](error_vs_distance.png)\n\n";
+    if let Some(f) = s.auto_within_10_percent {
+        let n = s.auto.len();
+        let mean_t = s.auto.iter().map(|a| a.auto_fit_seconds).sum::<f64>() / n.max(1) as f64;
+        md += &format!(
+            "## `--rings auto`\n\nWithin 10% of the best fixed resolution's error on {:.0}% of {} scenarios \
+             (goal: 80%); exactly the best resolution on {}; mean stand-alone time (selection + fit) {:.1} s.\n\n\
+             ![auto against best](auto_vs_best.png)\n\n",
+            100.0 * f,
+            n,
+            s.auto
+                .iter()
+                .filter(|a| a.auto_rings == a.best_rings)
+                .count(),
+            mean_t
+        );
+    }
     let mut worst: Vec<&&TrialRecord> = best.values().collect();
     worst.sort_by(|a, b| {
         b.rel_mae

@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::estimate::pipeline::{self, EstimateOptions};
+use crate::estimate::select::{self, Selection};
 use crate::estimate::{FitSettings, Solver, Transport, first_round_transport};
 use crate::imageio::{self, Image};
 use crate::render::sampling::mix64;
@@ -79,6 +80,12 @@ pub struct SweepSettings {
     pub smooth: f64,
     pub ridge: f64,
     pub time_limit: Duration,
+    /// Also run a `--rings auto` trial per scenario, choosing among `rings`.
+    pub auto: bool,
+    /// Albedo errors to fit with (0 = the true albedos): every material's albedo is scaled per
+    /// channel by a fixed random factor in [1 − e, 1 + e]; the estimate is judged in the true
+    /// scene.
+    pub albedo_errors: Vec<f32>,
 }
 
 /// How a trial ended.
@@ -130,6 +137,9 @@ pub struct Timings {
     pub rerender_seconds: f64,
     /// This trial's wall time in the sweep (references not included).
     pub trial_seconds: f64,
+    /// `--rings auto`: choosing the resolution (included in `fit_seconds`).
+    #[serde(default)]
+    pub selection_seconds: f64,
 }
 
 /// One trial: a line of `trials*.jsonl`.
@@ -160,12 +170,33 @@ pub struct TrialRecord {
     /// Peak resident memory of the sweep process so far.
     pub peak_bytes: u64,
     pub threads: usize,
+    /// The albedo error the fit lived with (0 = true albedos).
+    #[serde(default)]
+    pub albedo_error: f32,
+    /// The `--rings auto` trial: how the resolution was chosen.
+    #[serde(default)]
+    pub auto: Option<Selection>,
 }
 
-/// Trial identity: what resuming matches on.
-pub fn trial_id(scenario: &str, spp: u32, rings: u32, solver: Solver) -> String {
-    format!("{scenario}/spp{spp}/rings{rings}/{solver:?}").to_lowercase()
+/// Trial identity: what resuming matches on (`rings` None: the `--rings auto` trial).
+pub fn trial_id(
+    scenario: &str,
+    spp: u32,
+    rings: Option<u32>,
+    solver: Solver,
+    albedo_error: f32,
+) -> String {
+    let r = rings.map_or("auto".to_string(), |r| format!("rings{r}"));
+    let a = if albedo_error > 0.0 {
+        format!("/albedo{}", (albedo_error * 100.0).round())
+    } else {
+        String::new()
+    };
+    format!("{scenario}/spp{spp}/{r}/{solver:?}{a}").to_lowercase()
 }
+
+/// Seed of the albedo perturbation (the same for every scenario).
+const ALBEDO_SEED: u64 = 0x00A1_BED0;
 
 /// Reads every `trials*.jsonl` in `dir` (all shards). Lines that do not parse (a write cut
 /// short) are skipped; for a trial recorded twice, the last line wins.
@@ -329,12 +360,22 @@ pub fn run(
     let mine: Vec<usize> = (0..scenarios.len())
         .filter(|i| *i as u32 % settings.shard.count == settings.shard.index)
         .collect();
+    // `None` rings: the `--rings auto` trial, after the fixed resolutions.
     let mut plan = Vec::new();
+    let albedo_errors = if settings.albedo_errors.is_empty() {
+        vec![0.0]
+    } else {
+        settings.albedo_errors.clone()
+    };
     for &spp in &settings.spp {
-        for &rings in &settings.rings {
-            for &solver in &settings.solvers {
-                for &s in &mine {
-                    plan.push((s, spp, rings, solver));
+        for a in 0..albedo_errors.len() {
+            let rings_list = settings.rings.iter().map(|&r| Some(r));
+            let auto = settings.auto.then_some(None);
+            for rings in rings_list.chain(auto) {
+                for &solver in &settings.solvers {
+                    for &s in &mine {
+                        plan.push((s, spp, rings, solver, a));
+                    }
                 }
             }
         }
@@ -344,8 +385,14 @@ pub fn run(
     let todo: Vec<_> = plan
         .iter()
         .copied()
-        .filter(|&(s, spp, rings, solver)| {
-            !done.contains(&trial_id(&scenarios[s].name, spp, rings, solver))
+        .filter(|&(s, spp, rings, solver, a)| {
+            !done.contains(&trial_id(
+                &scenarios[s].name,
+                spp,
+                rings,
+                solver,
+                albedo_errors[a],
+            ))
         })
         .collect();
     let skipped = plan.len() - todo.len();
@@ -387,12 +434,26 @@ pub fn run(
         .iter()
         .map(|s| s.as_ref().map(|s| Renderer::new(s, &no_lights)))
         .collect();
+    // The scenes the fits see: per group and albedo error (index 0 of a zero error: the scene).
+    let perturbed: Vec<Vec<Option<Scene>>> = scenes
+        .iter()
+        .map(|s| {
+            albedo_errors
+                .iter()
+                .map(|&e| {
+                    s.as_ref()
+                        .filter(|_| e > 0.0)
+                        .map(|s| s.with_albedo_error(e, ALBEDO_SEED))
+                })
+                .collect()
+        })
+        .collect();
 
     let mut observed: HashMap<usize, Arc<Observed>> = HashMap::new();
-    type SharedKey = (usize, u32, u32, u32, u64, u64, Solver);
+    type SharedKey = (usize, usize, u32, u32, u32, u64, u64, Solver);
     let mut shared: HashMap<SharedKey, (Arc<Transport>, f64)> = HashMap::new();
     let mut block = None;
-    for (k, &(s, spp, rings, solver)) in todo.iter().enumerate() {
+    for (k, &(s, spp, rings_plan, solver, a)) in todo.iter().enumerate() {
         let t_trial = Instant::now();
         let sf = &scenarios[s];
         let scene = scenes[sf.group].as_ref().expect("loaded above");
@@ -401,6 +462,11 @@ pub fn run(
         let render = RenderSettings::from_scene(&scene.settings);
         let lights = Lights::new(sf.lights.clone());
         let renderer = base.with_lights(&lights);
+        // What the fit sees: the scene, or its albedo-perturbed twin (same BVH).
+        let (fit_base, fit_renderer) = match &perturbed[sf.group][a] {
+            Some(p) => (base.with_scene(p, &no_lights), base.with_scene(p, &lights)),
+            None => (base.with_lights(&no_lights), base.with_lights(&lights)),
+        };
         let report = |phase: &str, p: &mut dyn FnMut(Progress)| {
             p(Progress {
                 done: skipped + k,
@@ -428,49 +494,88 @@ pub fn run(
         };
 
         // A new block of (spp, rings, solver): the previous shared transports are done with.
-        if block != Some((spp, rings, solver)) {
+        if block != Some((spp, a, rings_plan, solver)) {
             shared.clear();
-            block = Some((spp, rings, solver));
+            block = Some((spp, a, rings_plan, solver));
         }
-        let fit = FitSettings {
+        let template = FitSettings {
             smooth: settings.smooth,
             ridge: settings.ridge,
             time_limit: settings.time_limit,
-            ..FitSettings::new(&render, rings, solver, spp, solver.default_rounds())
+            ..FitSettings::new(&render, 1, solver, spp, solver.default_rounds())
         };
-        let key = (
-            sf.group,
-            rings,
-            fit.transport.spp,
-            fit.transport.max_bounces,
-            obs.mask_hash,
-            fit.transport.seed,
-            solver,
-        );
-        let (first, first_seconds, was_shared) = match shared.get(&key) {
-            Some((t, secs)) => (t.clone(), *secs, true),
-            None => {
-                report(&format!("{rings} rings transport"), progress);
-                let t = Instant::now();
-                let tr = Arc::new(first_round_transport(
-                    base,
-                    &views,
-                    &obs.masks,
-                    &fit,
-                    &|_| {},
-                ));
-                let secs = t.elapsed().as_secs_f64();
-                shared.insert(key, (tr.clone(), secs));
-                (tr, secs, false)
+        // The shared first round of a resolution: (transport, seconds it took, was cached).
+        let mut first_of = |fit: &FitSettings| {
+            let key = (
+                sf.group,
+                a,
+                fit.rings,
+                fit.transport.spp,
+                fit.transport.max_bounces,
+                obs.mask_hash,
+                fit.transport.seed,
+                solver,
+            );
+            match shared.get(&key) {
+                Some((t, secs)) => (t.clone(), *secs, true),
+                None => {
+                    let t = Instant::now();
+                    let tr = Arc::new(first_round_transport(
+                        &fit_base,
+                        &views,
+                        &obs.masks,
+                        fit,
+                        &|_| {},
+                    ));
+                    let secs = t.elapsed().as_secs_f64();
+                    shared.insert(key, (tr.clone(), secs));
+                    (tr, secs, false)
+                }
             }
         };
+        let mut selection = None;
+        let mut shared_selection_seconds = 0.0;
+        let rings = match rings_plan {
+            Some(r) => r,
+            None => {
+                report(&format!("{} choosing rings", sf.name), progress);
+                let sel = select::select_rings(
+                    &fit_renderer,
+                    &views,
+                    &obs.references,
+                    &obs.masks,
+                    &settings.rings,
+                    &template,
+                    &mut |fit| {
+                        let (t, secs, cached) = first_of(fit);
+                        if cached {
+                            shared_selection_seconds += secs;
+                        }
+                        Some(t)
+                    },
+                    &|_| {},
+                );
+                let Some(sel) = sel else {
+                    return Err(Error::Invalid(
+                        "--auto needs at least one --rings value".into(),
+                    ));
+                };
+                let r = sel.rings;
+                selection = Some(sel);
+                r
+            }
+        };
+        let fit = FitSettings { rings, ..template };
+        report(&format!("{rings} rings transport"), progress);
+        let (first, first_seconds, was_shared) = first_of(&fit);
         report(&format!("{} {rings} rings {solver:?}", sf.name), progress);
         let options = EstimateOptions {
             fit,
             evaluate: true,
             oracle: false,
         };
-        let outcome = pipeline::run(
+        let outcome = pipeline::run_with(
+            &fit_renderer,
             &renderer,
             &views,
             &obs.references,
@@ -482,7 +587,7 @@ pub fn run(
             Some(&first),
             &|_| {},
         );
-        let id = trial_id(&sf.name, spp, rings, solver);
+        let id = trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a]);
         let (lo, hi) = scene.mesh.bounds();
         let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
         let center = scene.center();
@@ -519,8 +624,14 @@ pub fn run(
             timings: Timings {
                 first_round_seconds: first_seconds,
                 first_round_shared: was_shared,
+                // Stand-alone, the candidates' shared first rounds would have been paid too.
+                selection_seconds: selection
+                    .as_ref()
+                    .map_or(0.0, |s| s.seconds + shared_selection_seconds),
                 ..Default::default()
             },
+            auto: selection,
+            albedo_error: albedo_errors[a],
             transport_bytes: 0,
             peak_bytes: 0,
             threads: rayon::current_num_threads(),
@@ -578,7 +689,10 @@ pub fn run(
                 // rendering: the stand-alone cost adds the first round's measured time.
                 record.timings.transport_seconds = f.transport_seconds;
                 record.timings.solve_seconds = f.solve_seconds;
-                record.timings.fit_seconds = first_seconds + f.transport_seconds + f.solve_seconds;
+                record.timings.fit_seconds = record.timings.selection_seconds
+                    + first_seconds
+                    + f.transport_seconds
+                    + f.solve_seconds;
                 record.timings.rerender_seconds = o.rerender_seconds;
                 record.transport_bytes = f.transport_bytes;
             }
@@ -607,8 +721,9 @@ pub fn run(
         "wall_seconds": summary.wall_seconds,
         "threads": rayon::current_num_threads(),
     });
-    let mut log = open_append(&out.join("runs.jsonl"))?;
-    writeln!(log, "{run}").map_err(|e| Error::io(out.join("runs.jsonl"), e))?;
+    let log_path = out.join(settings.shard.file_name().replacen("trials", "runs", 1));
+    let mut log = open_append(&log_path)?;
+    writeln!(log, "{run}").map_err(|e| Error::io(&log_path, e))?;
     Ok(summary)
 }
 

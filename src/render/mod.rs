@@ -168,6 +168,23 @@ impl<'a> Renderer<'a> {
         }
     }
 
+    /// The same BVH over `scene`, which must have this renderer's geometry (e.g. the scene with
+    /// other albedos), lit by `lights`.
+    pub fn with_scene<'b>(&self, scene: &'b Scene, lights: &'b Lights) -> Renderer<'b>
+    where
+        'a: 'b,
+    {
+        debug_assert_eq!(
+            scene.mesh.triangle_count(),
+            self.scene.mesh.triangle_count()
+        );
+        Renderer {
+            scene,
+            lights,
+            accel: self.accel.clone(),
+        }
+    }
+
     fn tracer<'s>(&'s self, settings: &'s RenderSettings) -> Tracer<'s> {
         Tracer {
             scene: self.scene,

@@ -341,6 +341,28 @@ impl Scene {
         })
     }
 
+    /// This scene with every material's albedo scaled per channel by a random factor in
+    /// [1 − `fraction`, 1 + `fraction`] (clamped to [0, 1]), deterministic in `seed`: the
+    /// imperfect albedo an estimate may have to live with.
+    pub fn with_albedo_error(&self, fraction: f32, seed: u64) -> Scene {
+        let mut s = self.clone();
+        for (i, m) in s.materials.iter_mut().enumerate() {
+            let mut rng = crate::render::sampling::Rng::new(crate::render::sampling::mix64(
+                seed ^ (i as u64).wrapping_mul(0x9E37_79B9),
+            ));
+            let k = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32())
+                .map(|u| 1.0 + fraction * (2.0 * u - 1.0));
+            m.albedo = match &m.albedo {
+                Albedo::Constant(c) => Albedo::Constant((*c * k).clamp(Vec3::ZERO, Vec3::ONE)),
+                Albedo::Texture { texture, factor } => Albedo::Texture {
+                    texture: texture.clone(),
+                    factor: (*factor * k).max(Vec3::ZERO),
+                },
+            };
+        }
+        s
+    }
+
     /// The centre of the geometry's bounding box (the "scene centre" of light directions).
     pub fn center(&self) -> Vec3 {
         let (lo, hi) = self.mesh.bounds();

@@ -1,0 +1,443 @@
+//! The experiment end to end: scenario generation, the sweep (resume, shards, a cut-short
+//! line, agreement with a stand-alone estimate, failures) and the report.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use lightprobe::experiment::scenarios;
+use lightprobe::experiment::sweep::{Status, read_records};
+use lightprobe::scene::Scene;
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+fn ok(o: &Output) -> String {
+    assert!(
+        o.status.success(),
+        "stdout: {}\nstderr: {}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// A small scenario of the bundled scene (32×24, 8 spp) lit by `lights` (RON list items).
+fn small_scenario(dir: &Path, name: &str, lights: &str) -> PathBuf {
+    let text = format!(
+        "Scene(\n    gltf: {:?},\n    image: (width: 32, height: 24),\n    lights: [{lights}],\n    render: (spp: 8, max_bounces: 2, seed: 3),\n)\n",
+        root().join("scenes/tabletop/tabletop.glb")
+    );
+    let p = dir.join(format!("{name}.ron"));
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+const KEY: &str = "Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))";
+const FILL: &str = "Sphere(center: (2.5, 1.8, -1.5), radius: 0.2, radiance: (150.0, 170.0, 200.0))";
+
+#[test]
+fn generated_scenarios_are_deterministic_and_the_committed_ones_are_current() {
+    let template = Path::new("scenes/tabletop/tabletop.ron");
+    let scene = Scene::load(&root().join(template)).unwrap();
+    let a = scenarios::generate(&scene, 55, 1).unwrap();
+    let b = scenarios::generate(&scene, 55, 1).unwrap();
+    assert_eq!(
+        serde_json::to_string(&a).unwrap(),
+        serde_json::to_string(&b).unwrap()
+    );
+    let c = scenarios::generate(&scene, 55, 2).unwrap();
+    assert_ne!(
+        serde_json::to_string(&a).unwrap(),
+        serde_json::to_string(&c).unwrap()
+    );
+    // The committed sidecars are what the generator writes (regenerate with
+    // `lightprobe scenarios --out scenes/tabletop/scenarios`).
+    // Integration tests run in the package root, like the command that wrote them.
+    let dir = Path::new("scenes/tabletop/scenarios");
+    for sc in &a {
+        let want = scenarios::sidecar_text(template, sc, dir).unwrap();
+        let have = std::fs::read_to_string(dir.join(format!("{}.ron", sc.name))).unwrap();
+        assert_eq!(have, want, "{} is stale", sc.name);
+        // And it loads, with the scenario's lights.
+        let s = Scene::load(&dir.join(format!("{}.ron", sc.name))).unwrap();
+        assert_eq!(s.lights.len(), sc.lights.len());
+        for (l, g) in s.lights.iter().zip(&sc.lights) {
+            assert_eq!(l.center.to_array(), g.center);
+            assert_eq!(l.radius, g.radius);
+        }
+    }
+}
+
+#[test]
+fn scenario_lights_follow_the_brief() {
+    let scene = Scene::load(&root().join("scenes/tabletop/tabletop.ron")).unwrap();
+    let list = scenarios::generate(&scene, 55, 1).unwrap();
+    let (lo, hi) = scene.mesh.bounds();
+    let size = (hi.x - lo.x).max(hi.z - lo.z);
+    let center = scene.center();
+    let two = list.iter().filter(|s| s.lights.len() == 2).count();
+    assert!((15..=40).contains(&two), "{two} two-light scenarios of 55");
+    let mut low = 0;
+    let mut grazing = 0;
+    let (mut near, mut far) = (0, 0);
+    for s in &list {
+        assert!((1..=2).contains(&s.lights.len()));
+        for l in &s.lights {
+            let d = glam::Vec3::from(l.center) - center;
+            assert!((d.length() - l.distance).abs() < 1e-3 * l.distance);
+            assert!(
+                l.distance >= 0.999 * size && l.distance <= 10.001 * size,
+                "{}: {}",
+                s.name,
+                l.distance
+            );
+            let el = (d.y / d.length()).asin().to_degrees();
+            assert!(el > 0.5 && el < 90.0, "{}: elevation {el}", s.name);
+            low += (el < 15.0) as u32;
+            grazing += (el < 5.0) as u32;
+            near += (l.distance < 2.0 * size) as u32;
+            far += (l.distance > 5.0 * size) as u32;
+            // Outside the geometry's bounding box.
+            let closest = glam::Vec3::from(l.center).clamp(lo, hi);
+            assert!(closest.distance(glam::Vec3::from(l.center)) > l.radius);
+            // Irradiance at the centre is what the record says: π L sin²α.
+            let lum = lightprobe::imageio::luminance(glam::Vec3::from(l.radiance));
+            let e = std::f32::consts::PI * lum * (l.radius / l.distance).powi(2);
+            assert!((e / l.irradiance - 1.0).abs() < 1e-3, "{}", s.name);
+        }
+        if let [a, b] = &s.lights[..] {
+            let r = a.irradiance / b.irradiance;
+            assert!((1.0..=10.0).contains(&r), "{}: ratio {r}", s.name);
+        }
+    }
+    assert!(low >= 5 && grazing >= 2, "low {low}, grazing {grazing}");
+    assert!(near >= 5 && far >= 5, "near {near}, far {far}");
+}
+
+fn sweep(files: &[&Path], out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec!["sweep", "--out", out.to_str().unwrap(), "--quiet"];
+    args.extend(files.iter().map(|f| f.to_str().unwrap()));
+    args.extend(extra);
+    run(&args)
+}
+
+#[test]
+fn tiny_sweep_resumes_shards_agrees_with_estimate_and_reports() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let b = small_scenario(tmp.path(), "b", &format!("{KEY}, {FILL}"));
+    let grid = ["--rings", "3,5", "--spp", "16"];
+
+    // The whole sweep.
+    let out = tmp.path().join("sweep");
+    let text = ok(&sweep(&[&a, &b], &out, &grid));
+    assert!(
+        text.contains("4 trials planned, 0 already done, 4 run (0 failed"),
+        "{text}"
+    );
+    let full = read_records(&out).unwrap();
+    assert_eq!(full.len(), 4);
+    for r in &full {
+        assert_eq!(r.status, Status::Ok, "{r:?}");
+        let e = r.rel_mae.unwrap();
+        assert!(e.is_finite() && e > 0.0 && e < 2.0, "{e}");
+        assert_eq!(r.views.len(), 2);
+        assert!(r.noise_floor_rel_mae.unwrap() > 0.0);
+        assert!(r.timings.fit_seconds > 0.0 && r.iterations > 0);
+    }
+    // The shared first round was computed once per (rings) block and reused by the other scenario.
+    assert_eq!(
+        full.iter().filter(|r| r.timings.first_round_shared).count(),
+        2
+    );
+
+    // Resuming finds everything done and changes nothing.
+    let before = std::fs::read(out.join("trials.jsonl")).unwrap();
+    let text = ok(&sweep(&[&a, &b], &out, &grid));
+    assert!(text.contains("4 already done, 0 run"), "{text}");
+    assert_eq!(std::fs::read(out.join("trials.jsonl")).unwrap(), before);
+
+    // A line cut short by a crash is ignored; new rings run after it, in a clean line.
+    let mut cut = before.clone();
+    cut.extend_from_slice(br#"{"id":"a/spp16/rings7/nnls","scen"#);
+    std::fs::write(out.join("trials.jsonl"), &cut).unwrap();
+    let text = ok(&sweep(
+        &[&a, &b],
+        &out,
+        &["--rings", "3,5,7", "--spp", "16"],
+    ));
+    assert!(
+        text.contains("6 trials planned, 4 already done, 2 run"),
+        "{text}"
+    );
+    assert_eq!(read_records(&out).unwrap().len(), 6);
+
+    // Two shards together give the same trials, bit for bit.
+    let sharded = tmp.path().join("sharded");
+    for s in ["0/2", "1/2"] {
+        ok(&sweep(
+            &[&a, &b],
+            &sharded,
+            &[&grid[..], &["--shard", s][..]].concat(),
+        ));
+    }
+    assert!(sharded.join("trials.shard-0-of-2.jsonl").exists());
+    let mut merged = read_records(&sharded).unwrap();
+    merged.sort_by(|x, y| x.id.cmp(&y.id));
+    let mut whole = full.clone();
+    whole.sort_by(|x, y| x.id.cmp(&y.id));
+    assert_eq!(merged.len(), 4);
+    for (m, w) in merged.iter().zip(&whole) {
+        assert_eq!(m.id, w.id);
+        assert_eq!(m.rel_mae, w.rel_mae, "{}", m.id);
+    }
+
+    // A trial is exactly what a stand-alone `estimate` reports.
+    let est = tmp.path().join("est");
+    let json = ok(&run(&[
+        "estimate",
+        b.to_str().unwrap(),
+        "--out",
+        est.to_str().unwrap(),
+        "--rings",
+        "5",
+        "--spp",
+        "16",
+        "--json",
+        "--quiet",
+    ]));
+    let rep: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let trial = whole
+        .iter()
+        .find(|r| r.id == "b/spp16/rings5/nnls")
+        .unwrap();
+    assert_eq!(rep["rel_mae"].as_f64(), trial.rel_mae);
+    assert_eq!(
+        rep["noise_floor_rel_mae"].as_f64(),
+        trial.noise_floor_rel_mae
+    );
+
+    // The report: three charts, markdown and JSON, from every trial.
+    let text = ok(&run(&["report", out.to_str().unwrap()]));
+    assert!(
+        text.contains("6 trials (0 failed) over 2 scenarios"),
+        "{text}"
+    );
+    for f in [
+        "error_vs_rings.png",
+        "speed_vs_accuracy.png",
+        "error_vs_distance.png",
+    ] {
+        let img = image::open(out.join(f)).unwrap();
+        assert_eq!((img.width(), img.height()), (900, 600), "{f}");
+        // Something was drawn: not a blank page.
+        let rgb = img.to_rgb8();
+        let ink = rgb.pixels().filter(|p| p.0 != [255, 255, 255]).count();
+        assert!(ink > 5000, "{f}: {ink} non-white pixels");
+    }
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("| nnls 16 spp | 7 | 2 |"), "{md}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["trials"], 6);
+    let cells = summary["cells"].as_array().unwrap();
+    assert_eq!(cells.len(), 3);
+    // The mean in the summary is the mean of the trials.
+    let r3: Vec<f64> = read_records(&out)
+        .unwrap()
+        .iter()
+        .filter(|r| r.rings == 3)
+        .map(|r| r.rel_mae.unwrap())
+        .collect();
+    let m = r3.iter().sum::<f64>() / r3.len() as f64;
+    assert!((cells[0]["rel_mae_mean"].as_f64().unwrap() - m).abs() < 1e-12);
+    assert!(cells.iter().any(|c| c["on_pareto_front"] == true));
+}
+
+#[test]
+fn sweep_and_report_refuse_bad_input_cleanly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let out = tmp.path().join("out");
+    for (args, needle) in [
+        (vec!["--shard", "2/2"], "--shard"),
+        (vec!["--shard", "x"], "--shard"),
+        (vec!["--rings", "0"], "--rings"),
+        (vec!["--spp", "0"], "--spp"),
+    ] {
+        let o = sweep(&[&a], &out, &args);
+        assert!(!o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(needle), "{args:?}: {err}");
+        assert!(!out.join("trials.jsonl").exists());
+    }
+    // Two scenarios with one name.
+    let sub = tmp.path().join("sub");
+    std::fs::create_dir_all(&sub).unwrap();
+    let a2 = small_scenario(&sub, "a", KEY);
+    let o = sweep(&[&a, &a2], &out, &[]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("also named \"a\""));
+    // A report of an empty folder.
+    std::fs::create_dir_all(&out).unwrap();
+    let o = run(&["report", out.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("holds no trials"));
+}
+
+#[test]
+fn an_unobservable_light_fails_cleanly_everywhere() {
+    let tmp = tempfile::tempdir().unwrap();
+    // Under the table: everything the views see stays black.
+    let below = small_scenario(
+        tmp.path(),
+        "below",
+        "Sphere(center: (0.0, -1.5, 0.0), radius: 0.25, radiance: (400.0, 360.0, 300.0))",
+    );
+    let est = tmp.path().join("est");
+    let o = run(&[
+        "estimate",
+        below.to_str().unwrap(),
+        "--out",
+        est.to_str().unwrap(),
+        "--rings",
+        "3",
+        "--spp",
+        "8",
+        "--quiet",
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("unobservable") && err.lines().count() == 1,
+        "{err}"
+    );
+    assert!(!est.join("envmap.ron").exists() && !est.join("report.json").exists());
+
+    // The sweep records the failure, goes on with the other scenario, and exits non-zero...
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let out = tmp.path().join("sweep");
+    let o = sweep(&[&a, &below], &out, &["--rings", "3", "--spp", "8"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("1 trials failed"));
+    let recs = read_records(&out).unwrap();
+    assert_eq!(recs.len(), 2);
+    let bad = recs.iter().find(|r| r.scenario == "below").unwrap();
+    assert_eq!(bad.status, Status::Failed);
+    assert!(bad.rel_mae.is_none() && bad.error.as_ref().unwrap().contains("unobservable"));
+    let good = recs.iter().find(|r| r.scenario == "a").unwrap();
+    assert_eq!(good.status, Status::Ok);
+    // ... unless asked to continue; no NaN or Inf in any output.
+    let o = sweep(
+        &[&a, &below],
+        &out,
+        &["--rings", "3", "--spp", "8", "--allow-failures"],
+    );
+    assert!(o.status.success());
+    ok(&run(&["report", out.to_str().unwrap()]));
+    for f in ["trials.jsonl", "summary.json", "report.md"] {
+        let t = std::fs::read_to_string(out.join(f)).unwrap().to_lowercase();
+        assert!(!t.contains("nan") && !t.contains("inf"), "{f}");
+    }
+}
+
+#[test]
+fn rings_auto_reports_its_choice_and_the_sweep_charts_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let est = tmp.path().join("est");
+    let json = ok(&run(&[
+        "estimate",
+        a.to_str().unwrap(),
+        "--out",
+        est.to_str().unwrap(),
+        "--rings",
+        "auto",
+        "--rings-candidates",
+        "3,5",
+        "--spp",
+        "16",
+        "--json",
+        "--quiet",
+    ]));
+    let rep: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let sel = &rep["rings_selection"];
+    let chosen = sel["rings"].as_u64().unwrap();
+    assert!(chosen == 3 || chosen == 5);
+    assert_eq!(rep["rings"].as_u64(), Some(chosen));
+    assert_eq!(sel["candidates"].as_array().unwrap().len(), 2);
+    assert!(chosen <= sel["best_rings"].as_u64().unwrap());
+
+    // In a sweep: an auto trial per scenario beside the fixed ones, and its chart.
+    let out = tmp.path().join("sweep");
+    ok(&sweep(
+        &[&a],
+        &out,
+        &["--rings", "3,5", "--spp", "16", "--auto"],
+    ));
+    let recs = read_records(&out).unwrap();
+    assert_eq!(recs.len(), 3);
+    let auto = recs.iter().find(|r| r.id == "a/spp16/auto/nnls").unwrap();
+    assert_eq!(auto.auto.as_ref().unwrap().rings, auto.rings);
+    // The auto trial at its chosen resolution is the fixed trial at that resolution.
+    let fixed = recs
+        .iter()
+        .find(|r| r.auto.is_none() && r.rings == auto.rings)
+        .unwrap();
+    assert_eq!(fixed.rel_mae, auto.rel_mae);
+    ok(&run(&["report", out.to_str().unwrap()]));
+    assert!(out.join("auto_vs_best.png").exists());
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("`--rings auto`"), "{md}");
+}
+
+#[test]
+fn albedo_error_perturbs_every_material_within_bounds_and_is_swept() {
+    let scene = Scene::load(&root().join("scenes/tabletop/tabletop.ron")).unwrap();
+    let p = scene.with_albedo_error(0.1, 7);
+    assert_eq!(
+        format!("{:?}", p.materials),
+        format!("{:?}", scene.with_albedo_error(0.1, 7).materials)
+    );
+    let uv = glam::Vec2::new(0.3, 0.6);
+    let mut changed = 0;
+    for (m, q) in scene.materials.iter().zip(&p.materials) {
+        let (x, y) = (m.albedo_at(uv), q.albedo_at(uv));
+        for c in 0..3 {
+            if x[c] > 0.0 && x[c] < 0.9 {
+                let r = y[c] / x[c];
+                assert!((0.9..=1.1).contains(&r), "{}: {r}", m.name);
+                changed += (r != 1.0) as u32;
+            }
+        }
+    }
+    assert!(changed >= 3);
+
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let out = tmp.path().join("sweep");
+    ok(&sweep(
+        &[&a],
+        &out,
+        &["--rings", "3", "--spp", "16", "--albedo-error", "0,0.2"],
+    ));
+    let recs = read_records(&out).unwrap();
+    assert_eq!(recs.len(), 2);
+    let exact = recs.iter().find(|r| r.albedo_error == 0.0).unwrap();
+    let off = recs
+        .iter()
+        .find(|r| r.id == "a/spp16/rings3/nnls/albedo20")
+        .unwrap();
+    assert!((off.albedo_error - 0.2).abs() < 1e-6);
+    // Fitting with wrong albedos costs accuracy in the true scene.
+    assert!(off.rel_mae.unwrap() > exact.rel_mae.unwrap(), "{off:?}");
+    let o = sweep(&[&a], &out, &["--albedo-error", "1.5"]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--albedo-error"));
+}
