@@ -248,6 +248,10 @@ struct EstimateArgs {
     /// Time budget per channel solve, seconds.
     #[arg(long, default_value_t = 60.0)]
     time_limit: f64,
+    /// Exit 0 even when the solver stops at its iteration or time limit (the outputs are
+    /// written either way; report.json says "status": "not-converged").
+    #[arg(long)]
+    allow_nonconvergence: bool,
     /// Print report.json to stdout instead of a summary.
     #[arg(long)]
     json: bool,
@@ -903,10 +907,11 @@ fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         summary.wall_seconds,
         summary.trials_file.display()
     );
-    if summary.failed > 0 && !a.allow_failures {
+    if summary.failed + summary.not_converged > 0 && !a.allow_failures {
         bail!(
-            "{} trials failed (see \"error\" in {}); pass --allow-failures to exit 0 anyway",
+            "{} trials failed and {} did not converge (see \"status\" and \"error\" in {}); pass --allow-failures to exit 0 anyway",
             summary.failed,
+            summary.not_converged,
             summary.trials_file.display()
         );
     }
@@ -1092,6 +1097,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
             );
         }
     }
+    let converged = fit.channels.iter().all(|c| c.converged);
     fit.envmap.save(&a.out.join("envmap.ron"))?;
     let attributes = exr::meta::header::LayerAttributes {
         environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
@@ -1172,11 +1178,23 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         },
         "memory": { "transport_bytes": fit.transport_bytes, "peak_bytes": lightprobe::memory::peak_bytes() },
         "threads": rayon::current_num_threads(),
+        "status": if converged { "ok" } else { "not-converged" },
     });
     let text = serde_json::to_string_pretty(&report)? + "\n";
     imageio::write_bytes(&a.out.join("report.json"), text.as_bytes())?;
+    // Outputs are complete and valid either way; the exit code tells scripts the fit stopped
+    // at its limits.
+    let not_converged = || {
+        anyhow::anyhow!(
+            "the {:?} solver did not converge (report.json \"status\": \"not-converged\"); pass --allow-nonconvergence to exit 0 anyway",
+            solver
+        )
+    };
     if a.json {
         print!("{text}");
+        if !converged && !a.allow_nonconvergence {
+            return Err(not_converged());
+        }
         return Ok(());
     }
     println!(
@@ -1230,5 +1248,8 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         lightprobe::memory::peak_bytes() as f64 / (1u64 << 20) as f64,
         a.out.join("report.json").display()
     );
+    if !converged && !a.allow_nonconvergence {
+        return Err(not_converged());
+    }
     Ok(())
 }

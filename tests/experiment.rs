@@ -326,7 +326,7 @@ fn an_unobservable_light_fails_cleanly_everywhere() {
     let out = tmp.path().join("sweep");
     let o = sweep(&[&a, &below], &out, &["--rings", "3", "--spp", "8"]);
     assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("1 trials failed"));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("1 trials failed and 0 did not converge"));
     let recs = read_records(&out).unwrap();
     assert_eq!(recs.len(), 2);
     let bad = recs.iter().find(|r| r.scenario == "below").unwrap();
@@ -440,4 +440,47 @@ fn albedo_error_perturbs_every_material_within_bounds_and_is_swept() {
     assert!(off.rel_mae.unwrap() > exact.rel_mae.unwrap(), "{off:?}");
     let o = sweep(&[&a], &out, &["--albedo-error", "1.5"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("--albedo-error"));
+}
+
+#[test]
+fn a_solver_stopped_by_its_limits_says_so_and_exits_non_zero() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let est = tmp.path().join("est");
+    let args = |extra: &'static [&'static str]| {
+        let mut v = vec![
+            "estimate".to_string(),
+            a.to_str().unwrap().to_string(),
+            "--out".into(),
+            est.to_str().unwrap().to_string(),
+            "--rings".into(),
+            "9".into(),
+            "--spp".into(),
+            "16".into(),
+            "--solver".into(),
+            "gradient".into(),
+            "--time-limit".into(),
+            "0.000001".into(),
+            "--quiet".into(),
+        ];
+        v.extend(extra.iter().map(|s| s.to_string()));
+        v
+    };
+    let o = Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+        .args(args(&[]))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("did not converge"), "{err}");
+    // The outputs are complete and say so.
+    let rep: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(est.join("report.json")).unwrap()).unwrap();
+    assert_eq!(rep["status"], "not-converged");
+    assert!(rep["rel_mae"].as_f64().unwrap().is_finite());
+    let o = Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+        .args(args(&["--allow-nonconvergence"]))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
