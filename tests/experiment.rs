@@ -198,7 +198,30 @@ fn tiny_sweep_resumes_shards_agrees_with_estimate_and_reports() {
     for (m, w) in merged.iter().zip(&whole) {
         assert_eq!(m.id, w.id);
         assert_eq!(m.rel_mae, w.rel_mae, "{}", m.id);
+        assert_eq!(m.iterations, w.iterations, "{}", m.id);
+        assert_eq!(
+            serde_json::to_string(&m.views).unwrap(),
+            serde_json::to_string(&w.views).unwrap()
+        );
+        assert_eq!(m.fingerprint, w.fingerprint);
     }
+
+    // Resuming into the folder with other settings is refused, not mixed in.
+    let o = sweep(
+        &[&a, &b],
+        &out,
+        &[&grid[..], &["--ridge", "0.5"][..]].concat(),
+    );
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("other settings"));
+    // A damaged line that is not the last is an error naming the file and line.
+    let mut damaged = std::fs::read(sharded.join("trials.shard-0-of-2.jsonl")).unwrap();
+    damaged.splice(0..0, b"not json\n".iter().copied());
+    std::fs::write(sharded.join("trials.shard-0-of-2.jsonl"), damaged).unwrap();
+    let o = run(&["report", sharded.to_str().unwrap()]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("trials.shard-0-of-2.jsonl:1:1"), "{err}");
 
     // A trial is exactly what a stand-alone `estimate` reports.
     let est = tmp.path().join("est");
@@ -342,6 +365,8 @@ fn an_unobservable_light_fails_cleanly_everywhere() {
     );
     assert!(o.status.success());
     ok(&run(&["report", out.to_str().unwrap()]));
+    let lines = std::fs::read_to_string(out.join("trials.jsonl")).unwrap();
+    assert_eq!(lines.lines().count(), read_records(&out).unwrap().len());
     for f in ["trials.jsonl", "summary.json", "report.md"] {
         let t = std::fs::read_to_string(out.join(f)).unwrap().to_lowercase();
         assert!(!t.contains("nan") && !t.contains("inf"), "{f}");
@@ -374,6 +399,7 @@ fn rings_auto_reports_its_choice_and_the_sweep_charts_it() {
     assert_eq!(rep["rings"].as_u64(), Some(chosen));
     assert_eq!(sel["candidates"].as_array().unwrap().len(), 2);
     assert!(chosen <= sel["best_rings"].as_u64().unwrap());
+    let estimate_candidates = sel["candidates"].clone();
 
     // In a sweep: an auto trial per scenario beside the fixed ones, and its chart.
     let out = tmp.path().join("sweep");
@@ -386,6 +412,17 @@ fn rings_auto_reports_its_choice_and_the_sweep_charts_it() {
     assert_eq!(recs.len(), 3);
     let auto = recs.iter().find(|r| r.id == "a/spp16/auto/nnls").unwrap();
     assert_eq!(auto.auto.as_ref().unwrap().rings, auto.rings);
+    // The same choice from the same held-out errors as the stand-alone estimate.
+    assert_eq!(auto.rings as u64, chosen);
+    let errs = |c: &serde_json::Value| -> Vec<f64> {
+        c.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x["validation_rel_mae"].as_f64().unwrap())
+            .collect()
+    };
+    let sweep_candidates = serde_json::to_value(&auto.auto.as_ref().unwrap().candidates).unwrap();
+    assert_eq!(errs(&sweep_candidates), errs(&estimate_candidates));
     // The auto trial at its chosen resolution is the fixed trial at that resolution.
     let fixed = recs
         .iter()

@@ -135,6 +135,8 @@ pub struct Fit {
     pub transport_bytes: usize,
     /// With `holdout`: the error on the held-out pixels.
     pub validation: Option<Validation>,
+    /// The solver produced values that are not finite (replaced by 0): the fit failed.
+    pub non_finite: bool,
 }
 
 /// Pairs of neighbouring cells: adjacent in a ring, or overlapping in azimuth across rings.
@@ -339,6 +341,7 @@ pub fn fit_reusing(
     // NNLS averages the rounds' transports (each an unbiased estimate of the same T).
     let mut t_avg: Option<Transport> = None;
     let mut validation = None;
+    let mut non_finite = false;
     for round in 0..rounds {
         let t0 = Instant::now();
         let mut st = settings.transport;
@@ -389,14 +392,19 @@ pub fn fit_reusing(
         if settings.solver == Solver::Nnls {
             t_avg = Some(tr);
         }
+        // A value that is not a finite f32 ≥ 0 (a solver blown up, or beyond f32's range)
+        // becomes 0 and marks the fit, which callers report as a failure.
+        let mut cell = |v: f64| {
+            let v = v as f32;
+            if v.is_finite() && v >= 0.0 {
+                v
+            } else {
+                non_finite = true;
+                0.0
+            }
+        };
         let radiance: Vec<Vec3> = (0..n)
-            .map(|c| {
-                Vec3::new(
-                    lambda[0][c] as f32,
-                    lambda[1][c] as f32,
-                    lambda[2][c] as f32,
-                )
-            })
+            .map(|c| Vec3::new(cell(lambda[0][c]), cell(lambda[1][c]), cell(lambda[2][c])))
             .collect();
         sampling = if last {
             Envmap::new(rings, radiance).expect("solver output is finite and non-negative")
@@ -417,6 +425,7 @@ pub fn fit_reusing(
         solve_seconds,
         transport_bytes,
         validation,
+        non_finite,
     }
 }
 

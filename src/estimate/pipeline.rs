@@ -238,7 +238,7 @@ pub fn run_with(
         first,
         progress,
     );
-    if fit.envmap.radiance().iter().any(|c| !c.is_finite()) {
+    if fit.non_finite {
         return Err(Error::Invalid(format!(
             "the {:?} solver produced a non-finite envmap",
             options.fit.solver

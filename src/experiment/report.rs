@@ -212,6 +212,15 @@ pub fn report(dir: &Path) -> Result<Summary> {
         .iter()
         .filter(|r| r.status == Status::Failed)
         .count();
+    if ok.is_empty() {
+        return Err(Error::file(
+            dir,
+            format!(
+                "all {} trials failed: nothing to chart (see \"error\" in trials*.jsonl)",
+                records.len()
+            ),
+        ));
+    }
     let not_converged = records
         .iter()
         .filter(|r| r.status == Status::NotConverged)
@@ -242,18 +251,24 @@ pub fn report(dir: &Path) -> Result<Summary> {
             }
         })
         .collect();
-    // Pareto front: no other setting is both faster and more accurate.
-    let snapshot: Vec<(f64, f64)> = cells
+    // Pareto front: no other setting (fitting with the same albedo error) is both faster and
+    // at least as accurate.
+    let snapshot: Vec<(f64, f64, u32)> = cells
         .iter()
-        .map(|c| (c.fit_seconds_mean, c.rel_mae_mean))
+        .map(|c| {
+            (
+                c.fit_seconds_mean,
+                c.rel_mae_mean,
+                c.series.albedo_error_percent,
+            )
+        })
         .collect();
     for (i, c) in cells.iter_mut().enumerate() {
-        c.on_pareto_front = !snapshot.iter().enumerate().any(|(j, &(t, e))| {
-            j != i
-                && t <= snapshot[i].0
-                && e <= snapshot[i].1
-                && (t < snapshot[i].0 || e < snapshot[i].1)
-        });
+        let (ti, ei, ai) = snapshot[i];
+        c.on_pareto_front = !snapshot
+            .iter()
+            .enumerate()
+            .any(|(j, &(t, e, a))| j != i && a == ai && t <= ti && e <= ei && (t < ti || e < ei));
     }
     let series: Vec<SeriesKey> = {
         let mut v: Vec<SeriesKey> = cells.iter().map(|c| c.series).collect();

@@ -103,11 +103,17 @@ pub enum Status {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ViewFigures {
     pub view: String,
-    pub rel_mae: f64,
-    pub rel_mse: f64,
-    pub rmse: f64,
-    pub psnr: f64,
-    pub noise_floor_rel_mae: f64,
+    /// None where the figure is not finite (e.g. a view whose reference is black).
+    pub rel_mae: Option<f64>,
+    pub rel_mse: Option<f64>,
+    pub rmse: Option<f64>,
+    pub psnr: Option<f64>,
+    pub noise_floor_rel_mae: Option<f64>,
+}
+
+/// A figure for JSON: None unless finite (JSON has no NaN or Inf).
+fn fin(x: f64) -> Option<f64> {
+    x.is_finite().then_some(x)
 }
 
 /// A true light as seen from the scene centre.
@@ -173,6 +179,9 @@ pub struct TrialRecord {
     /// The albedo error the fit lived with (0 = true albedos).
     #[serde(default)]
     pub albedo_error: f32,
+    /// The scenario and settings the trial ran with; resuming refuses a mismatch.
+    #[serde(default)]
+    pub fingerprint: String,
     /// The `--rings auto` trial: how the resolution was chosen.
     #[serde(default)]
     pub auto: Option<Selection>,
@@ -217,13 +226,29 @@ pub fn read_records(dir: &Path) -> Result<Vec<TrialRecord>> {
     let mut by_id: HashMap<String, usize> = HashMap::new();
     let mut out: Vec<TrialRecord> = Vec::new();
     for f in files {
-        let text = std::fs::read_to_string(&f).map_err(|e| Error::io(&f, e))?;
-        for line in text.lines().filter(|l| !l.trim().is_empty()) {
-            let Ok(r) = serde_json::from_str::<TrialRecord>(line) else {
+        let bytes = std::fs::read(&f).map_err(|e| Error::io(&f, e))?;
+        let lines: Vec<&[u8]> = bytes.split(|&c| c == b'\n').collect();
+        for (i, line) in lines.iter().enumerate() {
+            if line.iter().all(u8::is_ascii_whitespace) {
                 continue;
+            }
+            let parsed = std::str::from_utf8(line)
+                .ok()
+                .and_then(|l| serde_json::from_str::<TrialRecord>(l).ok());
+            let Some(r) = parsed else {
+                // Only the last line can be cut short by a crash (see `open_append`).
+                if i + 1 == lines.len() {
+                    continue;
+                }
+                return Err(Error::file_at(
+                    &f,
+                    i + 1,
+                    1,
+                    "is not a trial record (a JSON line written by `lightprobe sweep`)",
+                ));
             };
             match by_id.get(&r.id) {
-                Some(&i) => out[i] = r,
+                Some(&k) => out[k] = r,
                 None => {
                     by_id.insert(r.id.clone(), out.len());
                     out.push(r);
@@ -241,6 +266,8 @@ struct ScenarioFile {
     lights: Vec<SphereLight>,
     /// Index of its scene group (same sidecar apart from the lights).
     group: usize,
+    /// [`scenario_fingerprint`]: what its references depend on.
+    fingerprint: String,
 }
 
 /// The sidecar with its lights removed and its paths made absolute: equal keys, equal scenes.
@@ -285,7 +312,9 @@ pub struct Summary {
     pub planned: usize,
     pub skipped: usize,
     pub ran: usize,
+    /// Failed trials of the plan, this run's and those found recorded.
     pub failed: usize,
+    /// Trials of the plan whose solver stopped at its limits, this run's and recorded ones.
     pub not_converged: usize,
     pub wall_seconds: f64,
     pub trials_file: PathBuf,
@@ -332,10 +361,12 @@ pub fn run(
                 keys.len() - 1
             }
         };
+        let lights = sc.sphere_lights();
         scenarios.push(ScenarioFile {
             name,
             path: f.clone(),
-            lights: sc.sphere_lights(),
+            fingerprint: scenario_fingerprint(&keys[group], &lights),
+            lights,
             group,
         });
     }
@@ -365,14 +396,28 @@ pub fn run(
     let albedo_errors = if settings.albedo_errors.is_empty() {
         vec![0.0]
     } else {
-        settings.albedo_errors.clone()
+        dedup(&settings.albedo_errors)
     };
-    for &spp in &settings.spp {
+    if let Some(e) = albedo_errors.iter().find(|e| {
+        !(e.is_finite()
+            && (0.0..1.0).contains(*e)
+            && (**e * 100.0 - (**e * 100.0).round()).abs() < 1e-3)
+    }) {
+        return Err(Error::Invalid(format!(
+            "--albedo-error: {e} is not a whole percentage in [0, 1) (e.g. 0.05)"
+        )));
+    }
+    let (rings_list, spp_list, solvers) = (
+        dedup(&settings.rings),
+        dedup(&settings.spp),
+        dedup(&settings.solvers),
+    );
+    for &spp in &spp_list {
         for a in 0..albedo_errors.len() {
-            let rings_list = settings.rings.iter().map(|&r| Some(r));
+            let fixed = rings_list.iter().map(|&r| Some(r));
             let auto = settings.auto.then_some(None);
-            for rings in rings_list.chain(auto) {
-                for &solver in &settings.solvers {
+            for rings in fixed.chain(auto) {
+                for &solver in &solvers {
                     for &s in &mine {
                         plan.push((s, spp, rings, solver, a));
                     }
@@ -381,28 +426,52 @@ pub fn run(
         }
     }
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    let done: HashSet<String> = read_records(out)?.into_iter().map(|r| r.id).collect();
-    let todo: Vec<_> = plan
-        .iter()
-        .copied()
-        .filter(|&(s, spp, rings, solver, a)| {
-            !done.contains(&trial_id(
-                &scenarios[s].name,
-                spp,
-                rings,
-                solver,
-                albedo_errors[a],
-            ))
-        })
+    let done: HashMap<String, TrialRecord> = read_records(out)?
+        .into_iter()
+        .map(|r| (r.id.clone(), r))
         .collect();
+    let fingerprint = |s: usize, solver: Solver| {
+        format!(
+            "{} smooth={} ridge={} time_limit={}s rounds={}",
+            scenarios[s].fingerprint,
+            settings.smooth,
+            settings.ridge,
+            settings.time_limit.as_secs_f64(),
+            solver.default_rounds()
+        )
+    };
+    let mut todo = Vec::new();
+    let (mut failed_before, mut not_converged_before) = (0, 0);
+    for &(s, spp, rings, solver, a) in &plan {
+        let id = trial_id(&scenarios[s].name, spp, rings, solver, albedo_errors[a]);
+        match done.get(&id) {
+            None => todo.push((s, spp, rings, solver, a)),
+            // Records from before fingerprints ("") are taken as they are.
+            Some(r) if !r.fingerprint.is_empty() && r.fingerprint != fingerprint(s, solver) => {
+                return Err(Error::file(
+                    out,
+                    format!(
+                        "holds trial {id} run with other settings or another scenario file \
+                         ({} ≠ {}); use another --out folder, or remove its lines to rerun it",
+                        r.fingerprint,
+                        fingerprint(s, solver)
+                    ),
+                ));
+            }
+            Some(r) => {
+                failed_before += (r.status == Status::Failed) as usize;
+                not_converged_before += (r.status == Status::NotConverged) as usize;
+            }
+        }
+    }
     let skipped = plan.len() - todo.len();
     let trials_file = out.join(settings.shard.file_name());
     let mut summary = Summary {
         planned: plan.len(),
         skipped,
         ran: 0,
-        failed: 0,
-        not_converged: 0,
+        failed: failed_before,
+        not_converged: not_converged_before,
         wall_seconds: 0.0,
         trials_file: trials_file.clone(),
     };
@@ -487,6 +556,7 @@ pub fn run(
                     &views,
                     &render,
                     &out.join("references").join(&sf.name),
+                    &sf.fingerprint,
                 )?);
                 observed.insert(s, o.clone());
                 o
@@ -544,7 +614,7 @@ pub fn run(
                     &views,
                     &obs.references,
                     &obs.masks,
-                    &settings.rings,
+                    &rings_list,
                     &template,
                     &mut |fit| {
                         let (t, secs, cached) = first_of(fit);
@@ -613,7 +683,11 @@ pub fn run(
                     LightFigures {
                         distance: d.length(),
                         distance_over_size: d.length() / size,
-                        elevation_degrees: (d.y / d.length()).clamp(-1.0, 1.0).asin().to_degrees(),
+                        elevation_degrees: if d.length() > 0.0 {
+                            (d.y / d.length()).clamp(-1.0, 1.0).asin().to_degrees()
+                        } else {
+                            0.0
+                        },
                         angle_error_degrees: None,
                         power_ratio: None,
                     }
@@ -632,6 +706,7 @@ pub fn run(
             },
             auto: selection,
             albedo_error: albedo_errors[a],
+            fingerprint: fingerprint(s, solver),
             transport_bytes: 0,
             peak_bytes: 0,
             threads: rayon::current_num_threads(),
@@ -651,11 +726,11 @@ pub fn run(
                     .zip(&obs.noise_floor)
                     .map(|((cam, e), nf)| ViewFigures {
                         view: cam.name.clone(),
-                        rel_mae: e.rel_mae,
-                        rel_mse: e.rel_mse,
-                        rmse: e.rmse,
-                        psnr: e.psnr,
-                        noise_floor_rel_mae: *nf,
+                        rel_mae: fin(e.rel_mae),
+                        rel_mse: fin(e.rel_mse),
+                        rmse: fin(e.rmse),
+                        psnr: fin(e.psnr),
+                        noise_floor_rel_mae: fin(*nf),
                     })
                     .collect();
                 // Recovery lists lights by decreasing power; match them back by direction.
@@ -680,6 +755,9 @@ pub fn run(
                     summary.not_converged += 1;
                 }
                 if record.rel_mae.is_some_and(|e| !e.is_finite()) {
+                    if record.status == Status::NotConverged {
+                        summary.not_converged -= 1;
+                    }
                     record.status = Status::Failed;
                     record.error = Some("the estimate's error is not finite".into());
                     record.rel_mae = None;
@@ -727,31 +805,60 @@ pub fn run(
     Ok(summary)
 }
 
-fn pipeline_mean(v: &[f64]) -> Option<f64> {
-    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+/// `v` without repeats, in first-seen order (a value given twice runs once).
+fn dedup<T: PartialEq + Copy>(v: &[T]) -> Vec<T> {
+    let mut out: Vec<T> = Vec::new();
+    for &x in v {
+        if !out.contains(&x) {
+            out.push(x);
+        }
+    }
+    out
 }
 
-/// Opens a JSON-lines file for appending, ending a line cut short by a crash first.
+/// Mean over views; None when empty or any value is not finite.
+fn pipeline_mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty() && v.iter().all(|x| x.is_finite()))
+        .then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+/// Opens a JSON-lines file for appending. A last line cut short by a crash is cut off first,
+/// so only ever the last line of a file can be incomplete.
 fn open_append(path: &Path) -> Result<std::fs::File> {
-    let ends_cleanly = match std::fs::read(path) {
-        Ok(b) => b.is_empty() || b.ends_with(b"\n"),
-        Err(_) => true,
+    let keep = match std::fs::read(path) {
+        Ok(b) if !b.is_empty() && !b.ends_with(b"\n") => {
+            Some(b.iter().rposition(|&c| c == b'\n').map_or(0, |i| i + 1))
+        }
+        _ => None,
     };
-    let mut f = std::fs::OpenOptions::new()
+    let f = std::fs::OpenOptions::new()
         .create(true)
         .append(true)
         .open(path)
         .map_err(|e| Error::io(path, e))?;
-    if !ends_cleanly {
-        f.write_all(b"\n").map_err(|e| Error::io(path, e))?;
+    if let Some(len) = keep {
+        f.set_len(len as u64).map_err(|e| Error::io(path, e))?;
     }
     Ok(f)
+}
+
+/// What a scenario's references depend on: the scene (sidecar minus lights) and the lights.
+fn scenario_fingerprint(key: &str, lights: &[SphereLight]) -> String {
+    let text = format!("{key}|{lights:?}");
+    let h = text
+        .bytes()
+        .fold(0x5CE9_A410u64, |h, b| mix64(h ^ b as u64));
+    format!("{h:016x}")
 }
 
 #[derive(Serialize, Deserialize)]
 struct NoiseFile {
     views: Vec<String>,
-    noise_floor_rel_mae: Vec<f64>,
+    /// None where not finite (a view whose reference is black).
+    noise_floor_rel_mae: Vec<Option<f64>>,
+    /// The scenario this was rendered for ([`scenario_fingerprint`]).
+    #[serde(default)]
+    scenario: String,
 }
 
 /// A scenario's references and noise floor, from `dir` when a previous run left them there.
@@ -760,18 +867,23 @@ fn observe(
     views: &[&Camera],
     render: &RenderSettings,
     dir: &Path,
+    fingerprint: &str,
 ) -> Result<Observed> {
     let names: Vec<String> = views.iter().map(|c| c.name.clone()).collect();
     let noise_path = dir.join("noise.json");
+    // Reused only for the same views and scenario (files from before fingerprints: "").
     let cached = std::fs::read_to_string(&noise_path)
         .ok()
         .and_then(|t| serde_json::from_str::<NoiseFile>(&t).ok())
-        .filter(|n| n.views == names);
+        .filter(|n| n.views == names && (n.scenario.is_empty() || n.scenario == fingerprint));
     let (w, h) = (views[0].width, views[0].height);
     let (references, noise_floor) = match cached {
         Some(n) => (
             pipeline::load_references(dir, views, w, h)?,
-            n.noise_floor_rel_mae,
+            n.noise_floor_rel_mae
+                .iter()
+                .map(|x| x.unwrap_or(f64::INFINITY))
+                .collect(),
         ),
         None => {
             let refs = pipeline::render_views(renderer, views, render, &|_| {});
@@ -783,12 +895,13 @@ fn observe(
             }
             let n = NoiseFile {
                 views: names,
-                noise_floor_rel_mae: nf.iter().map(|m| m.rel_mae).collect(),
+                noise_floor_rel_mae: nf.iter().map(|m| fin(m.rel_mae)).collect(),
+                scenario: fingerprint.to_string(),
             };
             let text =
                 serde_json::to_string_pretty(&n).map_err(|e| Error::Invalid(e.to_string()))?;
             imageio::write_bytes(&noise_path, text.as_bytes())?;
-            (refs, n.noise_floor_rel_mae)
+            (refs, nf.iter().map(|m| m.rel_mae).collect())
         }
     };
     let masks = pipeline::geometry_masks(renderer, views, &references);
