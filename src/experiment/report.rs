@@ -417,7 +417,7 @@ pub fn report(dir: &Path) -> Result<Summary> {
             .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
         }
         ch.configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
+            .position(SeriesLabelPosition::LowerLeft)
             .label_font(("sans-serif", 15))
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK)
