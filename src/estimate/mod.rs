@@ -13,6 +13,7 @@ pub mod nnls;
 pub mod pipeline;
 pub mod recovery;
 pub mod select;
+pub mod spheres;
 pub mod transport;
 
 use std::time::{Duration, Instant};
