@@ -138,3 +138,187 @@ pub fn solve_radiance(tr: &SphereTransport, references: &[Image]) -> (Vec<Vec3>,
     }
     (radiance, abs / ref_abs.max(f64::MIN_POSITIVE))
 }
+
+/// Settings of [`refine`].
+#[derive(Debug, Clone, Copy)]
+pub struct RefineSettings {
+    /// Samples and seed of every transport render (one seed: common random numbers).
+    pub transport: RenderSettings,
+    pub max_iterations: usize,
+}
+
+/// Refined geometry and radiances.
+#[derive(Debug, Clone)]
+pub struct Refined {
+    pub lights: Vec<SphereLight>,
+    /// relMAE of the fit over the masked pixels (against the transport's own prediction).
+    pub rel_mae: f64,
+    pub iterations: usize,
+    /// Transport renders made.
+    pub evaluations: usize,
+    /// Sum of squared residuals after each accepted step.
+    pub history: Vec<f64>,
+}
+
+/// Parameters of one light: centre x, y, z (metres) and ln(radius).
+fn params(lights: &[SphereLight]) -> Vec<f64> {
+    lights
+        .iter()
+        .flat_map(|l| {
+            [
+                l.center.x as f64,
+                l.center.y as f64,
+                l.center.z as f64,
+                (l.radius as f64).ln(),
+            ]
+        })
+        .collect()
+}
+
+fn lights_of(p: &[f64]) -> Vec<SphereLight> {
+    p.chunks_exact(4)
+        .map(|q| SphereLight {
+            center: Vec3::new(q[0] as f32, q[1] as f32, q[2] as f32),
+            radius: (q[3].exp() as f32).max(1e-3),
+            radiance: Vec3::ONE,
+        })
+        .collect()
+}
+
+/// Residuals `T L − I` (all rows, channels) with L solved exactly, and the radiances.
+fn residuals(tr: &SphereTransport, references: &[Image]) -> (Vec<f64>, Vec<Vec3>, f64) {
+    let (radiance, rel) = solve_radiance(tr, references);
+    let k = tr.lights;
+    let mut r = Vec::with_capacity(3 * tr.rows);
+    for ch in 0..3 {
+        for (row, &(v, i)) in tr.t[ch].chunks_exact(k).zip(&tr.pixel_of_row) {
+            let pred: f64 = row
+                .iter()
+                .zip(&radiance)
+                .map(|(&t, l)| t as f64 * l[ch] as f64)
+                .sum();
+            r.push(pred - references[v].rgb[i as usize][ch] as f64);
+        }
+    }
+    (r, radiance, rel)
+}
+
+/// Solves the small dense system `a x = b` (Gaussian elimination with partial pivoting);
+/// None when singular.
+fn solve_dense(mut a: Vec<f64>, mut b: Vec<f64>) -> Option<Vec<f64>> {
+    let n = b.len();
+    for c in 0..n {
+        let p = (c..n).max_by(|&i, &j| a[i * n + c].abs().total_cmp(&a[j * n + c].abs()))?;
+        if a[p * n + c].abs() < 1e-300 {
+            return None;
+        }
+        for k in 0..n {
+            a.swap(c * n + k, p * n + k);
+        }
+        b.swap(c, p);
+        for r in c + 1..n {
+            let f = a[r * n + c] / a[c * n + c];
+            for k in c..n {
+                a[r * n + k] -= f * a[c * n + k];
+            }
+            b[r] -= f * b[c];
+        }
+    }
+    let mut x = vec![0.0; n];
+    for c in (0..n).rev() {
+        let s: f64 = (c + 1..n).map(|k| a[c * n + k] * x[k]).sum();
+        x[c] = (b[c] - s) / a[c * n + c];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Refines the lights' centres and radii from `start` by Levenberg–Marquardt on the
+/// variable-projection residual (radiances re-solved exactly at every evaluation), with
+/// forward-difference derivatives over renders that share their random numbers.
+pub fn refine(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    masks: &[Vec<bool>],
+    references: &[Image],
+    start: &[SphereLight],
+    settings: &RefineSettings,
+) -> Refined {
+    let mut evaluations = 0;
+    let mut eval = |p: &[f64]| {
+        evaluations += 1;
+        let tr = sphere_transport(
+            renderer,
+            cameras,
+            masks,
+            &lights_of(p),
+            &settings.transport,
+            &|_| {},
+        );
+        residuals(&tr, references)
+    };
+    let mut p = params(start);
+    let (mut r, mut radiance, mut rel) = eval(&p);
+    let sse = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+    let mut f = sse(&r);
+    let mut history = vec![f];
+    let mut mu = 1e-3;
+    let mut iterations = 0;
+    let n = p.len();
+    while iterations < settings.max_iterations {
+        iterations += 1;
+        // Forward differences: 1 cm in position, 2% in radius.
+        let mut jac: Vec<Vec<f64>> = Vec::with_capacity(n);
+        for j in 0..n {
+            let h = if j % 4 == 3 { 0.02 } else { 0.01 };
+            let mut q = p.clone();
+            q[j] += h;
+            let (rj, _, _) = eval(&q);
+            jac.push(rj.iter().zip(&r).map(|(a, b)| (a - b) / h).collect());
+        }
+        let mut a = vec![0.0; n * n];
+        let mut g = vec![0.0; n];
+        for i in 0..n {
+            g[i] = jac[i].iter().zip(&r).map(|(x, y)| x * y).sum();
+            for j in 0..n {
+                a[i * n + j] = jac[i].iter().zip(&jac[j]).map(|(x, y)| x * y).sum();
+            }
+        }
+        let mut improved = false;
+        for _ in 0..8 {
+            let mut damped = a.clone();
+            for i in 0..n {
+                damped[i * n + i] += mu * a[i * n + i].max(1e-12);
+            }
+            let Some(step) = solve_dense(damped, g.iter().map(|v| -v).collect()) else {
+                mu *= 10.0;
+                continue;
+            };
+            let q: Vec<f64> = p.iter().zip(&step).map(|(a, b)| a + b).collect();
+            let (rq, lq, relq) = eval(&q);
+            let fq = sse(&rq);
+            if fq < f {
+                improved = (f - fq) > 1e-4 * f;
+                (p, r, radiance, rel, f) = (q, rq, lq, relq, fq);
+                history.push(f);
+                mu = (mu / 3.0).max(1e-9);
+                break;
+            }
+            mu *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    let lights = lights_of(&p)
+        .into_iter()
+        .zip(&radiance)
+        .map(|(l, &radiance)| SphereLight { radiance, ..l })
+        .collect();
+    Refined {
+        lights,
+        rel_mae: rel,
+        iterations,
+        evaluations,
+        history,
+    }
+}
