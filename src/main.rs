@@ -62,6 +62,26 @@ cli_enum!(FilterArg => Filter {
     Smooth,
 });
 
+/// `--model`: the envmap, or K sphere lights (None: as many as the envmap's clusters, ≤ 3).
+#[derive(Clone, Copy, Debug)]
+enum ModelArg {
+    Envmap,
+    Spheres(Option<usize>),
+}
+
+fn parse_model(s: &str) -> Result<ModelArg, String> {
+    match s {
+        "envmap" => Ok(ModelArg::Envmap),
+        "spheres" => Ok(ModelArg::Spheres(None)),
+        _ => match s.strip_prefix("spheres:").map(str::parse::<usize>) {
+            Some(Ok(k)) if (1..=8).contains(&k) => Ok(ModelArg::Spheres(Some(k))),
+            _ => Err(format!(
+                "expected envmap, spheres or spheres:K (K = 1..8), got {s:?}"
+            )),
+        },
+    }
+}
+
 /// `--rings`: a ring count or `auto`.
 #[derive(Clone, Copy, Debug)]
 enum RingsArg {
@@ -211,6 +231,12 @@ struct EstimateArgs {
     /// on the held-out quarter is within one standard error of the best.
     #[arg(long, value_parser = parse_rings)]
     rings: Option<RingsArg>,
+    /// Light model: `envmap` (the ring envmap), or `spheres[:K]`: K sphere lights (default:
+    /// the envmap's bright clusters, at most 3), started from the envmap's clusters and a
+    /// distance search, refined by Levenberg–Marquardt (centres, radii; radiances exact),
+    /// written as a sidecar fragment (spheres/lights.ron) with its own re-render and errors.
+    #[arg(long, default_value = "envmap", value_parser = parse_model)]
+    model: ModelArg,
     /// Resolutions `--rings auto` chooses from.
     #[arg(
         long,
@@ -1139,6 +1165,150 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         }
     }
     let rerender_seconds = outcome.rerender_seconds;
+
+    // ---- Sphere lights (--model spheres[:K]) ----
+    let t = Instant::now();
+    let mut spheres_json = serde_json::Value::Null;
+    let mut spheres_lines = Vec::new();
+    if let ModelArg::Spheres(k) = a.model {
+        use estimate::spheres;
+        let (lo, hi) = scene.mesh.bounds();
+        let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
+        let k = k.unwrap_or_else(|| estimate::recovery::clusters(&fit.envmap).len().clamp(1, 3));
+        let st = RenderSettings {
+            spp: 64,
+            seed: settings.seed.wrapping_add(3),
+            ..settings
+        };
+        let pb = bar("spheres", 1);
+        let start = spheres::initialise(
+            &renderer,
+            &views,
+            &masks,
+            &references,
+            &fit.envmap,
+            k,
+            scene.center(),
+            size,
+            &st,
+        );
+        let refined = spheres::refine(
+            &renderer,
+            &views,
+            &masks,
+            &references,
+            &start,
+            &spheres::RefineSettings {
+                transport: st,
+                max_iterations: 15,
+            },
+        );
+        pb.finish_and_clear();
+        let dir = a.out.join("spheres");
+        std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;
+        let mut fragment = String::from(
+            "// Sphere lights recovered by `lightprobe estimate --model spheres`: paste into a\n// sidecar's `lights` to render with them.\nlights: [\n",
+        );
+        for l in &refined.lights {
+            fragment += &format!(
+                "    Sphere(center: ({}, {}, {}), radius: {}, radiance: ({}, {}, {})),\n",
+                l.center.x,
+                l.center.y,
+                l.center.z,
+                l.radius,
+                l.radiance.x,
+                l.radiance.y,
+                l.radiance.z
+            );
+        }
+        fragment += "],\n";
+        imageio::write_bytes(&dir.join("lights.ron"), fragment.as_bytes())?;
+        let mut errs = Vec::new();
+        if !a.fit_only {
+            let sphere_lights = Lights::new(refined.lights.clone());
+            let imgs = pipeline::render_views(
+                &renderer.with_lights(&sphere_lights),
+                &views,
+                &pipeline::evaluation_settings(&settings),
+                &|_| {},
+            );
+            for (i, (img, cam)) in imgs.iter().zip(&views).enumerate() {
+                imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
+                metrics::write_heatmap(
+                    &dir.join(format!("{}.error.png", cam.name)),
+                    img,
+                    &references[i],
+                    &masks[i],
+                    None,
+                )?;
+            }
+            errs = pipeline::compare_views(&imgs, &references, &masks)?;
+        }
+        // Against the true lights, when the sidecar has them: nearest estimate by centre.
+        let power = |l: &lightprobe::scene::SphereLight| {
+            imageio::luminance(l.radiance) * l.radius * l.radius
+        };
+        let mut used = vec![false; refined.lights.len()];
+        let mut recovery_s = Vec::new();
+        for t_l in &scene.lights {
+            let Some(j) = (0..refined.lights.len())
+                .filter(|&j| !used[j])
+                .min_by(|&x, &y| {
+                    refined.lights[x]
+                        .center
+                        .distance(t_l.center)
+                        .total_cmp(&refined.lights[y].center.distance(t_l.center))
+                })
+            else {
+                break;
+            };
+            used[j] = true;
+            let e = &refined.lights[j];
+            let d = (t_l.center - scene.center()).length();
+            let off = e.center.distance(t_l.center);
+            spheres_lines.push(format!(
+                "sphere {j}: centre off {off:.3} m ({:.1}% of its distance), radius {:.3} (true {:.3}), power ×{:.3}",
+                100.0 * off / d,
+                e.radius,
+                t_l.radius,
+                power(e) / power(t_l)
+            ));
+            recovery_s.push(json!({
+                "estimated": j,
+                "centre_error_m": off,
+                "centre_error_fraction_of_distance": off / d,
+                "radius": e.radius,
+                "true_radius": t_l.radius,
+                "power_ratio": power(e) / power(t_l),
+            }));
+        }
+        spheres_json = json!({
+            "lights": refined.lights.iter().map(|l| json!({
+                "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })).collect::<Vec<_>>(),
+            "start": start.iter().map(|l| json!({ "center": l.center.to_array(), "radius": l.radius })).collect::<Vec<_>>(),
+            "rel_mae": pipeline::mean_rel_mae(&errs),
+            "views": errs.iter().map(metrics_json).collect::<Vec<_>>(),
+            "fit_rel_mae": refined.rel_mae,
+            "iterations": refined.iterations,
+            "renders": refined.evaluations,
+            "recovery": recovery_s,
+            "seconds": t.elapsed().as_secs_f64(),
+        });
+        if let Some(e) = pipeline::mean_rel_mae(&errs) {
+            spheres_lines.insert(
+                0,
+                format!(
+                    "spheres ({} lights): relMAE {:.2}% (envmap {:.2}%), {:.1} s, {} renders; {}",
+                    refined.lights.len(),
+                    100.0 * e,
+                    100.0 * pipeline::mean_rel_mae(errors).unwrap_or(f64::NAN),
+                    t.elapsed().as_secs_f64(),
+                    refined.evaluations,
+                    dir.join("lights.ron").display()
+                ),
+            );
+        }
+    }
     let oracle_seconds = outcome.oracle_seconds;
 
     let recovery = &outcome.recovery;
@@ -1176,6 +1346,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "views": per_view,
         "channels": fit.channels,
         "light_recovery": recovery,
+        "spheres": spheres_json,
         "timings": {
             "references_seconds": reference_seconds,
             "noise_floor_seconds": noise_seconds,
@@ -1242,6 +1413,9 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
                 errors[i].rel_mae / l.rel_mae
             );
         }
+        println!("{line}");
+    }
+    for line in &spheres_lines {
         println!("{line}");
     }
     for (k, r) in recovery.iter().enumerate() {

@@ -521,3 +521,59 @@ fn a_solver_stopped_by_its_limits_says_so_and_exits_non_zero() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
+
+#[test]
+fn sphere_model_writes_a_sidecar_fragment_that_renders() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let est = tmp.path().join("est");
+    let json = ok(&run(&[
+        "estimate",
+        a.to_str().unwrap(),
+        "--out",
+        est.to_str().unwrap(),
+        "--rings",
+        "5",
+        "--spp",
+        "16",
+        "--model",
+        "spheres:1",
+        "--json",
+        "--quiet",
+    ]));
+    let rep: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let sph = &rep["spheres"];
+    assert_eq!(sph["lights"].as_array().unwrap().len(), 1);
+    let e = sph["rel_mae"].as_f64().unwrap();
+    assert!(e.is_finite() && e > 0.0, "{sph}");
+    assert_eq!(sph["recovery"].as_array().unwrap().len(), 1);
+    assert!(est.join("spheres/cam_front.exr").exists());
+    // The fragment pasted into a sidecar renders as is.
+    let fragment = std::fs::read_to_string(est.join("spheres/lights.ron")).unwrap();
+    let text = format!(
+        "Scene(\n    gltf: {:?},\n    image: (width: 32, height: 24),\n{fragment}    render: (spp: 4),\n)\n",
+        root().join("scenes/tabletop/tabletop.glb")
+    );
+    let sidecar = tmp.path().join("recovered.ron");
+    std::fs::write(&sidecar, text).unwrap();
+    let out = tmp.path().join("render");
+    ok(&run(&[
+        "render-reference",
+        sidecar.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]));
+    assert!(out.join("cam_front.exr").exists());
+    // Bad model names are usage errors.
+    let o = run(&[
+        "estimate",
+        a.to_str().unwrap(),
+        "--out",
+        est.to_str().unwrap(),
+        "--model",
+        "spheres:0",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("spheres:K"));
+}

@@ -31,18 +31,6 @@ pub struct LightRecovery {
 
 /// Matches clusters of bright cells to the true lights.
 pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<LightRecovery> {
-    let g = &env.grid;
-    let n = g.cell_count() as u32;
-    let power: Vec<f32> = (0..n)
-        .map(|c| luminance(env.radiance()[c as usize]) * env.solid_angle(c))
-        .collect();
-    let spacing = if g.rings() > 1 {
-        std::f32::consts::PI / (g.rings() - 1) as f32
-    } else {
-        std::f32::consts::PI
-    };
-    let radius = (2.0 * spacing).max(25f32.to_radians()) + 1e-4;
-    let mut taken = vec![false; n as usize];
     let mut order: Vec<(f32, &SphereLight)> = lights
         .iter()
         .map(|l| {
@@ -53,38 +41,10 @@ pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<
         })
         .collect();
     order.sort_by(|a, b| b.0.total_cmp(&a.0));
-    // ---- Clusters, from the estimate alone ----
-    let total: f32 = power.iter().sum();
-    let mut clusters: Vec<(Vec3, f32, usize)> = Vec::new(); // (centroid, power, cells)
-    while clusters.len() < 8 {
-        let free: Vec<u32> = (0..n).filter(|&c| !taken[c as usize]).collect();
-        let window = |axis: Vec3| {
-            free.iter()
-                .filter(|&&c| g.center(c).angle_between(axis) <= radius)
-                .map(|&c| power[c as usize])
-                .sum::<f32>()
-        };
-        let Some(&seed) = free
-            .iter()
-            .max_by(|&&a, &&b| window(g.center(a)).total_cmp(&window(g.center(b))))
-        else {
-            break;
-        };
-        let axis = g.center(seed);
-        if window(axis) < 0.05 * total || total <= 0.0 {
-            break;
-        }
-        let (mut sum, mut p_sum, mut count) = (Vec3::ZERO, 0.0f32, 0);
-        for &c in &free {
-            if g.center(c).angle_between(axis) <= radius {
-                taken[c as usize] = true;
-                sum += g.center(c) * power[c as usize];
-                p_sum += power[c as usize];
-                count += 1;
-            }
-        }
-        clusters.push((sum.normalize_or(axis), p_sum, count));
-    }
+    let clusters: Vec<(Vec3, f32, usize)> = clusters(env)
+        .into_iter()
+        .map(|c| (c.direction, c.power, c.cells))
+        .collect();
 
     // ---- Match each true light to the nearest unmatched cluster ----
     let mut used = vec![false; clusters.len()];
@@ -121,4 +81,68 @@ pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<
         });
     }
     out
+}
+
+/// A bright cluster of an envmap estimate.
+#[derive(Debug, Clone, Copy)]
+pub struct Cluster {
+    /// Power-weighted centroid direction (unit, world).
+    pub direction: Vec3,
+    /// Σ luminance × solid angle of its cells.
+    pub power: f32,
+    pub cells: usize,
+}
+
+/// The bright clusters of an estimate, brightest first, from the estimate alone (see the
+/// module doc): at most 8, each with at least 5% of the total power.
+pub fn clusters(env: &Envmap) -> Vec<Cluster> {
+    let g = &env.grid;
+    let n = g.cell_count() as u32;
+    let power: Vec<f32> = (0..n)
+        .map(|c| luminance(env.radiance()[c as usize]) * env.solid_angle(c))
+        .collect();
+    let spacing = if g.rings() > 1 {
+        std::f32::consts::PI / (g.rings() - 1) as f32
+    } else {
+        std::f32::consts::PI
+    };
+    let radius = (2.0 * spacing).max(25f32.to_radians()) + 1e-4;
+    let mut taken = vec![false; n as usize];
+    let total: f32 = power.iter().sum();
+    let mut clusters: Vec<Cluster> = Vec::new();
+    while clusters.len() < 8 {
+        let free: Vec<u32> = (0..n).filter(|&c| !taken[c as usize]).collect();
+        let window = |axis: Vec3| {
+            free.iter()
+                .filter(|&&c| g.center(c).angle_between(axis) <= radius)
+                .map(|&c| power[c as usize])
+                .sum::<f32>()
+        };
+        let Some(&seed) = free
+            .iter()
+            .max_by(|&&a, &&b| window(g.center(a)).total_cmp(&window(g.center(b))))
+        else {
+            break;
+        };
+        let axis = g.center(seed);
+        if window(axis) < 0.05 * total || total <= 0.0 {
+            break;
+        }
+        let (mut sum, mut p_sum, mut count) = (Vec3::ZERO, 0.0f32, 0);
+        for &c in &free {
+            if g.center(c).angle_between(axis) <= radius {
+                taken[c as usize] = true;
+                sum += g.center(c) * power[c as usize];
+                p_sum += power[c as usize];
+                count += 1;
+            }
+        }
+        clusters.push(Cluster {
+            direction: sum.normalize_or(axis),
+            power: p_sum,
+            cells: count,
+        });
+    }
+
+    clusters
 }

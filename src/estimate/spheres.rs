@@ -322,3 +322,48 @@ pub fn refine(
         history,
     }
 }
+
+/// Starting lights from an envmap estimate, with no hand-given guess: the `k` brightest
+/// clusters give directions from `center`; each light in turn is placed at the distance (from
+/// 1 to 10 scene sizes, radius subtending 3°) whose exactly-fitted radiances explain the images
+/// best, the others held at their current place.
+#[allow(clippy::too_many_arguments)]
+pub fn initialise(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    masks: &[Vec<bool>],
+    references: &[Image],
+    envmap: &crate::envmap::Envmap,
+    k: usize,
+    center: Vec3,
+    size: f32,
+    settings: &RenderSettings,
+) -> Vec<SphereLight> {
+    let dirs: Vec<Vec3> = super::recovery::clusters(envmap)
+        .into_iter()
+        .take(k)
+        .map(|c| c.direction)
+        .collect();
+    let place = |dir: Vec3, d: f32| SphereLight {
+        center: center + dir * d,
+        radius: d * 3f32.to_radians().tan(),
+        radiance: Vec3::ONE,
+    };
+    let distances: Vec<f32> = (0..8).map(|i| size * 10f32.powf(i as f32 / 7.0)).collect();
+    let mut lights: Vec<SphereLight> = dirs.iter().map(|&d| place(d, 3.0 * size)).collect();
+    for i in 0..lights.len() {
+        let mut best = (f64::INFINITY, lights[i]);
+        for &d in &distances {
+            let mut trial = lights.clone();
+            trial[i] = place(dirs[i], d);
+            let tr = sphere_transport(renderer, cameras, masks, &trial, settings, &|_| {});
+            let (r, _, _) = residuals(&tr, references);
+            let sse: f64 = r.iter().map(|v| v * v).sum();
+            if sse < best.0 {
+                best = (sse, trial[i]);
+            }
+        }
+        lights[i] = best.1;
+    }
+    lights
+}
