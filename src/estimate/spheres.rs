@@ -4,38 +4,17 @@
 //! geometry (4 numbers per light) is left to a non-linear search: variable projection.
 //!
 //! The one path tracer estimates T_k: it renders the lights at unit radiance and accumulates,
-//! per pixel, the weight each light receives ([`SphereAccumulator`]). Renders of two
+//! per pixel, the weight each light receives (the transport's [`PerEmitterAccumulator`]). Renders of two
 //! geometries with the same seed share their random numbers (common random numbers), so
 //! their residuals differ by the geometry, not by noise.
 
 use glam::Vec3;
 
 use super::nnls;
+use super::transport::{EmitterKind, PerEmitterAccumulator};
 use crate::imageio::Image;
-use crate::render::{Accumulator, Emitter, Lights, RenderSettings, Renderer};
+use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::{Camera, SphereLight};
-
-/// Accumulates, per pixel, the weight each sphere light delivers (per unit radiance).
-pub struct SphereAccumulator {
-    pub lights: usize,
-}
-
-impl Accumulator for SphereAccumulator {
-    type Pixel = Vec<Vec3>;
-    fn new_pixel(&self) -> Vec<Vec3> {
-        vec![Vec3::ZERO; self.lights]
-    }
-    #[inline]
-    fn add(&self, pixel: &mut Vec<Vec3>, emitter: Emitter, weight: Vec3) {
-        if let Emitter::Sphere(i) = emitter {
-            pixel[i as usize] += weight;
-        }
-    }
-    fn finish(&self, pixel: &mut Vec<Vec3>, spp: u32) {
-        let inv = 1.0 / spp as f32;
-        pixel.iter_mut().for_each(|v| *v *= inv);
-    }
-}
 
 /// Per-light transport of the masked pixels: per channel, `rows × lights`, row-major.
 #[derive(Debug, Clone)]
@@ -67,8 +46,9 @@ pub fn sphere_transport(
         .collect();
     let lights = Lights::new(unit);
     let renderer = renderer.with_lights(&lights);
-    let acc = SphereAccumulator {
-        lights: geometry.len(),
+    let acc = PerEmitterAccumulator {
+        kind: EmitterKind::Spheres,
+        count: geometry.len(),
     };
     let mut t: [Vec<f32>; 3] = std::array::from_fn(|_| Vec::new());
     let mut pixel_of_row = Vec::new();

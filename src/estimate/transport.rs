@@ -13,20 +13,33 @@ use crate::envmap::Envmap;
 use crate::render::{Accumulator, Emitter, Lights, RenderSettings, Renderer};
 use crate::scene::Camera;
 
-/// Accumulates one row of T per pixel: a weight per envmap cell.
-pub struct TransportAccumulator {
-    pub cells: usize,
+/// Which emitters a [`PerEmitterAccumulator`] keeps apart.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EmitterKind {
+    /// The envmap's cells (the envmap model's transport).
+    EnvCells,
+    /// The sphere lights (the sphere model's transport, [`super::spheres`]).
+    Spheres,
 }
 
-impl Accumulator for TransportAccumulator {
+/// Accumulates one row of a transport per pixel: the weight (per unit radiance) each emitter
+/// of one kind delivers; other emitters are ignored.
+pub struct PerEmitterAccumulator {
+    pub kind: EmitterKind,
+    pub count: usize,
+}
+
+impl Accumulator for PerEmitterAccumulator {
     type Pixel = Vec<Vec3>;
     fn new_pixel(&self) -> Vec<Vec3> {
-        vec![Vec3::ZERO; self.cells]
+        vec![Vec3::ZERO; self.count]
     }
     #[inline]
     fn add(&self, pixel: &mut Vec<Vec3>, emitter: Emitter, weight: Vec3) {
-        if let Emitter::EnvCell(c) = emitter {
-            pixel[c as usize] += weight;
+        match (self.kind, emitter) {
+            (EmitterKind::EnvCells, Emitter::EnvCell(i))
+            | (EmitterKind::Spheres, Emitter::Sphere(i)) => pixel[i as usize] += weight,
+            _ => {}
         }
     }
     fn finish(&self, pixel: &mut Vec<Vec3>, spp: u32) {
@@ -82,7 +95,10 @@ pub fn estimate_transport(
     let cells = sampling.grid.cell_count();
     let lights = Lights::env(sampling.clone());
     let renderer = renderer.with_lights(&lights);
-    let acc = TransportAccumulator { cells };
+    let acc = PerEmitterAccumulator {
+        kind: EmitterKind::EnvCells,
+        count: cells,
+    };
     let rows_total: usize = masks.iter().map(|m| m.iter().filter(|&&b| b).count()).sum();
     let mut t: [Vec<f32>; 3] = std::array::from_fn(|_| Vec::with_capacity(rows_total * cells));
     let mut pixel_of_row = Vec::with_capacity(rows_total);

@@ -171,6 +171,25 @@ fn colour(i: usize) -> RGBColor {
     C[i % C.len()]
 }
 
+/// Draws a chart's legend, the same way on every chart.
+fn legend<'a, DB, CT>(
+    ch: &mut ChartContext<'a, DB, CT>,
+    position: SeriesLabelPosition,
+    path: &Path,
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    CT: plotters::coord::CoordTranslate,
+{
+    ch.configure_series_labels()
+        .position(position)
+        .label_font(("sans-serif", 15))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()
+        .map_err(plot_err(path))
+}
+
 /// Draws with `draw` into an RGB buffer and writes it as PNG, atomically.
 fn chart(
     path: &Path,
@@ -286,7 +305,6 @@ pub fn report(dir: &Path) -> Result<Summary> {
         .fold(1.0, f64::max)
         * 1.1;
     chart(&path, |root| {
-        let e = plot_err(&path);
         let mut ch = ChartBuilder::on(root)
             .caption(
                 "Photometric error against envmap resolution (mean ± std over scenarios)",
@@ -342,13 +360,7 @@ pub fn report(dir: &Path) -> Result<Summary> {
         .map_err(plot_err(&path))?
         .label("noise floor (two reference renders)")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
-        ch.configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .label_font(("sans-serif", 15))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()
-            .map_err(e)?;
+        legend(&mut ch, SeriesLabelPosition::UpperRight, &path)?;
         Ok(())
     })?;
     charts.push(path);
@@ -416,13 +428,7 @@ pub fn report(dir: &Path) -> Result<Summary> {
             .label(format!("{} (labels: rings)", s.label()))
             .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
         }
-        ch.configure_series_labels()
-            .position(SeriesLabelPosition::LowerLeft)
-            .label_font(("sans-serif", 15))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()
-            .map_err(plot_err(&path))?;
+        legend(&mut ch, SeriesLabelPosition::LowerLeft, &path)?;
         Ok(())
     })?;
     charts.push(path);
@@ -491,13 +497,7 @@ pub fn report(dir: &Path) -> Result<Summary> {
         .map_err(plot_err(&path))?
         .label("noise floor")
         .legend(|(x, y)| Cross::new((x + 10, y), 3, BLACK.stroke_width(1)));
-        ch.configure_series_labels()
-            .position(SeriesLabelPosition::UpperRight)
-            .label_font(("sans-serif", 15))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()
-            .map_err(plot_err(&path))?;
+        legend(&mut ch, SeriesLabelPosition::UpperRight, &path)?;
         Ok(())
     })?;
     charts.push(path);
@@ -548,13 +548,7 @@ pub fn report(dir: &Path) -> Result<Summary> {
             .map_err(plot_err(&path))?
             .label("scenario")
             .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
-            ch.configure_series_labels()
-                .position(SeriesLabelPosition::UpperLeft)
-                .label_font(("sans-serif", 15))
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .draw()
-                .map_err(plot_err(&path))?;
+            legend(&mut ch, SeriesLabelPosition::UpperLeft, &path)?;
             Ok(())
         })?;
         charts.push(path);
