@@ -124,6 +124,29 @@ fn render_all(r: &Renderer, sc: &Scene, spp: u32, seed: u64) -> (Vec<Image>, Vec
     (imgs, masks)
 }
 
+/// A 3-ring sky (zenith, four horizon sectors, nadir) with distinct colours.
+fn three_ring_sky() -> Envmap {
+    Envmap::new(
+        3,
+        vec![
+            Vec3::new(0.6, 0.7, 1.0),
+            Vec3::new(3.0, 2.0, 1.0),
+            Vec3::new(0.2, 0.3, 0.5),
+            Vec3::new(1.5, 1.5, 1.5),
+            Vec3::new(0.4, 0.8, 2.0),
+            Vec3::new(0.3, 0.3, 0.3),
+        ],
+    )
+    .unwrap()
+}
+
+/// A sphere light 1.9 m from the 2 m table: too near for any envmap.
+const NEAR_LIGHT: SphereLight = SphereLight {
+    center: Vec3::new(0.8, 1.6, 0.6),
+    radius: 0.15,
+    radiance: Vec3::new(60.0, 50.0, 40.0),
+};
+
 /// A sky with a warm and a blue bright cell.
 fn known_envmap(rings: u32) -> Envmap {
     let g = RingGrid::new(rings);
@@ -151,18 +174,7 @@ fn a_known_envmap_is_recovered_at_the_noise_floor() {
     // 3 rings (the zenith, four horizon sectors and the nadir) the ball and box shadows
     // separate every cell above the table; the nadir, hidden by the table, is not checked.
     let rings = 3;
-    let truth = Envmap::new(
-        rings,
-        vec![
-            Vec3::new(0.6, 0.7, 1.0),
-            Vec3::new(3.0, 2.0, 1.0),
-            Vec3::new(0.2, 0.3, 0.5),
-            Vec3::new(1.5, 1.5, 1.5),
-            Vec3::new(0.4, 0.8, 2.0),
-            Vec3::new(0.3, 0.3, 0.3),
-        ],
-    )
-    .unwrap();
+    let truth = three_ring_sky();
     let sc = scene(vec![]);
     let lights = Lights::env(truth.clone());
     let r = Renderer::new(&sc, &lights);
@@ -298,18 +310,7 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
     // shrinks from 0.18% to 0.03%, ridge 1e-4). That noise is also in the re-rendered
     // estimate, so it is a fair part of the choice. What must hold: the true resolution is
     // close to the best, and the rule's choice is within one standard error of it.
-    let truth = Envmap::new(
-        3,
-        vec![
-            Vec3::new(0.6, 0.7, 1.0),
-            Vec3::new(3.0, 2.0, 1.0),
-            Vec3::new(0.2, 0.3, 0.5),
-            Vec3::new(1.5, 1.5, 1.5),
-            Vec3::new(0.4, 0.8, 2.0),
-            Vec3::new(0.3, 0.3, 0.3),
-        ],
-    )
-    .unwrap();
+    let truth = three_ring_sky();
     let sc = scene(vec![]);
     let sky = Lights::env(truth);
     let r = Renderer::new(&sc, &sky);
@@ -389,11 +390,7 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
 fn sphere_light_radiance_is_recovered_given_its_geometry_and_wrong_geometry_shows() {
     // A light 1.9 m from a 2 m table: no envmap fits it, but with its centre and radius known
     // the images are linear in its radiance (issue 9's inner solve).
-    let truth = SphereLight {
-        center: Vec3::new(0.8, 1.6, 0.6),
-        radius: 0.15,
-        radiance: Vec3::new(60.0, 50.0, 40.0),
-    };
+    let truth = NEAR_LIGHT;
     let sc = scene(vec![truth]);
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
@@ -437,11 +434,7 @@ fn sphere_light_radiance_is_recovered_given_its_geometry_and_wrong_geometry_show
 
 #[test]
 fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
-    let truth = SphereLight {
-        center: Vec3::new(0.8, 1.6, 0.6),
-        radius: 0.15,
-        radiance: Vec3::new(60.0, 50.0, 40.0),
-    };
+    let truth = NEAR_LIGHT;
     let sc = scene(vec![truth]);
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);

@@ -122,6 +122,19 @@ fn scenario_lights_follow_the_brief() {
     assert!(near >= 5 && far >= 5, "near {near}, far {far}");
 }
 
+/// `estimate SCENARIO --out OUT EXTRA… --json --quiet`, which must succeed: its report.json.
+fn estimate_json(scenario: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec![
+        "estimate",
+        scenario.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    args.extend(extra);
+    args.extend(["--json", "--quiet"]);
+    serde_json::from_str(&ok(&run(&args))).unwrap()
+}
+
 fn sweep(files: &[&Path], out: &Path, extra: &[&str]) -> Output {
     let mut args = vec!["sweep", "--out", out.to_str().unwrap(), "--quiet"];
     args.extend(files.iter().map(|f| f.to_str().unwrap()));
@@ -225,19 +238,7 @@ fn tiny_sweep_resumes_shards_agrees_with_estimate_and_reports() {
 
     // A trial is exactly what a stand-alone `estimate` reports.
     let est = tmp.path().join("est");
-    let json = ok(&run(&[
-        "estimate",
-        b.to_str().unwrap(),
-        "--out",
-        est.to_str().unwrap(),
-        "--rings",
-        "5",
-        "--spp",
-        "16",
-        "--json",
-        "--quiet",
-    ]));
-    let rep: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let rep = estimate_json(&b, &est, &["--rings", "5", "--spp", "16"]);
     let trial = whole
         .iter()
         .find(|r| r.id == "b/spp16/rings5/nnls")
@@ -378,21 +379,18 @@ fn rings_auto_reports_its_choice_and_the_sweep_charts_it() {
     let tmp = tempfile::tempdir().unwrap();
     let a = small_scenario(tmp.path(), "a", KEY);
     let est = tmp.path().join("est");
-    let json = ok(&run(&[
-        "estimate",
-        a.to_str().unwrap(),
-        "--out",
-        est.to_str().unwrap(),
-        "--rings",
-        "auto",
-        "--rings-candidates",
-        "3,5",
-        "--spp",
-        "16",
-        "--json",
-        "--quiet",
-    ]));
-    let rep: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let rep = estimate_json(
+        &a,
+        &est,
+        &[
+            "--rings",
+            "auto",
+            "--rings-candidates",
+            "3,5",
+            "--spp",
+            "16",
+        ],
+    );
     let sel = &rep["rings_selection"];
     let chosen = sel["rings"].as_u64().unwrap();
     assert!(chosen == 3 || chosen == 5);
@@ -527,21 +525,11 @@ fn sphere_model_writes_a_sidecar_fragment_that_renders() {
     let tmp = tempfile::tempdir().unwrap();
     let a = small_scenario(tmp.path(), "a", KEY);
     let est = tmp.path().join("est");
-    let json = ok(&run(&[
-        "estimate",
-        a.to_str().unwrap(),
-        "--out",
-        est.to_str().unwrap(),
-        "--rings",
-        "5",
-        "--spp",
-        "16",
-        "--model",
-        "spheres:1",
-        "--json",
-        "--quiet",
-    ]));
-    let rep: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let rep = estimate_json(
+        &a,
+        &est,
+        &["--rings", "5", "--spp", "16", "--model", "spheres:1"],
+    );
     let sph = &rep["spheres"];
     assert_eq!(sph["lights"].as_array().unwrap().len(), 1);
     let e = sph["rel_mae"].as_f64().unwrap();
