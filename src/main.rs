@@ -1108,6 +1108,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let pb = bar("estimate", options.passes(0));
     let outcome = pipeline::run(
         &renderer,
+        &renderer,
         &views,
         &references,
         &masks,

@@ -179,33 +179,13 @@ pub fn mean_rel_mae(v: &[Metrics]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().map(|m| m.rel_mae).sum::<f64>() / v.len() as f64)
 }
 
-/// Fits, then optionally re-renders and measures, then matches bright clusters to `truth`
-/// (the sphere lights that made the references, if known) seen from `center`.
-/// `render` holds the references' render settings; `first` a shared first-round transport.
+/// Fits in the scene of `renderer`, then optionally re-renders and measures in the scene of
+/// `truth_renderer` (the same one, or e.g. the true scene when the fit had perturbed albedos;
+/// same geometry and views), then matches bright clusters to `truth` (the sphere lights that
+/// made the references, if known) seen from `center`. `render` holds the references' render
+/// settings; `first` a shared first-round transport.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
-    renderer: &Renderer,
-    views: &[&Camera],
-    references: &[Image],
-    masks: &[Vec<bool>],
-    truth: &[SphereLight],
-    center: Vec3,
-    options: &EstimateOptions,
-    render: &RenderSettings,
-    first: Option<&Transport>,
-    progress: &(dyn Fn(u64) + Sync),
-) -> Result<Outcome> {
-    run_with(
-        renderer, renderer, views, references, masks, truth, center, options, render, first,
-        progress,
-    )
-}
-
-/// [`run`], fitting in the scene of `renderer` but re-rendering the estimate in the scene of
-/// `truth_renderer` (same geometry and views): e.g. fit with perturbed albedos, judge the
-/// lighting in the true scene.
-#[allow(clippy::too_many_arguments)]
-pub fn run_with(
     renderer: &Renderer,
     truth_renderer: &Renderer,
     views: &[&Camera],

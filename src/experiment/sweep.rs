@@ -644,7 +644,7 @@ pub fn run(
             evaluate: true,
             oracle: false,
         };
-        let outcome = pipeline::run_with(
+        let outcome = pipeline::run(
             &fit_renderer,
             &renderer,
             &views,
