@@ -959,6 +959,93 @@ fn metrics_json(m: &metrics::Metrics) -> serde_json::Value {
     serde_json::to_value(m).unwrap_or_default()
 }
 
+/// Writes a sphere-model estimate: the sidecar fragment, and per view the re-render and its
+/// error heat map.
+fn write_spheres(
+    dir: &Path,
+    so: &pipeline::SphereOutcome,
+    views: &[&lightprobe::scene::Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| lightprobe::Error::io(dir, e))?;
+    imageio::write_bytes(&dir.join("lights.ron"), so.fit.fragment().as_bytes())?;
+    for (i, (img, cam)) in so.renders.iter().zip(views).enumerate() {
+        imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
+        metrics::write_heatmap(
+            &dir.join(format!("{}.error.png", cam.name)),
+            img,
+            &references[i],
+            &masks[i],
+            None,
+        )?;
+    }
+    Ok(())
+}
+
+/// report.json's view of a sphere-model estimate.
+fn spheres_report(so: &pipeline::SphereOutcome) -> serde_json::Value {
+    json!({
+        "lights": so.fit.fitted,
+        "start": so.fit.start.iter().map(|l| json!({ "center": l.center.to_array(), "radius": l.radius })).collect::<Vec<_>>(),
+        "requested": so.fit.requested,
+        "rel_mae": so.rel_mae(),
+        "views": so.errors.iter().map(metrics_json).collect::<Vec<_>>(),
+        "fit_rel_mae_binned": so.fit.fit_rel_mae,
+        "iterations": so.fit.iterations,
+        "objective_trace": so.fit.history,
+        "renders": so.fit.renders,
+        "recovery": so.recovery,
+        "fit_seconds": so.fit.seconds,
+        "rerender_seconds": so.rerender_seconds,
+    })
+}
+
+/// Lines printed for a sphere-model estimate, beside the envmap's `errors`.
+fn spheres_summary(so: &pipeline::SphereOutcome, errors: &[metrics::Metrics]) -> Vec<String> {
+    use estimate::spheres::LightStatus;
+    let mut lines = Vec::new();
+    if let Some(e) = so.rel_mae() {
+        lines.push(format!(
+            "spheres ({} lights): relMAE {:.2}% (envmap {:.2}%), fit {:.1} s, {} renders",
+            so.fit.lights().len(),
+            100.0 * e,
+            100.0 * pipeline::mean_rel_mae(errors).unwrap_or(f64::NAN),
+            so.fit.seconds,
+            so.fit.renders,
+        ));
+    }
+    for (j, f) in so.fit.fitted.iter().enumerate() {
+        let sigma = |v: Option<f64>| v.map_or("?".into(), |v| format!("{v:.3}"));
+        lines.push(match f.status {
+            LightStatus::Identified => format!(
+                "sphere {j}: centre ({:.3}, {:.3}, {:.3}) ± {} m along its direction, radius {:.3}",
+                f.light.center.x, f.light.center.y, f.light.center.z,
+                sigma(f.distance_sigma_m), f.light.radius
+            ),
+            LightStatus::DistanceUnidentified { distance_sigma_m } => format!(
+                "sphere {j}: direction and power fit, distance unidentifiable from these images (± {distance_sigma_m:.2} m)"
+            ),
+            LightStatus::Merged { into } => format!(
+                "sphere {j}: too close in direction to sphere {into} to tell apart; merged into it"
+            ),
+            LightStatus::NoContribution => format!(
+                "sphere {j}: changes no pixel (e.g. hidden below the table); left out"
+            ),
+        });
+    }
+    for (k, r) in so.recovery.iter().enumerate() {
+        lines.push(match (r.centre_error_m, r.radius, r.power_ratio) {
+            (Some(off), Some(rad), Some(p)) => format!(
+                "true light {k}: centre off {off:.3} m ({:.1}% of its {:.2} m distance), radius {rad:.3} (true {:.3}), power ×{p:.3}",
+                100.0 * off / r.true_distance_m, r.true_distance_m, r.true_radius
+            ),
+            _ => format!("true light {k}: not recovered (the model has fewer lights)"),
+        });
+    }
+    lines
+}
+
 fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let solver: Solver = a.solver.into();
     let t_all = Instant::now();
@@ -1168,147 +1255,37 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let rerender_seconds = outcome.rerender_seconds;
 
     // ---- Sphere lights (--model spheres[:K]) ----
-    let t = Instant::now();
     let mut spheres_json = serde_json::Value::Null;
     let mut spheres_lines = Vec::new();
     if let ModelArg::Spheres(k) = a.model {
-        use estimate::spheres;
         let (lo, hi) = scene.mesh.bounds();
         let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
         let k = k.unwrap_or_else(|| estimate::recovery::clusters(&fit.envmap).len().clamp(1, 3));
-        let st = RenderSettings {
-            spp: 64,
-            seed: settings.seed.wrapping_add(3),
-            ..settings
+        let obs = estimate::spheres::Observations {
+            cameras: &views,
+            masks: &masks,
+            references: &references,
+            bin: 4,
+            holdout: false,
         };
         let pb = bar("spheres", 1);
-        let start = spheres::initialise(
+        let so = pipeline::run_spheres(
             &renderer,
-            &views,
-            &masks,
-            &references,
+            &renderer,
+            &obs,
             &fit.envmap,
-            k,
-            scene.center(),
-            size,
-            &st,
-        );
-        let refined = spheres::refine(
-            &renderer,
-            &views,
-            &masks,
-            &references,
-            &start,
-            &spheres::RefineSettings {
-                transport: st,
-                max_iterations: 15,
-            },
-        );
+            &scene.lights,
+            (scene.center(), size),
+            &estimate::spheres::SphereSettings::new(k, &settings),
+            &settings,
+            !a.fit_only,
+            &|k| pb.inc(k),
+        )
+        .with_context(|| format!("{}: --model spheres", a.scene.display()))?;
         pb.finish_and_clear();
-        let dir = a.out.join("spheres");
-        std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;
-        let mut fragment = String::from(
-            "// Sphere lights recovered by `lightprobe estimate --model spheres`: paste into a\n// sidecar's `lights` to render with them.\nlights: [\n",
-        );
-        for l in &refined.lights {
-            fragment += &format!(
-                "    Sphere(center: ({}, {}, {}), radius: {}, radiance: ({}, {}, {})),\n",
-                l.center.x,
-                l.center.y,
-                l.center.z,
-                l.radius,
-                l.radiance.x,
-                l.radiance.y,
-                l.radiance.z
-            );
-        }
-        fragment += "],\n";
-        imageio::write_bytes(&dir.join("lights.ron"), fragment.as_bytes())?;
-        let mut errs = Vec::new();
-        if !a.fit_only {
-            let sphere_lights = Lights::new(refined.lights.clone());
-            let imgs = pipeline::render_views(
-                &renderer.with_lights(&sphere_lights),
-                &views,
-                &pipeline::evaluation_settings(&settings),
-                &|_| {},
-            );
-            for (i, (img, cam)) in imgs.iter().zip(&views).enumerate() {
-                imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
-                metrics::write_heatmap(
-                    &dir.join(format!("{}.error.png", cam.name)),
-                    img,
-                    &references[i],
-                    &masks[i],
-                    None,
-                )?;
-            }
-            errs = pipeline::compare_views(&imgs, &references, &masks)?;
-        }
-        // Against the true lights, when the sidecar has them: nearest estimate by centre.
-        let power = |l: &lightprobe::scene::SphereLight| {
-            imageio::luminance(l.radiance) * l.radius * l.radius
-        };
-        let mut used = vec![false; refined.lights.len()];
-        let mut recovery_s = Vec::new();
-        for t_l in &scene.lights {
-            let Some(j) = (0..refined.lights.len())
-                .filter(|&j| !used[j])
-                .min_by(|&x, &y| {
-                    refined.lights[x]
-                        .center
-                        .distance(t_l.center)
-                        .total_cmp(&refined.lights[y].center.distance(t_l.center))
-                })
-            else {
-                break;
-            };
-            used[j] = true;
-            let e = &refined.lights[j];
-            let d = (t_l.center - scene.center()).length();
-            let off = e.center.distance(t_l.center);
-            spheres_lines.push(format!(
-                "sphere {j}: centre off {off:.3} m ({:.1}% of its distance), radius {:.3} (true {:.3}), power ×{:.3}",
-                100.0 * off / d,
-                e.radius,
-                t_l.radius,
-                power(e) / power(t_l)
-            ));
-            recovery_s.push(json!({
-                "estimated": j,
-                "centre_error_m": off,
-                "centre_error_fraction_of_distance": off / d,
-                "radius": e.radius,
-                "true_radius": t_l.radius,
-                "power_ratio": power(e) / power(t_l),
-            }));
-        }
-        spheres_json = json!({
-            "lights": refined.lights.iter().map(|l| json!({
-                "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })).collect::<Vec<_>>(),
-            "start": start.iter().map(|l| json!({ "center": l.center.to_array(), "radius": l.radius })).collect::<Vec<_>>(),
-            "rel_mae": pipeline::mean_rel_mae(&errs),
-            "views": errs.iter().map(metrics_json).collect::<Vec<_>>(),
-            "fit_rel_mae": refined.rel_mae,
-            "iterations": refined.iterations,
-            "renders": refined.evaluations,
-            "recovery": recovery_s,
-            "seconds": t.elapsed().as_secs_f64(),
-        });
-        if let Some(e) = pipeline::mean_rel_mae(&errs) {
-            spheres_lines.insert(
-                0,
-                format!(
-                    "spheres ({} lights): relMAE {:.2}% (envmap {:.2}%), {:.1} s, {} renders; {}",
-                    refined.lights.len(),
-                    100.0 * e,
-                    100.0 * pipeline::mean_rel_mae(errors).unwrap_or(f64::NAN),
-                    t.elapsed().as_secs_f64(),
-                    refined.evaluations,
-                    dir.join("lights.ron").display()
-                ),
-            );
-        }
+        write_spheres(&a.out.join("spheres"), &so, &views, &references, &masks)?;
+        spheres_lines = spheres_summary(&so, errors);
+        spheres_json = spheres_report(&so);
     }
     let oracle_seconds = outcome.oracle_seconds;
 

@@ -406,9 +406,17 @@ fn sphere_light_radiance_is_recovered_given_its_geometry_and_wrong_geometry_show
         / 2.0;
     let cams: Vec<&Camera> = sc.cameras.iter().collect();
     let st = settings(256, 77);
+    // Single pixels (bin 1): this checks the per-pixel error against the noise floor.
+    let obs = estimate::spheres::Observations {
+        cameras: &cams,
+        masks: &masks,
+        references: &refs,
+        bin: 1,
+        holdout: false,
+    };
     let solve = |geometry: SphereLight| {
-        let tr = estimate::spheres::sphere_transport(&r, &cams, &masks, &[geometry], &st, &|_| {});
-        estimate::spheres::solve_radiance(&tr, &refs)
+        let p = estimate::spheres::sphere_problem(&r, &obs, &[geometry], &st);
+        estimate::spheres::solve_radiance(&p)
     };
     let (radiance, err) = solve(truth);
     // Measured: radiance within 0.02%, relMAE 0.685% against a noise floor of 0.686%; moved
@@ -447,23 +455,38 @@ fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
         radius: 0.24,
         radiance: Vec3::ONE,
     };
+    let obs = estimate::spheres::Observations {
+        cameras: &cams,
+        masks: &masks,
+        references: &refs,
+        bin: 4,
+        holdout: false,
+    };
     let out = estimate::spheres::refine(
         &r,
-        &cams,
-        &masks,
-        &refs,
+        &obs,
         &[start],
+        center,
         &estimate::spheres::RefineSettings {
-            transport: settings(64, 5),
-            max_iterations: 20,
+            residual: settings(64, 5),
+            jacobian: settings(16, 6),
+            max_iterations: 10,
         },
     );
     let got = out.lights[0];
     let dist = (truth.center - center).length();
     let off = got.center.distance(truth.center);
     let power = |l: &SphereLight| lightprobe::imageio::luminance(l.radiance) * l.radius * l.radius;
-    // Measured: centre 1.1 cm off (0.62% of 1.80 m), radius 0.155 (true 0.15), power ×1.011,
-    // relMAE 1.14% (64-spp transport against a 256-spp reference), 101 renders.
-    assert!(off < 0.02 * dist, "{out:?}");
-    assert!((power(&got) / power(&truth) - 1.0).abs() < 0.05, "{out:?}");
+    eprintln!(
+        "centre {off:.4} m off ({:.2}% of {dist:.2} m), radius {:.3}, power ×{:.3}, {} renders",
+        100.0 * off / dist,
+        got.radius,
+        power(&got) / power(&truth),
+        out.evaluations
+    );
+    // Measured (4×4 bins, 64-spp residuals, 16-spp Jacobians): centre 1.1 mm off (0.06% of
+    // 1.80 m), radius 0.151 (true 0.15), power ×1.001, 61 renders. (Single pixels and one
+    // 64-spp render for both: 11 mm, ×1.011, 101 renders.) The issue asks 2% and 5%.
+    assert!(off < 0.005 * dist, "{out:?}");
+    assert!((power(&got) / power(&truth) - 1.0).abs() < 0.02, "{out:?}");
 }

@@ -10,8 +10,10 @@ use std::time::Instant;
 
 use glam::Vec3;
 
-use super::recovery::{self, LightRecovery};
-use super::{Fit, FitSettings, Solver, Transport, fit_reusing};
+use super::recovery::{self, LightRecovery, SphereRecovery};
+use super::spheres::{self, Observations, SphereFit, SphereSettings};
+use super::{Fit, FitSettings, Solver, Transport, Validation, fit_reusing, is_held_out};
+use crate::envmap::Envmap;
 use crate::error::{Error, Result};
 use crate::imageio::{self, Image};
 use crate::metrics::{self, Metrics};
@@ -264,4 +266,89 @@ pub fn run(
         rerender_seconds,
         oracle_seconds,
     })
+}
+
+/// A sphere-model estimate and its figures.
+pub struct SphereOutcome {
+    pub fit: SphereFit,
+    /// The model re-rendered, per view (empty without `evaluate`).
+    pub renders: Vec<Image>,
+    pub errors: Vec<Metrics>,
+    /// Against the true lights, when known.
+    pub recovery: Vec<SphereRecovery>,
+    pub rerender_seconds: f64,
+}
+
+impl SphereOutcome {
+    pub fn rel_mae(&self) -> Option<f64> {
+        mean_rel_mae(&self.errors)
+    }
+}
+
+/// Fits the sphere model (directions from `envmap`, an envmap estimate of the same images),
+/// then optionally re-renders it with a seed the fit never saw, in the scene of
+/// `truth_renderer`, and matches it to `truth`. `size` is the scene's size (metres).
+#[allow(clippy::too_many_arguments)]
+pub fn run_spheres(
+    renderer: &Renderer,
+    truth_renderer: &Renderer,
+    obs: &Observations,
+    envmap: &Envmap,
+    truth: &[SphereLight],
+    (center, size): (Vec3, f32),
+    settings: &SphereSettings,
+    render: &RenderSettings,
+    evaluate: bool,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<SphereOutcome> {
+    let fit = spheres::fit_spheres(renderer, obs, envmap, center, size, settings);
+    let lights = fit.lights();
+    if lights.is_empty() {
+        return Err(Error::Invalid(
+            "no sphere light explains the images (every fitted light contributes nothing)".into(),
+        ));
+    }
+    let t = Instant::now();
+    let (mut renders, mut errors) = (Vec::new(), Vec::new());
+    if evaluate {
+        let l = Lights::new(lights.clone());
+        renders = render_views(
+            &truth_renderer.with_lights(&l),
+            obs.cameras,
+            &evaluation_settings(render),
+            progress,
+        );
+        errors = compare_views(&renders, obs.references, obs.masks)?;
+    }
+    Ok(SphereOutcome {
+        recovery: recovery::recover_spheres(&lights, truth, center),
+        fit,
+        renders,
+        errors,
+        rerender_seconds: t.elapsed().as_secs_f64(),
+    })
+}
+
+/// Error of re-rendered images on the held-out pixels ([`super::is_held_out`]), in one fixed
+/// order, so candidates fitted without those pixels can be compared pixel by pixel.
+pub fn held_out(images: &[Image], references: &[Image], masks: &[Vec<bool>]) -> Validation {
+    let mut v = Validation {
+        abs_error: Vec::new(),
+        reference_abs: 0.0,
+    };
+    for (view, ((img, r), m)) in images.iter().zip(references).zip(masks).enumerate() {
+        for (_, ((x, y), _)) in img
+            .rgb
+            .iter()
+            .zip(&r.rgb)
+            .zip(m)
+            .enumerate()
+            .filter(|(i, (_, m))| **m && is_held_out((view, *i as u32)))
+        {
+            v.abs_error
+                .push((x.as_dvec3() - y.as_dvec3()).abs().element_sum());
+            v.reference_abs += y.as_dvec3().abs().element_sum();
+        }
+    }
+    v
 }

@@ -146,3 +146,56 @@ pub fn clusters(env: &Envmap) -> Vec<Cluster> {
 
     clusters
 }
+
+/// Recovery figures of one true sphere light against a sphere-model estimate.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct SphereRecovery {
+    /// Index of the matched estimated light (None: the model has fewer lights).
+    pub estimated: Option<usize>,
+    /// Distance of the true light from the scene centre, metres.
+    pub true_distance_m: f32,
+    pub centre_error_m: Option<f32>,
+    pub centre_error_fraction_of_distance: Option<f32>,
+    pub radius: Option<f32>,
+    pub true_radius: f32,
+    /// Estimated power / true power (luminance × radius²).
+    pub power_ratio: Option<f32>,
+}
+
+/// Matches each true light, brightest first, to the nearest unmatched estimated light.
+pub fn recover_spheres(
+    estimated: &[SphereLight],
+    truth: &[SphereLight],
+    scene_center: Vec3,
+) -> Vec<SphereRecovery> {
+    let power = |l: &SphereLight| luminance(l.radiance) * l.radius * l.radius;
+    let mut order: Vec<&SphereLight> = truth.iter().collect();
+    order.sort_by(|a, b| power(b).total_cmp(&power(a)));
+    let mut used = vec![false; estimated.len()];
+    order
+        .into_iter()
+        .map(|t| {
+            let d = (t.center - scene_center).length();
+            let j = (0..estimated.len()).filter(|&j| !used[j]).min_by(|&a, &b| {
+                estimated[a]
+                    .center
+                    .distance(t.center)
+                    .total_cmp(&estimated[b].center.distance(t.center))
+            });
+            let e = j.map(|j| {
+                used[j] = true;
+                estimated[j]
+            });
+            let off = e.map(|e| e.center.distance(t.center));
+            SphereRecovery {
+                estimated: j,
+                true_distance_m: d,
+                centre_error_m: off,
+                centre_error_fraction_of_distance: off.map(|o| o / d),
+                radius: e.map(|e| e.radius),
+                true_radius: t.radius,
+                power_ratio: e.map(|e| power(&e) / power(t)).filter(|r| r.is_finite()),
+            }
+        })
+        .collect()
+}

@@ -1,42 +1,68 @@
-//! Sphere lights as the light model (issue 9, its linear part). With the lights' centres and
-//! radii fixed, every pixel is linear in their radiances, `I_α = Σ_k T_kα L_kα`, so the
-//! radiances come from a small exact NNLS on the per-light transport T_k, and only the
-//! geometry (4 numbers per light) is left to a non-linear search: variable projection.
+//! Sphere lights as the light model (issue 9). With the lights' centres and radii fixed,
+//! every pixel is linear in their radiances, `I_α = Σ_k T_kα L_kα`, so the radiances come from
+//! a small exact NNLS on the per-light transport T_k, and only the geometry (4 numbers per
+//! light) is left to a non-linear search: variable projection, by Levenberg–Marquardt.
 //!
 //! The one path tracer estimates T_k: it renders the lights at unit radiance and accumulates,
-//! per pixel, the weight each light receives (the transport's [`PerEmitterAccumulator`]). Renders of two
-//! geometries with the same seed share their random numbers (common random numbers), so
-//! their residuals differ by the geometry, not by noise.
+//! per pixel, the weight each light receives (the transport's [`PerEmitterAccumulator`]).
+//! Renders of two geometries with the same seed share their random numbers (common random
+//! numbers), so their residuals differ by the geometry, not by noise.
+//!
+//! The fit compares *bins* of pixels (sums over `bin × bin` blocks), not single pixels: the
+//! Monte Carlo variance of a low-sample transport adds to the squared residual and depends on
+//! the geometry (a bigger, dimmer light is smoother), which on single pixels pulls the optimum
+//! measurably toward wrong lights; summing 16 pixels cuts that term 16-fold while shading and
+//! shadows, a few pixels wide or more, survive.
 
-use glam::Vec3;
+use std::time::Instant;
 
+use glam::{DVec3, Vec3};
+use serde::Serialize;
+
+use super::is_held_out;
 use super::nnls;
 use super::transport::{EmitterKind, PerEmitterAccumulator};
 use crate::imageio::Image;
 use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::{Camera, SphereLight};
 
-/// Per-light transport of the masked pixels: per channel, `rows × lights`, row-major.
-#[derive(Debug, Clone)]
-pub struct SphereTransport {
-    pub lights: usize,
-    pub rows: usize,
-    pub t: [Vec<f32>; 3],
-    /// Per row: (view index, pixel index).
-    pub pixel_of_row: Vec<(usize, u32)>,
+/// The images a sphere model is fitted to.
+#[derive(Clone, Copy)]
+pub struct Observations<'a> {
+    pub cameras: &'a [&'a Camera],
+    pub masks: &'a [Vec<bool>],
+    pub references: &'a [Image],
+    /// Pixels are summed over `bin × bin` blocks (see the module notes); 1 = single pixels.
+    pub bin: u32,
+    /// Leave out the held-out quarter of the pixels ([`is_held_out`]), for model selection.
+    pub holdout: bool,
 }
 
-/// Estimates the per-light transport of `geometry` (centres and radii; radiances ignored) for
-/// the masked pixels of each camera. The same `settings.seed` gives the same random numbers
-/// for any geometry.
-pub fn sphere_transport(
+/// The fitting problem at one geometry: per-light transport and references, summed per bin
+/// over the kept pixels. Per channel, T is `rows × lights`, row-major.
+#[derive(Debug, Clone)]
+pub struct SphereProblem {
+    pub lights: usize,
+    pub t: [Vec<f32>; 3],
+    pub y: [Vec<f64>; 3],
+}
+
+impl SphereProblem {
+    pub fn rows(&self) -> usize {
+        self.y[0].len()
+    }
+}
+
+/// Estimates the per-light transport of `geometry` (centres and radii; radiances ignored) and
+/// bins it with the references. The same `settings.seed` gives the same random numbers for
+/// any geometry.
+pub fn sphere_problem(
     renderer: &Renderer,
-    cameras: &[&Camera],
-    masks: &[Vec<bool>],
+    obs: &Observations,
     geometry: &[SphereLight],
     settings: &RenderSettings,
-    progress: &(dyn Fn(u64) + Sync),
-) -> SphereTransport {
+) -> SphereProblem {
+    let k = geometry.len();
     let unit: Vec<SphereLight> = geometry
         .iter()
         .map(|l| SphereLight {
@@ -48,49 +74,55 @@ pub fn sphere_transport(
     let renderer = renderer.with_lights(&lights);
     let acc = PerEmitterAccumulator {
         kind: EmitterKind::Spheres,
-        count: geometry.len(),
+        count: k,
     };
+    let bin = obs.bin.max(1);
     let mut t: [Vec<f32>; 3] = std::array::from_fn(|_| Vec::new());
-    let mut pixel_of_row = Vec::new();
-    for (v, (cam, mask)) in cameras.iter().zip(masks).enumerate() {
-        let frame = renderer.render(cam, 2000 + v as u64, settings, &acc, progress);
-        for (i, row) in frame
-            .pixels
-            .into_iter()
-            .enumerate()
-            .filter(|(i, _)| mask[*i])
-        {
-            for (ch, t_ch) in t.iter_mut().enumerate() {
-                t_ch.extend(row.iter().map(|w| w[ch]));
+    let mut y: [Vec<f64>; 3] = std::array::from_fn(|_| Vec::new());
+    for (v, (cam, mask)) in obs.cameras.iter().zip(obs.masks).enumerate() {
+        let frame = renderer.render(cam, 2000 + v as u64, settings, &acc, &|_| {});
+        let (w, h) = (frame.width, frame.height);
+        let bw = w.div_ceil(bin) as usize;
+        let bins = bw * h.div_ceil(bin) as usize;
+        let mut tb: [Vec<f32>; 3] = std::array::from_fn(|_| vec![0.0; bins * k]);
+        let mut yb: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; bins]);
+        let mut used = vec![false; bins];
+        for (i, row) in frame.pixels.iter().enumerate() {
+            if !mask[i] || (obs.holdout && is_held_out((v, i as u32))) {
+                continue;
             }
-            pixel_of_row.push((v, i as u32));
+            let (x, yy) = (i as u32 % w, i as u32 / w);
+            let b = (yy / bin) as usize * bw + (x / bin) as usize;
+            used[b] = true;
+            let reference = obs.references[v].rgb[i];
+            for ch in 0..3 {
+                for (a, w) in row.iter().enumerate() {
+                    tb[ch][b * k + a] += w[ch];
+                }
+                yb[ch][b] += reference[ch] as f64;
+            }
+        }
+        for b in (0..bins).filter(|&b| used[b]) {
+            for ch in 0..3 {
+                t[ch].extend_from_slice(&tb[ch][b * k..(b + 1) * k]);
+                y[ch].push(yb[ch][b]);
+            }
         }
     }
-    SphereTransport {
-        lights: geometry.len(),
-        rows: pixel_of_row.len(),
-        t,
-        pixel_of_row,
-    }
+    SphereProblem { lights: k, t, y }
 }
 
-/// Radiances of the lights that best explain `references` for this transport, and the
-/// remaining error: `relMAE = Σ|T L − I| / Σ|I|` over the masked pixels and channels.
-pub fn solve_radiance(tr: &SphereTransport, references: &[Image]) -> (Vec<Vec3>, f64) {
-    let k = tr.lights;
+/// Radiances of the lights that best explain the references for this transport, and the
+/// remaining error: `relMAE = Σ|T L − y| / Σ|y|` over the problem's rows and channels.
+pub fn solve_radiance(p: &SphereProblem) -> (Vec<Vec3>, f64) {
+    let k = p.lights;
     let mut radiance = vec![Vec3::ZERO; k];
     let (mut abs, mut ref_abs) = (0.0f64, 0.0f64);
     for ch in 0..3 {
-        let y: Vec<f64> = tr
-            .pixel_of_row
-            .iter()
-            .map(|&(v, i)| references[v].rgb[i as usize][ch] as f64)
-            .collect();
-        let t = &tr.t[ch];
+        let (t, y) = (&p.t[ch], &p.y[ch]);
         let mut g = vec![0.0f64; k * k];
         let mut b = vec![0.0f64; k];
-        for (r, yr) in y.iter().enumerate() {
-            let row = &t[r * k..(r + 1) * k];
+        for (row, yr) in t.chunks_exact(k).zip(y) {
             for a in 0..k {
                 b[a] += row[a] as f64 * yr;
                 for c in 0..k {
@@ -109,8 +141,7 @@ pub fn solve_radiance(tr: &SphereTransport, references: &[Image]) -> (Vec<Vec3>,
         for (l, v) in radiance.iter_mut().zip(&x) {
             l[ch] = *v as f32;
         }
-        for (r, yr) in y.iter().enumerate() {
-            let row = &t[r * k..(r + 1) * k];
+        for (row, yr) in t.chunks_exact(k).zip(y) {
             let pred: f64 = row.iter().zip(&x).map(|(&a, &b)| a as f64 * b).sum();
             abs += (pred - yr).abs();
             ref_abs += yr.abs();
@@ -122,8 +153,13 @@ pub fn solve_radiance(tr: &SphereTransport, references: &[Image]) -> (Vec<Vec3>,
 /// Settings of [`refine`].
 #[derive(Debug, Clone, Copy)]
 pub struct RefineSettings {
-    /// Samples and seed of every transport render (one seed: common random numbers).
-    pub transport: RenderSettings,
+    /// Samples and seed of the renders that measure the residual (one seed: common random
+    /// numbers, so two geometries differ by the geometry, not by noise).
+    pub residual: RenderSettings,
+    /// Samples and seed of the finite-difference renders of the Jacobian: fewer samples (the
+    /// step direction need not be exact, only downhill) and another seed, so their noise is
+    /// independent of the residual's and does not bias where the search stops.
+    pub jacobian: RenderSettings,
     pub max_iterations: usize,
 }
 
@@ -131,53 +167,82 @@ pub struct RefineSettings {
 #[derive(Debug, Clone)]
 pub struct Refined {
     pub lights: Vec<SphereLight>,
-    /// relMAE of the fit over the masked pixels (against the transport's own prediction).
+    /// relMAE of the fit over the problem's rows (against the transport's own prediction).
     pub rel_mae: f64,
     pub iterations: usize,
     /// Transport renders made.
     pub evaluations: usize,
     /// Sum of squared residuals after each accepted step.
     pub history: Vec<f64>,
+    /// Covariance of the parameters ([`Polar`] per light: two tangent angles of the direction
+    /// in radians, ln distance, ln sin angular radius), from the residual variance and the
+    /// last Jacobian, `σ² (JᵀJ)⁻¹`; None when singular.
+    pub covariance: Option<Vec<f64>>,
 }
 
-/// Parameters of one light: centre x, y, z (metres) and ln(radius).
-fn params(lights: &[SphereLight]) -> Vec<f64> {
-    lights
-        .iter()
-        .flat_map(|l| {
-            [
-                l.center.x as f64,
-                l.center.y as f64,
-                l.center.z as f64,
-                (l.radius as f64).ln(),
-            ]
-        })
-        .collect()
+/// A light's geometry in coordinates where the fit is well conditioned: its direction from
+/// the scene centre, ln of its distance and ln of the sine of its angular radius. Moving a
+/// light farther while it keeps its apparent size (the images' weakest direction, with the
+/// radiance refitted) is then one coordinate, not a diagonal of four.
+#[derive(Debug, Clone, Copy)]
+struct Polar {
+    dir: DVec3,
+    ln_distance: f64,
+    ln_sin_radius: f64,
 }
 
-fn lights_of(p: &[f64]) -> Vec<SphereLight> {
-    p.chunks_exact(4)
-        .map(|q| SphereLight {
-            center: Vec3::new(q[0] as f32, q[1] as f32, q[2] as f32),
-            radius: (q[3].exp() as f32).max(1e-3),
+impl Polar {
+    fn of(l: &SphereLight, center: Vec3) -> Polar {
+        let v = (l.center - center).as_dvec3();
+        let d = v.length().max(1e-6);
+        Polar {
+            dir: v / d,
+            ln_distance: d.ln(),
+            ln_sin_radius: (l.radius as f64 / d).clamp(1e-6, 0.99).ln(),
+        }
+    }
+
+    /// This geometry moved by `q` = (tangent angle 1, tangent angle 2, Δ ln distance,
+    /// Δ ln sin radius), as a unit-radiance light.
+    fn moved(&self, q: &[f64], center: Vec3) -> (Polar, SphereLight) {
+        let (t1, t2) = self.dir.any_orthonormal_pair();
+        let dir = (self.dir + q[0] * t1 + q[1] * t2).normalize();
+        let p = Polar {
+            dir,
+            ln_distance: self.ln_distance + q[2],
+            ln_sin_radius: (self.ln_sin_radius + q[3]).min(0.99f64.ln()),
+        };
+        let d = p.ln_distance.exp();
+        let light = SphereLight {
+            center: center + (dir * d).as_vec3(),
+            radius: ((d * p.ln_sin_radius.exp()) as f32).max(1e-4),
             radiance: Vec3::ONE,
-        })
+        };
+        (p, light)
+    }
+}
+
+/// The lights at `base` moved by `q` (4 numbers per light, see [`Polar::moved`]).
+fn lights_of(base: &[Polar], q: &[f64], center: Vec3) -> Vec<SphereLight> {
+    base.iter()
+        .zip(q.chunks_exact(4))
+        .map(|(b, q)| b.moved(q, center).1)
         .collect()
 }
 
-/// Residuals `T L − I` (all rows, channels) with L solved exactly, and the radiances.
-fn residuals(tr: &SphereTransport, references: &[Image]) -> (Vec<f64>, Vec<Vec3>, f64) {
-    let (radiance, rel) = solve_radiance(tr, references);
-    let k = tr.lights;
-    let mut r = Vec::with_capacity(3 * tr.rows);
+/// Residuals `T L − y` (all rows, channels) with L solved exactly, the radiances and relMAE.
+fn residuals(p: &SphereProblem) -> (Vec<f64>, Vec<Vec3>, f64) {
+    let (radiance, rel) = solve_radiance(p);
+    let k = p.lights;
+    let mut r = Vec::with_capacity(3 * p.rows());
     for ch in 0..3 {
-        for (row, &(v, i)) in tr.t[ch].chunks_exact(k).zip(&tr.pixel_of_row) {
+        for (row, y) in p.t[ch].chunks_exact(k).zip(&p.y[ch]) {
             let pred: f64 = row
                 .iter()
                 .zip(&radiance)
                 .map(|(&t, l)| t as f64 * l[ch] as f64)
                 .sum();
-            r.push(pred - references[v].rgb[i as usize][ch] as f64);
+            r.push(pred - y);
         }
     }
     (r, radiance, rel)
@@ -212,73 +277,83 @@ fn solve_dense(mut a: Vec<f64>, mut b: Vec<f64>) -> Option<Vec<f64>> {
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
-/// Refines the lights' centres and radii from `start` by Levenberg–Marquardt on the
+/// Refines the lights' geometry from `start` by Levenberg–Marquardt on the
 /// variable-projection residual (radiances re-solved exactly at every evaluation), with
-/// forward-difference derivatives over renders that share their random numbers.
+/// forward-difference derivatives over renders that share their random numbers. The
+/// coordinates are [`Polar`] about `center`, re-based on the current directions every step.
 pub fn refine(
     renderer: &Renderer,
-    cameras: &[&Camera],
-    masks: &[Vec<bool>],
-    references: &[Image],
+    obs: &Observations,
     start: &[SphereLight],
+    center: Vec3,
     settings: &RefineSettings,
 ) -> Refined {
     let mut evaluations = 0;
-    let mut eval = |p: &[f64]| {
+    let mut eval = |base: &[Polar], q: &[f64], at: &RenderSettings| {
         evaluations += 1;
-        let tr = sphere_transport(
+        residuals(&sphere_problem(
             renderer,
-            cameras,
-            masks,
-            &lights_of(p),
-            &settings.transport,
-            &|_| {},
-        );
-        residuals(&tr, references)
+            obs,
+            &lights_of(base, q, center),
+            at,
+        ))
     };
-    let mut p = params(start);
-    let (mut r, mut radiance, mut rel) = eval(&p);
+    let mut base: Vec<Polar> = start.iter().map(|l| Polar::of(l, center)).collect();
+    let n = 4 * base.len();
+    let zero = vec![0.0; n];
+    let (mut r, mut radiance, mut rel) = eval(&base, &zero, &settings.residual);
     let sse = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
     let mut f = sse(&r);
     let mut history = vec![f];
     let mut mu = 1e-3;
     let mut iterations = 0;
-    let n = p.len();
+    let mut normal = vec![0.0; n * n];
+    // Forward-difference steps: 0.3° of direction, 2% of distance, 3% of angular radius —
+    // large enough that a step moves many samples' shadows, not a few.
+    let steps = [0.005, 0.005, 0.02, 0.03];
     while iterations < settings.max_iterations {
         iterations += 1;
-        // Forward differences: 1 cm in position, 2% in radius.
+        let (r0, _, _) = eval(&base, &zero, &settings.jacobian);
         let mut jac: Vec<Vec<f64>> = Vec::with_capacity(n);
         for j in 0..n {
-            let h = if j % 4 == 3 { 0.02 } else { 0.01 };
-            let mut q = p.clone();
-            q[j] += h;
-            let (rj, _, _) = eval(&q);
-            jac.push(rj.iter().zip(&r).map(|(a, b)| (a - b) / h).collect());
+            let h = steps[j % 4];
+            let mut q = zero.clone();
+            q[j] = h;
+            let (rj, _, _) = eval(&base, &q, &settings.jacobian);
+            jac.push(rj.iter().zip(&r0).map(|(a, b)| (a - b) / h).collect());
         }
-        let mut a = vec![0.0; n * n];
         let mut g = vec![0.0; n];
         for i in 0..n {
             g[i] = jac[i].iter().zip(&r).map(|(x, y)| x * y).sum();
             for j in 0..n {
-                a[i * n + j] = jac[i].iter().zip(&jac[j]).map(|(x, y)| x * y).sum();
+                normal[i * n + j] = jac[i].iter().zip(&jac[j]).map(|(x, y)| x * y).sum();
             }
         }
         let mut improved = false;
-        for _ in 0..8 {
-            let mut damped = a.clone();
+        for _ in 0..5 {
+            let mut damped = normal.clone();
             for i in 0..n {
-                damped[i * n + i] += mu * a[i * n + i].max(1e-12);
+                damped[i * n + i] += mu * normal[i * n + i].max(1e-12);
             }
-            let Some(step) = solve_dense(damped, g.iter().map(|v| -v).collect()) else {
+            let Some(mut step) = solve_dense(damped, g.iter().map(|v| -v).collect()) else {
                 mu *= 10.0;
                 continue;
             };
-            let q: Vec<f64> = p.iter().zip(&step).map(|(a, b)| a + b).collect();
-            let (rq, lq, relq) = eval(&q);
+            // A trust region in plain terms: at most 10° and a factor 1.5 per step.
+            for (j, s) in step.iter_mut().enumerate() {
+                let cap = if j % 4 < 2 { 0.17 } else { 0.4 };
+                *s = s.clamp(-cap, cap);
+            }
+            let (rq, lq, relq) = eval(&base, &step, &settings.residual);
             let fq = sse(&rq);
             if fq < f {
                 improved = (f - fq) > 1e-4 * f;
-                (p, r, radiance, rel, f) = (q, rq, lq, relq, fq);
+                base = base
+                    .iter()
+                    .zip(step.chunks_exact(4))
+                    .map(|(b, q)| b.moved(q, center).0)
+                    .collect();
+                (r, radiance, rel, f) = (rq, lq, relq, fq);
                 history.push(f);
                 mu = (mu / 3.0).max(1e-9);
                 break;
@@ -289,7 +364,22 @@ pub fn refine(
             break;
         }
     }
-    let lights = lights_of(&p)
+    // σ² (JᵀJ)⁻¹, column by column; the radiances (3 per light) count as fitted parameters.
+    let dof = (r.len() as f64 - (n + 3 * start.len()) as f64).max(1.0);
+    let sigma2 = f / dof;
+    let covariance = (0..n)
+        .map(|j| {
+            let e: Vec<f64> = (0..n).map(|i| (i == j) as u8 as f64).collect();
+            solve_dense(normal.clone(), e)
+        })
+        .collect::<Option<Vec<Vec<f64>>>>()
+        .map(|cols| {
+            (0..n * n)
+                .map(|ij| sigma2 * cols[ij % n][ij / n])
+                .collect::<Vec<f64>>()
+        })
+        .filter(|c| c.iter().all(|v| v.is_finite()));
+    let lights = lights_of(&base, &zero, center)
         .into_iter()
         .zip(&radiance)
         .map(|(l, &radiance)| SphereLight { radiance, ..l })
@@ -300,44 +390,37 @@ pub fn refine(
         iterations,
         evaluations,
         history,
+        covariance,
     }
 }
 
 /// Starting lights from an envmap estimate, with no hand-given guess: the `k` brightest
 /// clusters give directions from `center`; each light in turn is placed at the distance (from
 /// 1 to 10 scene sizes, radius subtending 3°) whose exactly-fitted radiances explain the images
-/// best, the others held at their current place.
-#[allow(clippy::too_many_arguments)]
+/// best, the others held at their current place. Returns the lights and the renders made.
 pub fn initialise(
     renderer: &Renderer,
-    cameras: &[&Camera],
-    masks: &[Vec<bool>],
-    references: &[Image],
-    envmap: &crate::envmap::Envmap,
-    k: usize,
+    obs: &Observations,
+    directions: &[Vec3],
     center: Vec3,
     size: f32,
     settings: &RenderSettings,
-) -> Vec<SphereLight> {
-    let dirs: Vec<Vec3> = super::recovery::clusters(envmap)
-        .into_iter()
-        .take(k)
-        .map(|c| c.direction)
-        .collect();
+) -> (Vec<SphereLight>, usize) {
     let place = |dir: Vec3, d: f32| SphereLight {
         center: center + dir * d,
         radius: d * 3f32.to_radians().tan(),
         radiance: Vec3::ONE,
     };
     let distances: Vec<f32> = (0..8).map(|i| size * 10f32.powf(i as f32 / 7.0)).collect();
-    let mut lights: Vec<SphereLight> = dirs.iter().map(|&d| place(d, 3.0 * size)).collect();
+    let mut lights: Vec<SphereLight> = directions.iter().map(|&d| place(d, 3.0 * size)).collect();
+    let mut renders = 0;
     for i in 0..lights.len() {
         let mut best = (f64::INFINITY, lights[i]);
         for &d in &distances {
             let mut trial = lights.clone();
-            trial[i] = place(dirs[i], d);
-            let tr = sphere_transport(renderer, cameras, masks, &trial, settings, &|_| {});
-            let (r, _, _) = residuals(&tr, references);
+            trial[i] = place(directions[i], d);
+            let (r, _, _) = residuals(&sphere_problem(renderer, obs, &trial, settings));
+            renders += 1;
             let sse: f64 = r.iter().map(|v| v * v).sum();
             if sse < best.0 {
                 best = (sse, trial[i]);
@@ -345,5 +428,258 @@ pub fn initialise(
         }
         lights[i] = best.1;
     }
-    lights
+    (lights, renders)
+}
+
+/// Settings of [`fit_spheres`].
+#[derive(Debug, Clone, Copy)]
+pub struct SphereSettings {
+    /// Lights to fit (fewer when the envmap shows fewer bright clusters).
+    pub k: usize,
+    /// Samples and seed of the distance search's renders ([`initialise`]).
+    pub search: RenderSettings,
+    pub refine: RefineSettings,
+}
+
+impl SphereSettings {
+    /// The defaults (with 4×4 bins, [`Observations::bin`]): a 32-sample distance search,
+    /// 64-sample residuals and 16-sample Jacobians, at most 10 Levenberg–Marquardt steps.
+    /// Measured on the bundled scene: centres within 1.4% of their distance, power within
+    /// 3.2%, in 9 s (128-sample residuals: 1.1%, 1.8%, 13 s).
+    pub fn new(k: usize, render: &RenderSettings) -> Self {
+        let at = |spp, offset| RenderSettings {
+            spp,
+            seed: render.seed.wrapping_add(offset),
+            ..*render
+        };
+        SphereSettings {
+            k,
+            search: at(32, 3),
+            refine: RefineSettings {
+                residual: at(64, 5),
+                jacobian: at(16, 6),
+                max_iterations: 10,
+            },
+        }
+    }
+}
+
+/// How well the images pin a recovered light down.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case", tag = "status")]
+pub enum LightStatus {
+    /// Centre and radius constrained to within 10% of the light's distance.
+    Identified,
+    /// Direction and power fit, but the images constrain the distance only loosely (no
+    /// shadow or parallax to measure it): one standard deviation along the direction.
+    DistanceUnidentified { distance_sigma_m: f64 },
+    /// Within a few degrees of a brighter light (seen from the scene centre): the images
+    /// cannot separate the two, so it was merged into that one.
+    Merged { into: usize },
+    /// Fitted radiance zero: the light changes no pixel (e.g. below the table).
+    NoContribution,
+}
+
+/// One recovered light and how well it is determined.
+#[derive(Debug, Clone, Serialize)]
+pub struct FittedLight {
+    #[serde(with = "light_json")]
+    pub light: SphereLight,
+    #[serde(flatten)]
+    pub status: LightStatus,
+    /// One standard deviation of the centre along its direction from the scene centre, and
+    /// across it (metres), and of the radius (relative); None when the fit is singular.
+    pub distance_sigma_m: Option<f64>,
+    pub lateral_sigma_m: Option<f64>,
+    pub radius_sigma_relative: Option<f64>,
+}
+
+mod light_json {
+    use crate::scene::SphereLight;
+    use serde::Serializer;
+    use serde::ser::SerializeStruct;
+
+    pub fn serialize<S: Serializer>(l: &SphereLight, s: S) -> Result<S::Ok, S::Error> {
+        let mut st = s.serialize_struct("SphereLight", 3)?;
+        st.serialize_field("center", &l.center.to_array())?;
+        st.serialize_field("radius", &l.radius)?;
+        st.serialize_field("radiance", &l.radiance.to_array())?;
+        st.end()
+    }
+}
+
+/// A sphere-model fit: every light with its status, and the lights kept (identified or with
+/// loose distance), which is the model.
+#[derive(Debug, Clone, Serialize)]
+pub struct SphereFit {
+    pub requested: usize,
+    pub fitted: Vec<FittedLight>,
+    #[serde(skip)]
+    pub start: Vec<SphereLight>,
+    /// relMAE over the binned rows (transport samples against the references).
+    pub fit_rel_mae: f64,
+    pub iterations: usize,
+    pub renders: usize,
+    /// Sum of squared binned residuals after each accepted step (of the last refinement).
+    pub history: Vec<f64>,
+    pub seconds: f64,
+}
+
+impl SphereFit {
+    /// The model's lights: those that contribute and were not merged away.
+    pub fn lights(&self) -> Vec<SphereLight> {
+        self.fitted
+            .iter()
+            .filter(|f| {
+                matches!(
+                    f.status,
+                    LightStatus::Identified | LightStatus::DistanceUnidentified { .. }
+                )
+            })
+            .map(|f| f.light)
+            .collect()
+    }
+
+    /// The model as a sidecar fragment that `render-reference` accepts as is.
+    pub fn fragment(&self) -> String {
+        let mut s = String::from(
+            "// Sphere lights recovered by `lightprobe estimate --model spheres`: paste into a\n// sidecar's `lights` to render with them.\nlights: [\n",
+        );
+        for l in self.lights() {
+            s += &format!(
+                "    Sphere(center: ({}, {}, {}), radius: {}, radiance: ({}, {}, {})),\n",
+                l.center.x,
+                l.center.y,
+                l.center.z,
+                l.radius,
+                l.radiance.x,
+                l.radiance.y,
+                l.radiance.z
+            );
+        }
+        s + "],\n"
+    }
+}
+
+/// Power of a light as seen from afar: luminance × radius² (× π, dropped).
+pub fn power(l: &SphereLight) -> f32 {
+    crate::imageio::luminance(l.radiance) * l.radius * l.radius
+}
+
+/// Angular radius of a light seen from `center`, radians.
+fn angular_radius(l: &SphereLight, center: Vec3) -> f32 {
+    (l.radius / (l.center - center).length().max(l.radius)).asin()
+}
+
+/// Fits `settings.k` sphere lights: directions from the envmap estimate's brightest clusters,
+/// distances by [`initialise`], geometry by [`refine`]; then judges each light. Lights within
+/// 2° plus their angular radii of a brighter one are merged into it (the pair cannot be told
+/// apart) and the rest refined again; lights with no radiance are reported, not kept. `center`
+/// and `size` are the scene's centre and size (metres).
+pub fn fit_spheres(
+    renderer: &Renderer,
+    obs: &Observations,
+    envmap: &crate::envmap::Envmap,
+    center: Vec3,
+    size: f32,
+    settings: &SphereSettings,
+) -> SphereFit {
+    let t0 = Instant::now();
+    let directions: Vec<Vec3> = super::recovery::clusters(envmap)
+        .into_iter()
+        .take(settings.k)
+        .map(|c| c.direction)
+        .collect();
+    let refine_settings = settings.refine;
+    let (start, mut renders) =
+        initialise(renderer, obs, &directions, center, size, &settings.search);
+    // Merged-away lights (as last fitted) and the start index of the light they joined.
+    let mut merged: Vec<(SphereLight, usize)> = Vec::new();
+    let mut keep: Vec<usize> = (0..start.len()).collect();
+    let mut refined = refine(renderer, obs, &start, center, &refine_settings);
+    renders += refined.evaluations;
+    let mut iterations = refined.iterations;
+    // Merge the dimmer of any pair the images cannot separate, and refine once more.
+    loop {
+        let l = &refined.lights;
+        let pair = (0..l.len())
+            .flat_map(|a| (a + 1..l.len()).map(move |b| (a, b)))
+            .find(|&(a, b)| {
+                let sep = (l[a].center - center).angle_between(l[b].center - center);
+                sep < angular_radius(&l[a], center)
+                    + angular_radius(&l[b], center)
+                    + 2f32.to_radians()
+            });
+        let Some((a, b)) = pair else { break };
+        let (bright, dim) = if power(&l[a]) >= power(&l[b]) {
+            (a, b)
+        } else {
+            (b, a)
+        };
+        merged.push((l[dim], keep[bright]));
+        let mut rest = l.clone();
+        rest.remove(dim);
+        keep.remove(dim);
+        refined = refine(renderer, obs, &rest, center, &refine_settings);
+        renders += refined.evaluations;
+        iterations += refined.iterations;
+    }
+    let n = 4 * refined.lights.len();
+    let max_power = refined.lights.iter().map(power).fold(0.0f32, f32::max);
+    let mut fitted: Vec<FittedLight> = Vec::new();
+    for (j, l) in refined.lights.iter().enumerate() {
+        let distance = (l.center - center).length() as f64;
+        let var = |a: usize, b: usize| {
+            refined
+                .covariance
+                .as_ref()
+                .map(|c| c[(4 * j + a) * n + 4 * j + b])
+        };
+        let distance_sigma = var(2, 2).map(|v| distance * v.max(0.0).sqrt());
+        let lateral_sigma = var(0, 0)
+            .zip(var(1, 1))
+            .map(|(a, b)| distance * ((a + b).max(0.0) / 2.0).sqrt());
+        // ln r = ln d + ln sin α.
+        let radius_sigma = var(2, 2)
+            .zip(var(3, 3))
+            .zip(var(2, 3))
+            .map(|((a, b), c)| (a + b + 2.0 * c).max(0.0).sqrt());
+        let status = if power(l) <= 1e-4 * max_power || max_power <= 0.0 {
+            LightStatus::NoContribution
+        } else if distance_sigma.is_none_or(|s| s > 0.1 * distance) {
+            LightStatus::DistanceUnidentified {
+                distance_sigma_m: distance_sigma.unwrap_or(f64::INFINITY).min(1e9),
+            }
+        } else {
+            LightStatus::Identified
+        };
+        fitted.push(FittedLight {
+            light: *l,
+            status,
+            distance_sigma_m: distance_sigma,
+            lateral_sigma_m: lateral_sigma,
+            radius_sigma_relative: radius_sigma,
+        });
+    }
+    for (light, joined) in merged {
+        fitted.push(FittedLight {
+            light,
+            status: LightStatus::Merged {
+                into: keep.iter().position(|&k| k == joined).unwrap_or(0),
+            },
+            distance_sigma_m: None,
+            lateral_sigma_m: None,
+            radius_sigma_relative: None,
+        });
+    }
+    SphereFit {
+        requested: settings.k,
+        fitted,
+        start,
+        fit_rel_mae: refined.rel_mae,
+        iterations,
+        renders,
+        history: refined.history,
+        seconds: t0.elapsed().as_secs_f64(),
+    }
 }
