@@ -62,21 +62,24 @@ cli_enum!(FilterArg => Filter {
     Smooth,
 });
 
-/// `--model`: the envmap, or K sphere lights (None: as many as the envmap's clusters, ≤ 3).
+/// `--model`: the envmap, K sphere lights (None: as many as the envmap's clusters, ≤ 3), or
+/// chosen from the data.
 #[derive(Clone, Copy, Debug)]
 enum ModelArg {
     Envmap,
     Spheres(Option<usize>),
+    Auto,
 }
 
 fn parse_model(s: &str) -> Result<ModelArg, String> {
     match s {
         "envmap" => Ok(ModelArg::Envmap),
         "spheres" => Ok(ModelArg::Spheres(None)),
+        "auto" => Ok(ModelArg::Auto),
         _ => match s.strip_prefix("spheres:").map(str::parse::<usize>) {
             Some(Ok(k)) if (1..=8).contains(&k) => Ok(ModelArg::Spheres(Some(k))),
             _ => Err(format!(
-                "expected envmap, spheres or spheres:K (K = 1..8), got {s:?}"
+                "expected envmap, spheres, spheres:K (K = 1..8) or auto, got {s:?}"
             )),
         },
     }
@@ -231,10 +234,13 @@ struct EstimateArgs {
     /// on the held-out quarter is within one standard error of the best.
     #[arg(long, value_parser = parse_rings)]
     rings: Option<RingsArg>,
-    /// Light model: `envmap` (the ring envmap), or `spheres[:K]`: K sphere lights (default:
-    /// the envmap's bright clusters, at most 3), started from the envmap's clusters and a
-    /// distance search, refined by Levenberg–Marquardt (centres, radii; radiances exact),
-    /// written as a sidecar fragment (spheres/lights.ron) with its own re-render and errors.
+    /// Light model: `envmap` (the ring envmap), `spheres[:K]`: K sphere lights at finite
+    /// distance (default: the envmap's bright clusters, at most 3), started from the envmap's
+    /// clusters and a distance search, refined by Levenberg–Marquardt (centres, radii;
+    /// radiances exact), written as a sidecar fragment (spheres/lights.ron) with its own
+    /// re-render and errors; or `auto`: every model (envmap, 1..3 spheres) fitted on three
+    /// quarters of the pixels, the one with the fewest parameters within one standard error
+    /// of the best on the held-out quarter chosen.
     #[arg(long, default_value = "envmap", value_parser = parse_model)]
     model: ModelArg,
     /// Resolutions `--rings auto` chooses from.
@@ -1087,6 +1093,10 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     if !(a.time_limit.is_finite() && a.time_limit > 0.0 && a.time_limit <= 1e6) {
         bail!("--time-limit must be a positive number of seconds, at most 1e6");
     }
+    let model_auto = matches!(a.model, ModelArg::Auto);
+    if model_auto && a.fit_only {
+        bail!("--model auto compares the models' re-renders; it cannot be used with --fit-only");
+    }
     let rounds = a.rounds.unwrap_or(solver.default_rounds());
     if rounds == 0 || rounds > 100 {
         bail!("--rounds must be between 1 and 100");
@@ -1165,6 +1175,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         smooth: a.smooth,
         ridge: a.ridge,
         time_limit: std::time::Duration::from_secs_f64(a.time_limit),
+        holdout: model_auto,
         ..FitSettings::new(&settings, rings, solver, spp, rounds)
     };
     let mut selection = None;
@@ -1254,21 +1265,28 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     }
     let rerender_seconds = outcome.rerender_seconds;
 
-    // ---- Sphere lights (--model spheres[:K]) ----
+    // ---- Sphere lights (--model spheres[:K] | auto) ----
     let mut spheres_json = serde_json::Value::Null;
     let mut spheres_lines = Vec::new();
-    if let ModelArg::Spheres(k) = a.model {
-        let (lo, hi) = scene.mesh.bounds();
-        let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
-        let k = k.unwrap_or_else(|| estimate::recovery::clusters(&fit.envmap).len().clamp(1, 3));
-        let obs = estimate::spheres::Observations {
-            cameras: &views,
-            masks: &masks,
-            references: &references,
-            bin: 4,
-            holdout: false,
-        };
-        let pb = bar("spheres", 1);
+    let mut model_selection = None;
+    let clusters = estimate::recovery::clusters(&fit.envmap).len().clamp(1, 3);
+    let sphere_counts: Vec<usize> = match a.model {
+        ModelArg::Envmap => vec![],
+        ModelArg::Spheres(k) => vec![k.unwrap_or(clusters)],
+        ModelArg::Auto => (1..=clusters).collect(),
+    };
+    let (lo, hi) = scene.mesh.bounds();
+    let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
+    let obs = estimate::spheres::Observations {
+        cameras: &views,
+        masks: &masks,
+        references: &references,
+        bin: 4,
+        holdout: model_auto,
+    };
+    let mut sphere_models = Vec::new();
+    for &k in &sphere_counts {
+        let pb = bar(&format!("spheres:{k}"), 1);
         let so = pipeline::run_spheres(
             &renderer,
             &renderer,
@@ -1281,11 +1299,50 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
             !a.fit_only,
             &|k| pb.inc(k),
         )
-        .with_context(|| format!("{}: --model spheres", a.scene.display()))?;
+        .with_context(|| format!("{}: --model spheres:{k}", a.scene.display()))?;
         pb.finish_and_clear();
-        write_spheres(&a.out.join("spheres"), &so, &views, &references, &masks)?;
-        spheres_lines = spheres_summary(&so, errors);
-        spheres_json = spheres_report(&so);
+        sphere_models.push(so);
+    }
+    let mut chosen = sphere_models.len().checked_sub(1);
+    if model_auto {
+        let mut candidates: Vec<_> = sphere_models
+            .iter()
+            .zip(&sphere_counts)
+            .map(|(so, k)| {
+                (
+                    format!("spheres:{k}"),
+                    7 * so.fit.lights().len(),
+                    pipeline::held_out(&so.renders, &references, &masks),
+                    so.fit.seconds + so.rerender_seconds,
+                )
+            })
+            .collect();
+        candidates.push((
+            "envmap".into(),
+            3 * fit.envmap.grid.cell_count(),
+            pipeline::held_out(&outcome.renders, &references, &masks),
+            fit.transport_seconds + fit.solve_seconds + outcome.rerender_seconds,
+        ));
+        let sel = estimate::select::choose_model(candidates).context("--model auto: no candidate")?;
+        chosen = sphere_counts
+            .iter()
+            .position(|k| sel.chosen == format!("spheres:{k}"));
+        spheres_lines.push(format!(
+            "model auto: {} (held-out relMAE {}; lowest: {})",
+            sel.chosen,
+            sel.candidates
+                .iter()
+                .map(|c| format!("{} {:.2}%", c.model, 100.0 * c.validation_rel_mae))
+                .collect::<Vec<_>>()
+                .join(", "),
+            sel.best
+        ));
+        model_selection = Some(sel);
+    }
+    if let Some(so) = chosen.map(|i| &sphere_models[i]) {
+        write_spheres(&a.out.join("spheres"), so, &views, &references, &masks)?;
+        spheres_lines.extend(spheres_summary(so, errors));
+        spheres_json = spheres_report(so);
     }
     let oracle_seconds = outcome.oracle_seconds;
 
@@ -1324,7 +1381,13 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "views": per_view,
         "channels": fit.channels,
         "light_recovery": recovery,
+        "model": model_selection.as_ref().map_or(
+            if sphere_models.is_empty() { "envmap".to_string() } else { format!("spheres:{}", sphere_counts[0]) },
+            |m| m.chosen.clone(),
+        ),
+        "model_selection": model_selection,
         "spheres": spheres_json,
+        "sphere_candidates": if model_auto { sphere_models.iter().map(spheres_report).collect::<Vec<_>>() } else { vec![] },
         "timings": {
             "references_seconds": reference_seconds,
             "noise_floor_seconds": noise_seconds,

@@ -1,4 +1,5 @@
-//! Choosing the envmap resolution from the data (`--rings auto`).
+//! Choosing the model from the data: the envmap resolution (`--rings auto`) and the light
+//! model (`--model auto`: envmap or K sphere lights).
 //!
 //! Each candidate resolution is fitted as usual (same rounds, same samples) but on three
 //! quarters of the pixels; its error is measured on the held-out quarter, predicted by the
@@ -43,46 +44,109 @@ pub struct Selection {
     pub seconds: f64,
 }
 
-/// Applies the one-standard-error rule to the candidates' held-out errors (same held-out
-/// pixels, in the same order, for every candidate). `None` without candidates.
-pub fn choose(validations: &[(u32, usize, Validation, f64)]) -> Option<Selection> {
-    let best = validations
+/// The one-standard-error rule over held-out errors (same held-out pixels, in the same order,
+/// for every candidate), candidates given from the simplest: the index of the first within one
+/// standard error of the best, the best's index, and per candidate its (excess over the best,
+/// standard error of that excess), both relative to the best's held-out reference sum.
+pub fn one_standard_error(validations: &[&Validation]) -> Option<(usize, usize, Vec<(f64, f64)>)> {
+    let best = (0..validations.len())
+        .min_by(|&a, &b| validations[a].rel_mae().total_cmp(&validations[b].rel_mae()))?;
+    let r = validations[best].reference_abs.max(f64::MIN_POSITIVE);
+    let excess: Vec<(f64, f64)> = validations
         .iter()
-        .min_by(|a, b| a.2.rel_mae().total_cmp(&b.2.rel_mae()))?;
-    let r = best.2.reference_abs.max(f64::MIN_POSITIVE);
-    let mut candidates: Vec<Candidate> = validations
-        .iter()
-        .map(|(rings, cells, v, secs)| {
+        .map(|v| {
             let d: Vec<f64> = v
                 .abs_error
                 .iter()
-                .zip(&best.2.abs_error)
+                .zip(&validations[best].abs_error)
                 .map(|(a, b)| a - b)
                 .collect();
             let n = d.len().max(1) as f64;
             let mean = d.iter().sum::<f64>() / n;
             let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
-            Candidate {
-                rings: *rings,
-                cells: *cells,
-                validation_rel_mae: v.rel_mae(),
-                excess_over_best: d.iter().sum::<f64>() / r,
-                standard_error: (n * var).sqrt() / r,
-                seconds: *secs,
-            }
+            (d.iter().sum::<f64>() / r, (n * var).sqrt() / r)
         })
         .collect();
-    candidates.sort_by_key(|c| c.rings);
-    let chosen = candidates
+    let chosen = excess.iter().position(|(e, se)| e <= se).unwrap_or(best);
+    Some((chosen, best, excess))
+}
+
+/// Applies the one-standard-error rule to the candidates' held-out errors. `None` without
+/// candidates.
+pub fn choose(validations: &[(u32, usize, Validation, f64)]) -> Option<Selection> {
+    let mut sorted: Vec<&(u32, usize, Validation, f64)> = validations.iter().collect();
+    sorted.sort_by_key(|v| v.0);
+    let vals: Vec<&Validation> = sorted.iter().map(|v| &v.2).collect();
+    let (chosen, best, excess) = one_standard_error(&vals)?;
+    let candidates = sorted
         .iter()
-        .find(|c| c.excess_over_best <= c.standard_error)
-        .map_or(best.0, |c| c.rings);
+        .zip(&excess)
+        .map(|((rings, cells, v, secs), &(e, se))| Candidate {
+            rings: *rings,
+            cells: *cells,
+            validation_rel_mae: v.rel_mae(),
+            excess_over_best: e,
+            standard_error: se,
+            seconds: *secs,
+        })
+        .collect();
     Some(Selection {
-        rings: chosen,
-        best_rings: best.0,
-        held_out_pixels: best.2.abs_error.len(),
+        rings: sorted[chosen].0,
+        best_rings: sorted[best].0,
+        held_out_pixels: sorted[best].2.abs_error.len(),
         candidates,
         seconds: validations.iter().map(|v| v.3).sum(),
+    })
+}
+
+/// One candidate light model's held-out figures (`--model auto`).
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct ModelCandidate {
+    /// `envmap` or `spheres:K`.
+    pub model: String,
+    /// Numbers the model fits (per sphere: 4 of geometry and 3 of radiance; per cell: 3).
+    pub parameters: usize,
+    /// relMAE of its re-render on the held-out pixels.
+    pub validation_rel_mae: f64,
+    pub excess_over_best: f64,
+    pub standard_error: f64,
+    pub seconds: f64,
+}
+
+/// The chosen light model and every candidate's figures.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct ModelSelection {
+    pub chosen: String,
+    /// The candidate with the lowest held-out error.
+    pub best: String,
+    pub held_out_pixels: usize,
+    pub candidates: Vec<ModelCandidate>,
+}
+
+/// Chooses among light models fitted without the held-out pixels, by the error of their
+/// re-renders there: the fewest parameters within one standard error of the best. Each
+/// candidate: (name, parameters, held-out validation, seconds).
+pub fn choose_model(candidates: Vec<(String, usize, Validation, f64)>) -> Option<ModelSelection> {
+    let mut sorted = candidates;
+    sorted.sort_by_key(|c| c.1);
+    let vals: Vec<&Validation> = sorted.iter().map(|c| &c.2).collect();
+    let (chosen, best, excess) = one_standard_error(&vals)?;
+    Some(ModelSelection {
+        chosen: sorted[chosen].0.clone(),
+        best: sorted[best].0.clone(),
+        held_out_pixels: sorted[best].2.abs_error.len(),
+        candidates: sorted
+            .iter()
+            .zip(&excess)
+            .map(|((model, parameters, v, secs), &(e, se))| ModelCandidate {
+                model: model.clone(),
+                parameters: *parameters,
+                validation_rel_mae: v.rel_mae(),
+                excess_over_best: e,
+                standard_error: se,
+                seconds: *secs,
+            })
+            .collect(),
     })
 }
 
