@@ -1029,8 +1029,9 @@ fn spheres_summary(so: &pipeline::SphereOutcome, errors: &[metrics::Metrics]) ->
                 f.light.center.x, f.light.center.y, f.light.center.z,
                 sigma(f.distance_sigma_m), f.light.radius
             ),
-            LightStatus::DistanceUnidentified { distance_sigma_m } => format!(
-                "sphere {j}: direction and power fit, distance unidentifiable from these images (± {distance_sigma_m:.2} m)"
+            LightStatus::DistanceUnidentified => format!(
+                "sphere {j}: direction and power fit; its distance is not identifiable from these images (25% nearer or farther fits within {:.1} σ)",
+                f.distance_profile_sigmas.unwrap_or(0.0)
             ),
             LightStatus::Merged { into } => format!(
                 "sphere {j}: too close in direction to sphere {into} to tell apart; merged into it"
@@ -1305,25 +1306,14 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     }
     let mut chosen = sphere_models.len().checked_sub(1);
     if model_auto {
-        let mut candidates: Vec<_> = sphere_models
-            .iter()
-            .zip(&sphere_counts)
-            .map(|(so, k)| {
-                (
-                    format!("spheres:{k}"),
-                    7 * so.fit.lights().len(),
-                    pipeline::held_out(&so.renders, &references, &masks),
-                    so.fit.seconds + so.rerender_seconds,
-                )
-            })
-            .collect();
-        candidates.push((
-            "envmap".into(),
-            3 * fit.envmap.grid.cell_count(),
-            pipeline::held_out(&outcome.renders, &references, &masks),
-            fit.transport_seconds + fit.solve_seconds + outcome.rerender_seconds,
-        ));
-        let sel = estimate::select::choose_model(candidates).context("--model auto: no candidate")?;
+        let sel = pipeline::select_model(
+            &outcome,
+            &sphere_models,
+            &sphere_counts,
+            &references,
+            &masks,
+        )
+        .context("--model auto: no candidate")?;
         chosen = sphere_counts
             .iter()
             .position(|k| sel.chosen == format!("spheres:{k}"));

@@ -352,3 +352,40 @@ pub fn held_out(images: &[Image], references: &[Image], masks: &[Vec<bool>]) -> 
     }
     v
 }
+
+/// `--model auto`: chooses among the envmap (`envmap`, fitted with
+/// [`FitSettings::holdout`] and evaluated) and sphere models (fitted with
+/// [`Observations::holdout`] and evaluated; `counts[i]` lights in `spheres[i]`) by their
+/// re-renders' error on the held-out pixels. None when nothing was re-rendered.
+pub fn select_model(
+    envmap: &Outcome,
+    spheres: &[SphereOutcome],
+    counts: &[usize],
+    references: &[Image],
+    masks: &[Vec<bool>],
+) -> Option<super::select::ModelSelection> {
+    let mut candidates: Vec<_> = spheres
+        .iter()
+        .zip(counts)
+        .filter(|(so, _)| !so.renders.is_empty())
+        // K lights asked, fewer found (fewer bright clusters): the same model as K − 1.
+        .filter(|(so, k)| so.fit.lights().len() == **k)
+        .map(|(so, k)| {
+            (
+                format!("spheres:{k}"),
+                7 * so.fit.lights().len(),
+                held_out(&so.renders, references, masks),
+                so.fit.seconds + so.rerender_seconds,
+            )
+        })
+        .collect();
+    if !envmap.renders.is_empty() {
+        candidates.push((
+            "envmap".into(),
+            3 * envmap.fit.envmap.grid.cell_count(),
+            held_out(&envmap.renders, references, masks),
+            envmap.fit.transport_seconds + envmap.fit.solve_seconds + envmap.rerender_seconds,
+        ));
+    }
+    super::select::choose_model(candidates)
+}

@@ -48,9 +48,12 @@ pub struct Selection {
 /// for every candidate), candidates given from the simplest: the index of the first within one
 /// standard error of the best, the best's index, and per candidate its (excess over the best,
 /// standard error of that excess), both relative to the best's held-out reference sum.
-pub fn one_standard_error(validations: &[&Validation]) -> Option<(usize, usize, Vec<(f64, f64)>)> {
-    let best = (0..validations.len())
-        .min_by(|&a, &b| validations[a].rel_mae().total_cmp(&validations[b].rel_mae()))?;
+pub fn one_standard_error(validations: &[&Validation]) -> Option<OneStandardError> {
+    let best = (0..validations.len()).min_by(|&a, &b| {
+        validations[a]
+            .rel_mae()
+            .total_cmp(&validations[b].rel_mae())
+    })?;
     let r = validations[best].reference_abs.max(f64::MIN_POSITIVE);
     let excess: Vec<(f64, f64)> = validations
         .iter()
@@ -68,7 +71,19 @@ pub fn one_standard_error(validations: &[&Validation]) -> Option<(usize, usize, 
         })
         .collect();
     let chosen = excess.iter().position(|(e, se)| e <= se).unwrap_or(best);
-    Some((chosen, best, excess))
+    Some(OneStandardError {
+        chosen,
+        best,
+        excess,
+    })
+}
+
+/// The outcome of [`one_standard_error`].
+pub struct OneStandardError {
+    pub chosen: usize,
+    pub best: usize,
+    /// Per candidate: (excess over the best, its standard error).
+    pub excess: Vec<(f64, f64)>,
 }
 
 /// Applies the one-standard-error rule to the candidates' held-out errors. `None` without
@@ -77,7 +92,11 @@ pub fn choose(validations: &[(u32, usize, Validation, f64)]) -> Option<Selection
     let mut sorted: Vec<&(u32, usize, Validation, f64)> = validations.iter().collect();
     sorted.sort_by_key(|v| v.0);
     let vals: Vec<&Validation> = sorted.iter().map(|v| &v.2).collect();
-    let (chosen, best, excess) = one_standard_error(&vals)?;
+    let OneStandardError {
+        chosen,
+        best,
+        excess,
+    } = one_standard_error(&vals)?;
     let candidates = sorted
         .iter()
         .zip(&excess)
@@ -130,7 +149,11 @@ pub fn choose_model(candidates: Vec<(String, usize, Validation, f64)>) -> Option
     let mut sorted = candidates;
     sorted.sort_by_key(|c| c.1);
     let vals: Vec<&Validation> = sorted.iter().map(|c| &c.2).collect();
-    let (chosen, best, excess) = one_standard_error(&vals)?;
+    let OneStandardError {
+        chosen,
+        best,
+        excess,
+    } = one_standard_error(&vals)?;
     Some(ModelSelection {
         chosen: sorted[chosen].0.clone(),
         best: sorted[best].0.clone(),

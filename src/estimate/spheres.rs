@@ -468,11 +468,13 @@ impl SphereSettings {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 #[serde(rename_all = "snake_case", tag = "status")]
 pub enum LightStatus {
-    /// Centre and radius constrained to within 10% of the light's distance.
+    /// A light 25% nearer or farther explains the images worse by more than two standard
+    /// deviations of the residual noise.
     Identified,
-    /// Direction and power fit, but the images constrain the distance only loosely (no
-    /// shadow or parallax to measure it): one standard deviation along the direction.
-    DistanceUnidentified { distance_sigma_m: f64 },
+    /// Direction and power fit, but the images cannot tell this light from one 25% nearer
+    /// or farther (same apparent size, radiance refitted) at two standard deviations: no
+    /// shadow or parallax measures its distance.
+    DistanceUnidentified,
     /// Within a few degrees of a brighter light (seen from the scene centre): the images
     /// cannot separate the two, so it was merged into that one.
     Merged { into: usize },
@@ -487,8 +489,12 @@ pub struct FittedLight {
     pub light: SphereLight,
     #[serde(flatten)]
     pub status: LightStatus,
+    /// How many standard deviations of the residual noise worse the fit gets with the light
+    /// 25% nearer or farther (the smaller of the two, `√(Δ SSE / σ²)`): the distance test.
+    pub distance_profile_sigmas: Option<f64>,
     /// One standard deviation of the centre along its direction from the scene centre, and
-    /// across it (metres), and of the radius (relative); None when the fit is singular.
+    /// across it (metres), and of the radius (relative), from the Jacobian (local; optimistic
+    /// where Monte Carlo noise adds to the finite differences); None when singular.
     pub distance_sigma_m: Option<f64>,
     pub lateral_sigma_m: Option<f64>,
     pub radius_sigma_relative: Option<f64>,
@@ -533,7 +539,7 @@ impl SphereFit {
             .filter(|f| {
                 matches!(
                     f.status,
-                    LightStatus::Identified | LightStatus::DistanceUnidentified { .. }
+                    LightStatus::Identified | LightStatus::DistanceUnidentified
                 )
             })
             .map(|f| f.light)
@@ -626,6 +632,20 @@ pub fn fit_spheres(
     }
     let n = 4 * refined.lights.len();
     let max_power = refined.lights.iter().map(power).fold(0.0f32, f32::max);
+    // The distance test: the objective with one light 25% nearer or farther (same apparent
+    // size), in units of the residual variance, with the same random numbers.
+    let sse_at = |lights: &[SphereLight]| {
+        let (r, _, _) = residuals(&sphere_problem(
+            renderer,
+            obs,
+            lights,
+            &refine_settings.residual,
+        ));
+        (r.iter().map(|v| v * v).sum::<f64>(), r.len())
+    };
+    let (f0, rows) = sse_at(&refined.lights);
+    renders += 1;
+    let sigma2 = f0 / (rows as f64 - 7.0 * refined.lights.len() as f64).max(1.0);
     let mut fitted: Vec<FittedLight> = Vec::new();
     for (j, l) in refined.lights.iter().enumerate() {
         let distance = (l.center - center).length() as f64;
@@ -644,18 +664,29 @@ pub fn fit_spheres(
             .zip(var(3, 3))
             .zip(var(2, 3))
             .map(|((a, b), c)| (a + b + 2.0 * c).max(0.0).sqrt());
-        let status = if power(l) <= 1e-4 * max_power || max_power <= 0.0 {
-            LightStatus::NoContribution
-        } else if distance_sigma.is_none_or(|s| s > 0.1 * distance) {
-            LightStatus::DistanceUnidentified {
-                distance_sigma_m: distance_sigma.unwrap_or(f64::INFINITY).min(1e9),
-            }
-        } else {
-            LightStatus::Identified
+        let contributes = power(l) > 1e-4 * max_power && max_power > 0.0;
+        let profile = contributes.then(|| {
+            let worst = [0.8f32, 1.25]
+                .iter()
+                .map(|&scale| {
+                    let mut moved = refined.lights.clone();
+                    moved[j].center = center + (l.center - center) * scale;
+                    moved[j].radius *= scale;
+                    (sse_at(&moved).0 - f0).max(0.0)
+                })
+                .fold(f64::INFINITY, f64::min);
+            renders += 2;
+            (worst / sigma2.max(f64::MIN_POSITIVE)).sqrt()
+        });
+        let status = match profile {
+            None => LightStatus::NoContribution,
+            Some(z) if z < 2.0 => LightStatus::DistanceUnidentified,
+            Some(_) => LightStatus::Identified,
         };
         fitted.push(FittedLight {
             light: *l,
             status,
+            distance_profile_sigmas: profile,
             distance_sigma_m: distance_sigma,
             lateral_sigma_m: lateral_sigma,
             radius_sigma_relative: radius_sigma,
@@ -667,6 +698,7 @@ pub fn fit_spheres(
             status: LightStatus::Merged {
                 into: keep.iter().position(|&k| k == joined).unwrap_or(0),
             },
+            distance_profile_sigmas: None,
             distance_sigma_m: None,
             lateral_sigma_m: None,
             radius_sigma_relative: None,
