@@ -234,13 +234,13 @@ struct EstimateArgs {
     /// on the held-out quarter is within one standard error of the best.
     #[arg(long, value_parser = parse_rings)]
     rings: Option<RingsArg>,
-    /// Light model: `envmap` (the ring envmap), `spheres[:K]`: K sphere lights at finite
-    /// distance (default: the envmap's bright clusters, at most 3), started from the envmap's
-    /// clusters and a distance search, refined by Levenberg–Marquardt (centres, radii;
-    /// radiances exact), written as a sidecar fragment (spheres/lights.ron) with its own
-    /// re-render and errors; or `auto`: every model (envmap, 1..3 spheres) fitted on three
-    /// quarters of the pixels, the one with the fewest parameters within one standard error
-    /// of the best on the held-out quarter chosen.
+    /// Light model: `envmap` (the ring envmap); `spheres:K`: K sphere lights at finite
+    /// distance, started from the envmap's bright clusters and a distance search, refined by
+    /// Levenberg–Marquardt (centres, radii; radiances exact), written as a sidecar fragment
+    /// (spheres/lights.ron) with its own re-render and errors; `spheres`: 1, 2, … (up to the
+    /// envmap's clusters, at most 3) lights fitted on three quarters of the pixels, the fewest
+    /// within one standard error of the best on the held-out quarter kept; `auto`: the same
+    /// with the envmap as one more candidate.
     #[arg(long, default_value = "envmap", value_parser = parse_model)]
     model: ModelArg,
     /// Resolutions `--rings auto` chooses from.
@@ -366,6 +366,10 @@ struct SweepArgs {
     /// Also run a `--rings auto` trial per scenario, choosing among --rings.
     #[arg(long)]
     auto: bool,
+    /// Also fit the sphere-light model (`estimate --model spheres`) per scenario, started from
+    /// the envmap estimate with this many rings.
+    #[arg(long, value_name = "RINGS")]
+    spheres: Option<u32>,
     /// Fit with imperfect albedos: each value e (e.g. 0.05,0.1,0.2) scales every material's
     /// albedo per channel by a fixed random factor in [1 − e, 1 + e]; the estimate is judged
     /// in the true scene. 0 = the true albedos.
@@ -905,6 +909,7 @@ fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         time_limit: std::time::Duration::from_secs_f64(a.time_limit),
         auto: a.auto,
         albedo_errors: a.albedo_error.clone(),
+        spheres: a.spheres,
     };
 
     let files = sidecar_files(&a.scenarios)?;
@@ -1095,8 +1100,12 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         bail!("--time-limit must be a positive number of seconds, at most 1e6");
     }
     let model_auto = matches!(a.model, ModelArg::Auto);
-    if model_auto && a.fit_only {
-        bail!("--model auto compares the models' re-renders; it cannot be used with --fit-only");
+    // The number of sphere lights chosen from the data (`spheres` without K, or `auto`).
+    let choose_k = matches!(a.model, ModelArg::Auto | ModelArg::Spheres(None));
+    if choose_k && a.fit_only {
+        bail!(
+            "--model auto and --model spheres (without :K) compare the models' re-renders; they cannot be used with --fit-only"
+        );
     }
     let rounds = a.rounds.unwrap_or(solver.default_rounds());
     if rounds == 0 || rounds > 100 {
@@ -1270,11 +1279,10 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let mut spheres_json = serde_json::Value::Null;
     let mut spheres_lines = Vec::new();
     let mut model_selection = None;
-    let clusters = estimate::recovery::clusters(&fit.envmap).len().clamp(1, 3);
-    let sphere_counts: Vec<usize> = match a.model {
-        ModelArg::Envmap => vec![],
-        ModelArg::Spheres(k) => vec![k.unwrap_or(clusters)],
-        ModelArg::Auto => (1..=clusters).collect(),
+    let max_lights = match a.model {
+        ModelArg::Envmap => 0,
+        ModelArg::Spheres(Some(k)) => k,
+        ModelArg::Spheres(None) | ModelArg::Auto => 3,
     };
     let (lo, hi) = scene.mesh.bounds();
     let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
@@ -1283,42 +1291,41 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         masks: &masks,
         references: &references,
         bin: 4,
-        holdout: model_auto,
+        holdout: choose_k,
     };
     let mut sphere_models = Vec::new();
-    for &k in &sphere_counts {
-        let pb = bar(&format!("spheres:{k}"), 1);
-        let so = pipeline::run_spheres(
+    if max_lights > 0 {
+        let pb = bar("sphere lights", max_lights as u64);
+        sphere_models = pipeline::run_sphere_models(
             &renderer,
             &renderer,
             &obs,
             &fit.envmap,
             &scene.lights,
             (scene.center(), size),
-            &estimate::spheres::SphereSettings::new(k, &settings),
+            max_lights,
+            choose_k,
             &settings,
             !a.fit_only,
             &|k| pb.inc(k),
         )
-        .with_context(|| format!("{}: --model spheres:{k}", a.scene.display()))?;
+        .with_context(|| format!("{}: --model spheres", a.scene.display()))?;
         pb.finish_and_clear();
-        sphere_models.push(so);
     }
     let mut chosen = sphere_models.len().checked_sub(1);
-    if model_auto {
+    if choose_k {
         let sel = pipeline::select_model(
-            &outcome,
+            model_auto.then_some(&outcome),
             &sphere_models,
-            &sphere_counts,
             &references,
             &masks,
         )
-        .context("--model auto: no candidate")?;
-        chosen = sphere_counts
+        .context("--model: no candidate")?;
+        chosen = sphere_models
             .iter()
-            .position(|k| sel.chosen == format!("spheres:{k}"));
+            .position(|m| sel.chosen == format!("spheres:{}", m.fit.requested));
         spheres_lines.push(format!(
-            "model auto: {} (held-out relMAE {}; lowest: {})",
+            "model chosen: {} (held-out relMAE {}; lowest: {})",
             sel.chosen,
             sel.candidates
                 .iter()
@@ -1372,12 +1379,12 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "channels": fit.channels,
         "light_recovery": recovery,
         "model": model_selection.as_ref().map_or(
-            if sphere_models.is_empty() { "envmap".to_string() } else { format!("spheres:{}", sphere_counts[0]) },
+            chosen.map_or("envmap".to_string(), |i| format!("spheres:{}", sphere_models[i].fit.requested)),
             |m| m.chosen.clone(),
         ),
         "model_selection": model_selection,
         "spheres": spheres_json,
-        "sphere_candidates": if model_auto { sphere_models.iter().map(spheres_report).collect::<Vec<_>>() } else { vec![] },
+        "sphere_candidates": if choose_k { sphere_models.iter().map(spheres_report).collect::<Vec<_>>() } else { vec![] },
         "timings": {
             "references_seconds": reference_seconds,
             "noise_floor_seconds": noise_seconds,

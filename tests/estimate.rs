@@ -471,6 +471,7 @@ fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
             residual: settings(64, 5),
             jacobian: settings(16, 6),
             max_iterations: 10,
+            fixed: 0,
         },
     );
     let got = out.lights[0];
@@ -491,7 +492,7 @@ fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
     assert!((power(&got) / power(&truth) - 1.0).abs() < 0.02, "{out:?}");
 }
 
-/// Envmap fit (5 rings) and sphere fits with 1..=`max_k` lights, all without the held-out
+/// Envmap fit (5 rings) and sphere fits with up to `max_k` lights, all without the held-out
 /// pixels, then `--model auto`'s choice.
 fn select_model(
     sc: &Scene,
@@ -536,26 +537,21 @@ fn select_model(
         bin: 4,
         holdout: true,
     };
-    let counts: Vec<usize> = (1..=max_k).collect();
-    let spheres: Vec<_> = counts
-        .iter()
-        .map(|&k| {
-            pipeline::run_spheres(
-                r,
-                r,
-                &obs,
-                &env.fit.envmap,
-                &[],
-                (center, 2.0),
-                &estimate::spheres::SphereSettings::new(k, &render),
-                &render,
-                true,
-                &|_| {},
-            )
-            .unwrap()
-        })
-        .collect();
-    let sel = pipeline::select_model(&env, &spheres, &counts, refs, masks).unwrap();
+    let spheres = pipeline::run_sphere_models(
+        r,
+        r,
+        &obs,
+        &env.fit.envmap,
+        &[],
+        (center, 2.0),
+        max_k,
+        true,
+        &render,
+        true,
+        &|_| {},
+    )
+    .unwrap();
+    let sel = pipeline::select_model(Some(&env), &spheres, refs, masks).unwrap();
     (sel, spheres)
 }
 
@@ -598,7 +594,7 @@ fn model_selection_picks_a_sphere_for_a_near_light_and_the_envmap_for_a_smooth_s
 
 #[test]
 fn degenerate_sphere_fits_are_reported_not_hidden() {
-    use estimate::spheres::{LightStatus, Observations, SphereSettings, fit_spheres};
+    use estimate::spheres::{LightStatus, Observations, SphereSettings, fit_sphere_models};
     let center = Vec3::new(0.0, 0.1, 0.0);
     let render = settings(256, 1);
     let grid = RingGrid::new(9);
@@ -625,14 +621,16 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
         holdout: false,
     };
     let env = envmap_towards(&[(NEAR_LIGHT.center - center).normalize(), Vec3::NEG_Y]);
-    let fit = fit_spheres(
+    let fit = fit_sphere_models(
         &r,
         &obs,
         &env,
         center,
         2.0,
         &SphereSettings::new(2, &render),
-    );
+    )
+    .pop()
+    .unwrap();
     eprintln!("below the table: {fit:#?}");
     assert_eq!(fit.fitted.len(), 2, "{fit:#?}");
     let below = fit
@@ -669,14 +667,16 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
             ..obs
         };
         let env = envmap_towards(&[(far.center - center).normalize()]);
-        let fit = fit_spheres(
+        let fit = fit_sphere_models(
             &r,
             &obs,
             &env,
             center,
             2.0,
             &SphereSettings::new(1, &render),
-        );
+        )
+        .pop()
+        .unwrap();
         let f = &fit.fitted[0];
         let (got, truth) = (f.light.center - center, far.center - center);
         eprintln!(

@@ -553,6 +553,57 @@ fn sphere_model_writes_a_sidecar_fragment_that_renders() {
         "--quiet",
     ]));
     assert!(out.join("cam_front.exr").exists());
+
+    // --model auto: every candidate's held-out error reported, the choice among them.
+    let auto = tmp.path().join("auto");
+    let rep = estimate_json(
+        &a,
+        &auto,
+        &["--rings", "5", "--spp", "16", "--model", "auto"],
+    );
+    let sel = &rep["model_selection"];
+    let names: Vec<&str> = sel["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["model"].as_str().unwrap())
+        .collect();
+    assert!(names.contains(&"envmap") && names.contains(&"spheres:1"), "{sel}");
+    assert!(names.contains(&rep["model"].as_str().unwrap()), "{rep}");
+    assert_eq!(sel["chosen"], rep["model"]);
+    for c in sel["candidates"].as_array().unwrap() {
+        assert!(c["validation_rel_mae"].as_f64().unwrap().is_finite(), "{c}");
+    }
+    // With --fit-only there is nothing to compare: refused before any output.
+    let o = run(&[
+        "estimate",
+        a.to_str().unwrap(),
+        "--out",
+        tmp.path().join("nope").to_str().unwrap(),
+        "--model",
+        "auto",
+        "--fit-only",
+    ]);
+    assert!(!o.status.success());
+    assert!(!tmp.path().join("nope").exists());
+
+    // The sweep runs the sphere model as its own trial and the report gives it a section.
+    let sw = tmp.path().join("sweep");
+    ok(&sweep(&[&a], &sw, &["--rings", "5", "--spp", "16", "--spheres", "5"]));
+    let recs = read_records(&sw).unwrap();
+    assert_eq!(recs.len(), 2);
+    let sph = recs
+        .iter()
+        .find(|r| r.id == "a/spp16/spheres-from-rings5/nnls")
+        .unwrap();
+    let st = sph.spheres.as_ref().unwrap();
+    assert_eq!(st.recovery.len(), 1);
+    assert!(st.recovery[0].centre_error_m.is_some_and(f32::is_finite));
+    let envmap = recs.iter().find(|r| r.spheres.is_none()).unwrap();
+    assert_eq!(st.envmap_rel_mae, envmap.rel_mae);
+    ok(&run(&["report", sw.to_str().unwrap()]));
+    let md = std::fs::read_to_string(sw.join("report.md")).unwrap();
+    assert!(md.contains("## Sphere-light model"), "{md}");
     // Bad model names are usage errors.
     let o = run(&[
         "estimate",

@@ -285,48 +285,62 @@ impl SphereOutcome {
     }
 }
 
-/// Fits the sphere model (directions from `envmap`, an envmap estimate of the same images),
-/// then optionally re-renders it with a seed the fit never saw, in the scene of
-/// `truth_renderer`, and matches it to `truth`. `size` is the scene's size (metres).
+/// Fits sphere models of 1, 2, … up to `max_lights` lights (greedy and nested, see
+/// [`spheres::fit_sphere_models`]; directions from `envmap`, an envmap estimate of the same
+/// images), then optionally re-renders each (`all`) or the largest with a seed the fit never
+/// saw, in the scene of `truth_renderer`, and matches it to `truth`. `scene` is the scene's
+/// centre and size (metres).
 #[allow(clippy::too_many_arguments)]
-pub fn run_spheres(
+pub fn run_sphere_models(
     renderer: &Renderer,
     truth_renderer: &Renderer,
     obs: &Observations,
     envmap: &Envmap,
     truth: &[SphereLight],
     (center, size): (Vec3, f32),
-    settings: &SphereSettings,
+    max_lights: usize,
+    all: bool,
     render: &RenderSettings,
     evaluate: bool,
     progress: &(dyn Fn(u64) + Sync),
-) -> Result<SphereOutcome> {
-    let fit = spheres::fit_spheres(renderer, obs, envmap, center, size, settings);
-    let lights = fit.lights();
-    if lights.is_empty() {
+) -> Result<Vec<SphereOutcome>> {
+    let settings = SphereSettings::new(max_lights, render);
+    let mut fits = spheres::fit_sphere_models(renderer, obs, envmap, center, size, &settings);
+    if !all {
+        fits = fits.split_off(fits.len().saturating_sub(1));
+    }
+    let mut out = Vec::new();
+    for fit in fits {
+        let lights = fit.lights();
+        if lights.is_empty() {
+            continue;
+        }
+        let t = Instant::now();
+        let (mut renders, mut errors) = (Vec::new(), Vec::new());
+        if evaluate {
+            let l = Lights::new(lights.clone());
+            renders = render_views(
+                &truth_renderer.with_lights(&l),
+                obs.cameras,
+                &evaluation_settings(render),
+                progress,
+            );
+            errors = compare_views(&renders, obs.references, obs.masks)?;
+        }
+        out.push(SphereOutcome {
+            recovery: recovery::recover_spheres(&lights, truth, center),
+            fit,
+            renders,
+            errors,
+            rerender_seconds: t.elapsed().as_secs_f64(),
+        });
+    }
+    if out.is_empty() {
         return Err(Error::Invalid(
             "no sphere light explains the images (every fitted light contributes nothing)".into(),
         ));
     }
-    let t = Instant::now();
-    let (mut renders, mut errors) = (Vec::new(), Vec::new());
-    if evaluate {
-        let l = Lights::new(lights.clone());
-        renders = render_views(
-            &truth_renderer.with_lights(&l),
-            obs.cameras,
-            &evaluation_settings(render),
-            progress,
-        );
-        errors = compare_views(&renders, obs.references, obs.masks)?;
-    }
-    Ok(SphereOutcome {
-        recovery: recovery::recover_spheres(&lights, truth, center),
-        fit,
-        renders,
-        errors,
-        rerender_seconds: t.elapsed().as_secs_f64(),
-    })
+    Ok(out)
 }
 
 /// Error of re-rendered images on the held-out pixels ([`super::is_held_out`]), in one fixed
@@ -353,23 +367,24 @@ pub fn held_out(images: &[Image], references: &[Image], masks: &[Vec<bool>]) -> 
     v
 }
 
-/// `--model auto`: chooses among the envmap (`envmap`, fitted with
-/// [`FitSettings::holdout`] and evaluated) and sphere models (fitted with
-/// [`Observations::holdout`] and evaluated; `counts[i]` lights in `spheres[i]`) by their
-/// re-renders' error on the held-out pixels. None when nothing was re-rendered.
+/// Chooses among light models fitted without the held-out pixels (the envmap with
+/// [`FitSettings::holdout`], sphere models with [`Observations::holdout`]), by their
+/// re-renders' error on the held-out pixels: the fewest parameters within one standard error
+/// of the best. Sphere models are named `spheres:K` for the K lights asked of them. None when
+/// nothing was re-rendered.
 pub fn select_model(
-    envmap: &Outcome,
+    envmap: Option<&Outcome>,
     spheres: &[SphereOutcome],
-    counts: &[usize],
     references: &[Image],
     masks: &[Vec<bool>],
 ) -> Option<super::select::ModelSelection> {
     let mut candidates: Vec<_> = spheres
         .iter()
-        .zip(counts)
+        .map(|so| (so, so.fit.requested))
         .filter(|(so, _)| !so.renders.is_empty())
-        // K lights asked, fewer found (fewer bright clusters): the same model as K − 1.
-        .filter(|(so, k)| so.fit.lights().len() == **k)
+        // K lights asked, fewer kept (merged, or contributing nothing): a smaller model's
+        // duplicate, or worse.
+        .filter(|(so, k)| so.fit.lights().len() == *k)
         .map(|(so, k)| {
             (
                 format!("spheres:{k}"),
@@ -379,12 +394,12 @@ pub fn select_model(
             )
         })
         .collect();
-    if !envmap.renders.is_empty() {
+    if let Some(env) = envmap.filter(|e| !e.renders.is_empty()) {
         candidates.push((
             "envmap".into(),
-            3 * envmap.fit.envmap.grid.cell_count(),
-            held_out(&envmap.renders, references, masks),
-            envmap.fit.transport_seconds + envmap.fit.solve_seconds + envmap.rerender_seconds,
+            3 * env.fit.envmap.grid.cell_count(),
+            held_out(&env.renders, references, masks),
+            env.fit.transport_seconds + env.fit.solve_seconds + env.rerender_seconds,
         ));
     }
     super::select::choose_model(candidates)

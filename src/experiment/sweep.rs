@@ -23,7 +23,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::estimate::pipeline::{self, EstimateOptions};
+use crate::estimate::recovery::SphereRecovery;
 use crate::estimate::select::{self, Selection};
+use crate::estimate::spheres::{LightStatus, Observations};
 use crate::estimate::{FitSettings, Solver, Transport, first_round_transport};
 use crate::imageio::{self, Image};
 use crate::render::sampling::mix64;
@@ -86,6 +88,9 @@ pub struct SweepSettings {
     /// channel by a fixed random factor in [1 − e, 1 + e]; the estimate is judged in the true
     /// scene.
     pub albedo_errors: Vec<f32>,
+    /// Also run the sphere-light model per scenario (`estimate --model spheres`), started
+    /// from an envmap estimate with this many rings.
+    pub spheres: Option<u32>,
 }
 
 /// How a trial ended.
@@ -185,17 +190,43 @@ pub struct TrialRecord {
     /// The `--rings auto` trial: how the resolution was chosen.
     #[serde(default)]
     pub auto: Option<Selection>,
+    /// The sphere-model trial: its lights and their recovery (the trial's errors are the
+    /// sphere model's; `rings` is the initialising envmap's).
+    #[serde(default)]
+    pub spheres: Option<SphereTrial>,
 }
 
-/// Trial identity: what resuming matches on (`rings` None: the `--rings auto` trial).
+/// A sphere-model trial's own figures.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SphereTrial {
+    /// Lights fitted (the envmap's bright clusters, at most 3) and how each ended.
+    pub statuses: Vec<LightStatus>,
+    /// Per true light, brightest first.
+    pub recovery: Vec<SphereRecovery>,
+    /// relMAE of the initialising envmap estimate, for contrast.
+    pub envmap_rel_mae: Option<f64>,
+    /// The sphere fits alone (search + refinement, every candidate count), seconds; the
+    /// envmap fit is `fit_seconds`.
+    pub sphere_fit_seconds: f64,
+    /// How the number of lights was chosen (held-out pixels, as `estimate --model spheres`).
+    #[serde(default)]
+    pub selection: Option<crate::estimate::select::ModelSelection>,
+    pub renders: usize,
+    pub iterations: usize,
+}
+
+/// Trial identity: what resuming matches on (`rings` None: the `--rings auto` trial; `spheres`:
+/// the sphere model started from that resolution).
 pub fn trial_id(
     scenario: &str,
     spp: u32,
     rings: Option<u32>,
     solver: Solver,
     albedo_error: f32,
+    spheres: bool,
 ) -> String {
     let r = rings.map_or("auto".to_string(), |r| format!("rings{r}"));
+    let r = if spheres { format!("spheres-from-{r}") } else { r };
     let a = if albedo_error > 0.0 {
         format!("/albedo{}", (albedo_error * 100.0).round())
     } else {
@@ -370,7 +401,7 @@ pub fn run(
             group,
         });
     }
-    for &r in &settings.rings {
+    for &r in settings.rings.iter().chain(&settings.spheres) {
         if !(1..=sidecar::MAX_RINGS).contains(&r) {
             return Err(Error::Invalid(format!(
                 "--rings: {r} is not in 1..={}",
@@ -419,7 +450,14 @@ pub fn run(
             for rings in fixed.chain(auto) {
                 for &solver in &solvers {
                     for &s in &mine {
-                        plan.push((s, spp, rings, solver, a));
+                        plan.push((s, spp, rings, solver, a, false));
+                    }
+                }
+            }
+            if let Some(r) = settings.spheres {
+                for &solver in &solvers {
+                    for &s in &mine {
+                        plan.push((s, spp, Some(r), solver, a, true));
                     }
                 }
             }
@@ -442,10 +480,10 @@ pub fn run(
     };
     let mut todo = Vec::new();
     let (mut failed_before, mut not_converged_before) = (0, 0);
-    for &(s, spp, rings, solver, a) in &plan {
-        let id = trial_id(&scenarios[s].name, spp, rings, solver, albedo_errors[a]);
+    for &(s, spp, rings, solver, a, spheres) in &plan {
+        let id = trial_id(&scenarios[s].name, spp, rings, solver, albedo_errors[a], spheres);
         match done.get(&id) {
-            None => todo.push((s, spp, rings, solver, a)),
+            None => todo.push((s, spp, rings, solver, a, spheres)),
             // Records from before fingerprints ("") are taken as they are.
             Some(r) if !r.fingerprint.is_empty() && r.fingerprint != fingerprint(s, solver) => {
                 return Err(Error::file(
@@ -522,7 +560,7 @@ pub fn run(
     type SharedKey = (usize, usize, u32, u32, u32, u64, u64, Solver);
     let mut shared: HashMap<SharedKey, (Arc<Transport>, f64)> = HashMap::new();
     let mut block = None;
-    for (k, &(s, spp, rings_plan, solver, a)) in todo.iter().enumerate() {
+    for (k, &(s, spp, rings_plan, solver, a, spheres)) in todo.iter().enumerate() {
         let t_trial = Instant::now();
         let sf = &scenarios[s];
         let scene = scenes[sf.group].as_ref().expect("loaded above");
@@ -657,7 +695,55 @@ pub fn run(
             Some(&first),
             &|_| {},
         );
-        let id = trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a]);
+        // The sphere model, from this envmap estimate (its figures replace the envmap's).
+        let sphere_outcome = match (&outcome, spheres) {
+            (Ok(o), true) => {
+                report(&format!("{} spheres", sf.name), progress);
+                let (lo, hi) = scene.mesh.bounds();
+                let sphere_obs = Observations {
+                    cameras: &views,
+                    masks: &obs.masks,
+                    references: &obs.references,
+                    bin: 4,
+                    holdout: true,
+                };
+                // As `estimate --model spheres`: 1..=3 lights, chosen on held-out pixels.
+                Some(
+                    pipeline::run_sphere_models(
+                        &fit_renderer,
+                        &renderer,
+                        &sphere_obs,
+                        &o.fit.envmap,
+                        &sf.lights,
+                        (scene.center(), (hi.x - lo.x).max(hi.z - lo.z).max(1e-3)),
+                        3,
+                        true,
+                        &render,
+                        true,
+                        &|_| {},
+                    )
+                    .and_then(|models| {
+                        let sel = pipeline::select_model(
+                            None,
+                            &models,
+                            &obs.references,
+                            &obs.masks,
+                        )
+                        .ok_or_else(|| Error::Invalid("no sphere model to choose".into()))?;
+                        let i = models
+                            .iter()
+                            .position(|m| sel.chosen == format!("spheres:{}", m.fit.requested))
+                            .unwrap_or(0);
+                        // Nested fits: the last one's time includes the others'.
+                        let seconds = models.last().map_or(0.0, |m| m.fit.seconds);
+                        let so = models.into_iter().nth(i).expect("chosen among them");
+                        Ok((so, sel, seconds))
+                    }),
+                )
+            }
+            _ => None,
+        };
+        let id = trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a], spheres);
         let (lo, hi) = scene.mesh.bounds();
         let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
         let center = scene.center();
@@ -705,6 +791,7 @@ pub fn run(
                 ..Default::default()
             },
             auto: selection,
+            spheres: None,
             albedo_error: albedo_errors[a],
             fingerprint: fingerprint(s, solver),
             transport_bytes: 0,
@@ -773,6 +860,35 @@ pub fn run(
                     + f.solve_seconds;
                 record.timings.rerender_seconds = o.rerender_seconds;
                 record.transport_bytes = f.transport_bytes;
+            }
+        }
+        match sphere_outcome {
+            None => {}
+            Some(Err(e)) => {
+                if record.status != Status::Failed {
+                    summary.failed += 1;
+                }
+                record.status = Status::Failed;
+                record.error = Some(format!("sphere model: {e}"));
+                record.rel_mae = None;
+            }
+            Some(Ok((so, selection, seconds))) => {
+                let envmap_rel_mae = record.rel_mae;
+                record.rel_mae = so.rel_mae().filter(|e| e.is_finite());
+                for (v, e) in record.views.iter_mut().zip(&so.errors) {
+                    (v.rel_mae, v.rel_mse, v.rmse, v.psnr) =
+                        (fin(e.rel_mae), fin(e.rel_mse), fin(e.rmse), fin(e.psnr));
+                }
+                record.timings.rerender_seconds = so.rerender_seconds;
+                record.spheres = Some(SphereTrial {
+                    statuses: so.fit.fitted.iter().map(|f| f.status).collect(),
+                    recovery: so.recovery,
+                    envmap_rel_mae,
+                    sphere_fit_seconds: seconds,
+                    selection: Some(selection),
+                    renders: so.fit.renders,
+                    iterations: so.fit.iterations,
+                });
             }
         }
         record.timings.trial_seconds = t_trial.elapsed().as_secs_f64();
