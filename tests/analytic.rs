@@ -117,7 +117,14 @@ fn mis_light_only_and_bsdf_only_agree() {
     let mut mesh = plane(3.0, 0.0);
     let ball = icosphere(Vec3::new(-0.4, 0.35, 0.3), 0.35, 3);
     mesh.append(&ball, 0);
-    let sc = scene(mesh, Vec3::splat(0.7), cam.clone(), vec![light]);
+    // A second, dimmer light: lights are picked by how strongly they light each point, and
+    // every strategy must still agree on the mean.
+    let dim = SphereLight {
+        center: Vec3::new(-1.2, 1.0, 0.9),
+        radius: 0.6,
+        radiance: Vec3::new(0.3, 0.4, 0.6),
+    };
+    let sc = scene(mesh, Vec3::splat(0.7), cam.clone(), vec![light, dim]);
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
     assert_strategies_agree(|strategy, seed| {

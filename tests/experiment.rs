@@ -568,7 +568,10 @@ fn sphere_model_writes_a_sidecar_fragment_that_renders() {
         .iter()
         .map(|c| c["model"].as_str().unwrap())
         .collect();
-    assert!(names.contains(&"envmap") && names.contains(&"spheres:1"), "{sel}");
+    assert!(
+        names.contains(&"envmap") && names.contains(&"spheres:1"),
+        "{sel}"
+    );
     assert!(names.contains(&rep["model"].as_str().unwrap()), "{rep}");
     assert_eq!(sel["chosen"], rep["model"]);
     for c in sel["candidates"].as_array().unwrap() {
@@ -589,7 +592,11 @@ fn sphere_model_writes_a_sidecar_fragment_that_renders() {
 
     // The sweep runs the sphere model as its own trial and the report gives it a section.
     let sw = tmp.path().join("sweep");
-    ok(&sweep(&[&a], &sw, &["--rings", "5", "--spp", "16", "--spheres", "5"]));
+    ok(&sweep(
+        &[&a],
+        &sw,
+        &["--rings", "5", "--spp", "16", "--spheres", "5"],
+    ));
     let recs = read_records(&sw).unwrap();
     assert_eq!(recs.len(), 2);
     let sph = recs

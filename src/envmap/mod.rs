@@ -49,6 +49,8 @@ pub struct Envmap {
     cell_cdf: Vec<f64>,
     /// Per cell: P(cell) / Ω(cell).
     pdf: Vec<f32>,
+    /// Σ luminance × Ω over cells: the map's weight when lights are picked by power.
+    luminance_integral: f32,
 }
 
 impl Envmap {
@@ -88,8 +90,10 @@ impl Envmap {
             ring_cdf: Vec::new(),
             cell_cdf: Vec::new(),
             pdf: Vec::new(),
+            luminance_integral: 0.0,
         };
         env.build_distribution();
+        env.luminance_integral = luminance(env.integral());
         Ok(env)
     }
 
@@ -202,6 +206,11 @@ impl Envmap {
             .min(len - 1);
         let cell = (start + j) as u32;
         (cell, self.grid.sample_in_cell(cell, u), self.pdf[start + j])
+    }
+
+    /// Σ luminance × Ω over cells (cached): how strongly the map lights a receiver.
+    pub fn luminance_integral(&self) -> f32 {
+        self.luminance_integral
     }
 
     /// Total emitted power per unit area of a receiver facing everything, Σ λ·Ω (W/m² per

@@ -443,13 +443,17 @@ pub fn next_light(
     let g = &envmap.grid;
     let mut cells: Vec<(f32, Vec3)> = (0..g.cell_count() as u32)
         .map(|c| {
-            let p = crate::imageio::luminance(envmap.radiance()[c as usize]) * envmap.solid_angle(c);
+            let p =
+                crate::imageio::luminance(envmap.radiance()[c as usize]) * envmap.solid_angle(c);
             (p, g.center(c))
         })
         .filter(|(p, _)| *p > 0.0)
         .collect();
     cells.sort_by(|a, b| b.0.total_cmp(&a.0));
-    let taken: Vec<Vec3> = placed.iter().map(|l| (l.center - center).normalize()).collect();
+    let taken: Vec<Vec3> = placed
+        .iter()
+        .map(|l| (l.center - center).normalize())
+        .collect();
     let mut dirs: Vec<Vec3> = Vec::new();
     for (_, d) in cells {
         let far = |o: &Vec3| d.angle_between(*o) > 10f32.to_radians();
@@ -715,7 +719,14 @@ pub fn fit_sphere_models(
         .map(|c| c.direction)
         .collect();
     for k in 1..=settings.k {
-        let (next, r) = next_light(renderer, obs, envmap, &lights, (center, size), &settings.search);
+        let (next, r) = next_light(
+            renderer,
+            obs,
+            envmap,
+            &lights,
+            (center, size),
+            &settings.search,
+        );
         renders += r;
         let Some(next) = next else { break };
         let mut start = lights.clone();
@@ -741,8 +752,13 @@ pub fn fit_sphere_models(
         // lights; with as many bright clusters as lights, a start from all of them at once
         // competes, and the lower objective wins.
         if k > 1 && clusters.len() >= k {
-            let (together, r) =
-                initialise(renderer, obs, &clusters[..k], (center, size), &settings.search);
+            let (together, r) = initialise(
+                renderer,
+                obs,
+                &clusters[..k],
+                (center, size),
+                &settings.search,
+            );
             renders += r;
             let other = refine(renderer, obs, &together, center, &settings.refine);
             renders += other.evaluations;
@@ -753,7 +769,9 @@ pub fn fit_sphere_models(
         }
         let (fitted, r) = judge(renderer, obs, &refined, center, &settings.refine.residual);
         renders += r;
-        let done = fitted.iter().any(|f| f.status != LightStatus::Identified && f.status != LightStatus::DistanceUnidentified);
+        let done = fitted.iter().any(|f| {
+            f.status != LightStatus::Identified && f.status != LightStatus::DistanceUnidentified
+        });
         lights = refined
             .lights
             .iter()

@@ -226,7 +226,11 @@ pub fn trial_id(
     spheres: bool,
 ) -> String {
     let r = rings.map_or("auto".to_string(), |r| format!("rings{r}"));
-    let r = if spheres { format!("spheres-from-{r}") } else { r };
+    let r = if spheres {
+        format!("spheres-from-{r}")
+    } else {
+        r
+    };
     let a = if albedo_error > 0.0 {
         format!("/albedo{}", (albedo_error * 100.0).round())
     } else {
@@ -481,7 +485,14 @@ pub fn run(
     let mut todo = Vec::new();
     let (mut failed_before, mut not_converged_before) = (0, 0);
     for &(s, spp, rings, solver, a, spheres) in &plan {
-        let id = trial_id(&scenarios[s].name, spp, rings, solver, albedo_errors[a], spheres);
+        let id = trial_id(
+            &scenarios[s].name,
+            spp,
+            rings,
+            solver,
+            albedo_errors[a],
+            spheres,
+        );
         match done.get(&id) {
             None => todo.push((s, spp, rings, solver, a, spheres)),
             // Records from before fingerprints ("") are taken as they are.
@@ -723,13 +734,11 @@ pub fn run(
                         &|_| {},
                     )
                     .and_then(|models| {
-                        let sel = pipeline::select_model(
-                            None,
-                            &models,
-                            &obs.references,
-                            &obs.masks,
-                        )
-                        .ok_or_else(|| Error::Invalid("no sphere model to choose".into()))?;
+                        let sel =
+                            pipeline::select_model(None, &models, &obs.references, &obs.masks)
+                                .ok_or_else(|| {
+                                    Error::Invalid("no sphere model to choose".into())
+                                })?;
                         let i = models
                             .iter()
                             .position(|m| sel.chosen == format!("spheres:{}", m.fit.requested))

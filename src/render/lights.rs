@@ -2,8 +2,9 @@
 //! keeps sampling, pdf and evaluation side by side.
 //!
 //! Sphere lights are sampled uniformly in the cone they subtend (pbrt's "sample by solid
-//! angle"); the envmap by its cell distribution. A light is picked uniformly; pdfs are per unit
-//! solid angle at the shading point and include the probability of picking the light.
+//! angle"); the envmap by its cell distribution. A light is picked in proportion to how
+//! strongly it lights the shading point (luminance × solid angle); pdfs are per unit solid
+//! angle at the shading point and include the probability of picking the light.
 
 use glam::{Vec2, Vec3};
 
@@ -41,6 +42,10 @@ pub struct Lights {
     pub env: Option<Envmap>,
 }
 
+/// Up to this many lights are picked by how strongly they light the shading point; more are
+/// picked uniformly (the weights would cost more than they save).
+pub const MAX_WEIGHTED: usize = 16;
+
 impl Lights {
     /// Sphere lights only.
     pub fn new(spheres: Vec<SphereLight>) -> Lights {
@@ -75,22 +80,77 @@ impl Lights {
         }
     }
 
-    /// Picks a light uniformly with `u_light.x` (and an envmap cell with `u_light.y`), then a
-    /// direction to it with `u`.
+    /// How likely each light is to be picked from `p`: in proportion to how strongly it
+    /// lights `p` — luminance × the solid angle a sphere subtends there, and the envmap's
+    /// Σ luminance × Ω — so a dim light beside a bright one costs the bright one few samples.
+    /// Uniform when every weight is zero, or beyond [`MAX_WEIGHTED`] lights. Index `count()`
+    /// holds the total.
+    #[inline]
+    fn pick_weights(&self, p: Vec3) -> Option<[f32; MAX_WEIGHTED + 1]> {
+        let n = self.count();
+        if n > MAX_WEIGHTED {
+            return None;
+        }
+        let mut w = [0.0f32; MAX_WEIGHTED + 1];
+        for (i, s) in self.spheres.iter().enumerate() {
+            w[i] = one_minus_cos_max(s, p).map_or(0.0, |o| {
+                crate::imageio::luminance(s.radiance).max(0.0) * std::f32::consts::TAU * o
+            });
+        }
+        if let Some(env) = &self.env {
+            w[n - 1] = env.luminance_integral().max(0.0);
+        }
+        let total: f32 = w[..n].iter().sum();
+        (total > 0.0 && total.is_finite()).then(|| {
+            w[n] = total;
+            w
+        })
+    }
+
+    /// The probability of picking light `i` from `p`.
+    #[inline]
+    fn pick_pdf(&self, i: usize, p: Vec3) -> f32 {
+        match self.pick_weights(p) {
+            Some(w) => w[i] / w[self.count()],
+            None => 1.0 / self.count() as f32,
+        }
+    }
+
+    /// Picks a light with `u_light.x` ([`Lights::pick_weights`]; an envmap cell with
+    /// `u_light.y`), then a direction to it with `u`.
     #[inline]
     pub fn sample(&self, p: Vec3, u_light: Vec2, u: Vec2) -> Option<LightSample> {
         let n = self.count();
         if n == 0 {
             return None;
         }
-        let i = ((u_light.x * n as f32) as usize).min(n - 1);
+        let (i, pick) = match self.pick_weights(p) {
+            Some(w) => {
+                let target = u_light.x * w[n];
+                let mut acc = 0.0;
+                let mut i = n - 1;
+                for (k, &wk) in w[..n].iter().enumerate() {
+                    acc += wk;
+                    if target < acc && wk > 0.0 {
+                        i = k;
+                        break;
+                    }
+                }
+                // Rounding can leave the last index with weight zero: take the last nonzero.
+                while w[i] <= 0.0 && i > 0 {
+                    i -= 1;
+                }
+                (i, w[i] / w[n])
+            }
+            None => (((u_light.x * n as f32) as usize).min(n - 1), 1.0 / n as f32),
+        };
         if i < self.spheres.len() {
             let (wi, dist, pdf) = sample_sphere(&self.spheres[i], p, u)?;
             return Some(LightSample {
                 emitter: Emitter::Sphere(i as u32),
                 wi,
                 dist,
-                pdf: pdf / n as f32,
+                pdf: pdf * pick,
             });
         }
         let env = self.env.as_ref()?;
@@ -99,7 +159,7 @@ impl Lights {
             emitter: Emitter::EnvCell(cell),
             wi,
             dist: f32::INFINITY,
-            pdf: pdf / n as f32,
+            pdf: pdf * pick,
         })
     }
 
@@ -107,10 +167,14 @@ impl Lights {
     /// it) from `p`.
     #[inline]
     pub fn pdf(&self, emitter: Emitter, p: Vec3) -> f32 {
-        let n = self.count() as f32;
         match emitter {
-            Emitter::Sphere(i) => cone_pdf(&self.spheres[i as usize], p) / n,
-            Emitter::EnvCell(c) => self.env.as_ref().map_or(0.0, |e| e.pdf(c)) / n,
+            Emitter::Sphere(i) => {
+                cone_pdf(&self.spheres[i as usize], p) * self.pick_pdf(i as usize, p)
+            }
+            Emitter::EnvCell(c) => self
+                .env
+                .as_ref()
+                .map_or(0.0, |e| e.pdf(c) * self.pick_pdf(self.count() - 1, p)),
         }
     }
 
@@ -214,6 +278,45 @@ mod tests {
             radius: 0.4,
             radiance: Vec3::ONE,
         }
+    }
+
+    #[test]
+    fn lights_are_picked_by_how_strongly_they_light_the_point() {
+        // Same size and distance, one 9× brighter in luminance: picked 9× as often, and the
+        // pdf a sample reports is the one `pdf` gives for it.
+        let p = Vec3::ZERO;
+        let bright = SphereLight {
+            center: Vec3::new(1.0, 2.0, 0.0),
+            radius: 0.3,
+            radiance: Vec3::splat(9.0),
+        };
+        let dim = SphereLight {
+            center: Vec3::new(-1.0, 2.0, 0.0),
+            radiance: Vec3::ONE,
+            ..bright
+        };
+        let zero = SphereLight {
+            center: Vec3::new(0.0, 2.0, 1.0),
+            radiance: Vec3::ZERO,
+            ..bright
+        };
+        let lights = Lights::new(vec![bright, dim, zero]);
+        let mut rng = Rng::new(34);
+        let mut counts = [0usize; 3];
+        for _ in 0..20_000 {
+            let s = lights
+                .sample(p, rng.next_2d(), rng.next_2d())
+                .expect("a sample");
+            let Emitter::Sphere(i) = s.emitter else {
+                panic!("no envmap here")
+            };
+            counts[i as usize] += 1;
+            let back = lights.pdf(s.emitter, p);
+            assert!((back - s.pdf).abs() <= 1e-4 * s.pdf, "{back} vs {}", s.pdf);
+        }
+        assert_eq!(counts[2], 0, "a black light is never picked: {counts:?}");
+        let ratio = counts[0] as f64 / counts[1] as f64;
+        assert!((ratio - 9.0).abs() < 0.6, "{counts:?}");
     }
 
     #[test]
