@@ -4,7 +4,7 @@
 # Outputs go to results/ (not in git); the charts and summaries are copied to docs/experiment/.
 #
 #   bash scripts/experiment.sh            # everything
-#   bash scripts/experiment.sh paper      # only the 55 × 13 NNLS sweep and its report
+#   bash scripts/experiment.sh paper      # the 55 × 13 NNLS sweep and the sphere model only
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release --quiet
@@ -44,8 +44,16 @@ if [ "$what" != paper ]; then
     --rings 3,9,21 --time-limit 3 --allow-failures
 fi
 
+# 5. Finite-distance lights (issue 9): the sphere model (1–3 lights, the count chosen on
+#    held-out pixels, started from the 9-ring envmap) on the 15 scenarios whose lights all sit
+#    1.5–5 m from the scene centre, beside the 9-ring envmap.
+NEAR=$(for i in 01 02 03 05 12 13 23 25 31 35 36 44 49 50 51; do echo "$S/s$i.ron"; done)
+# shellcheck disable=SC2086
+$LP sweep $NEAR --out results/spheres --rings 9 --spheres 9 --allow-failures
+$LP report results/spheres
+
 mkdir -p docs/experiment
-for d in sweep solvers albedo; do
+for d in sweep solvers albedo spheres; do
   [ -d "results/$d" ] || continue
   mkdir -p "docs/experiment/$d"
   cp results/$d/*.png results/$d/report.md results/$d/summary.json results/$d/trials*.jsonl \

@@ -426,42 +426,47 @@ fn joined(base: Option<&SphereProblem>, extra: &SphereProblem) -> SphereProblem 
     }
 }
 
-/// Where the next light starts, with no hand-given guess: the envmap estimate's brightest
-/// cells (by power, at least 10° from each other and from the lights already `placed`) are
-/// candidate directions from `center`; each is tried at 3 scene sizes (radius subtending 3°)
+/// Where the next light starts, with no hand-given guess: the brightest cells of the `guides`
+/// (envmap estimates, by power, at least 10° from each other and from the lights already
+/// `placed`; 12 in all, shared among the guides) are candidate directions from `center`; each is tried at 3 scene sizes (radius subtending 3°)
 /// beside the placed lights (radiances solved exactly), and along the best two a distance
 /// search (1 to 10 scene sizes) picks the start. Returns the light and the renders made; None
 /// when no candidate direction is left.
 pub fn next_light(
     renderer: &Renderer,
     obs: &Observations,
-    envmap: &crate::envmap::Envmap,
+    guides: &[&crate::envmap::Envmap],
     placed: &[SphereLight],
     (center, size): (Vec3, f32),
     settings: &RenderSettings,
 ) -> (Option<SphereLight>, usize) {
-    let g = &envmap.grid;
-    let mut cells: Vec<(f32, Vec3)> = (0..g.cell_count() as u32)
-        .map(|c| {
-            let p =
-                crate::imageio::luminance(envmap.radiance()[c as usize]) * envmap.solid_angle(c);
-            (p, g.center(c))
-        })
-        .filter(|(p, _)| *p > 0.0)
-        .collect();
-    cells.sort_by(|a, b| b.0.total_cmp(&a.0));
     let taken: Vec<Vec3> = placed
         .iter()
         .map(|l| (l.center - center).normalize())
         .collect();
     let mut dirs: Vec<Vec3> = Vec::new();
-    for (_, d) in cells {
-        let far = |o: &Vec3| d.angle_between(*o) > 10f32.to_radians();
-        if taken.iter().all(far) && dirs.iter().all(far) {
-            dirs.push(d);
-        }
-        if dirs.len() == 12 {
-            break;
+    let per_guide = 12 / guides.len().max(1);
+    for envmap in guides {
+        let g = &envmap.grid;
+        let mut cells: Vec<(f32, Vec3)> = (0..g.cell_count() as u32)
+            .map(|c| {
+                let p = crate::imageio::luminance(envmap.radiance()[c as usize])
+                    * envmap.solid_angle(c);
+                (p, g.center(c))
+            })
+            .filter(|(p, _)| *p > 0.0)
+            .collect();
+        cells.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let mut mine = 0;
+        for (_, d) in cells {
+            let far = |o: &Vec3| d.angle_between(*o) > 10f32.to_radians();
+            if taken.iter().all(far) && dirs.iter().all(far) {
+                dirs.push(d);
+                mine += 1;
+            }
+            if mine == per_guide {
+                break;
+            }
         }
     }
     let mut renders = 0;
@@ -718,11 +723,28 @@ pub fn fit_sphere_models(
         .into_iter()
         .map(|c| c.direction)
         .collect();
+    let mut fitted_lights: Vec<SphereLight> = Vec::new();
     for k in 1..=settings.k {
+        // Where the lights found so far leave light unexplained: an envmap fitted to the
+        // residual images (the first light looks at the envmap estimate itself).
+        let residual_env;
+        let guides = if fitted_lights.is_empty() {
+            vec![envmap]
+        } else {
+            renders += 1;
+            residual_env = residual_envmap(
+                renderer,
+                obs,
+                &fitted_lights,
+                envmap.grid.rings(),
+                &settings.search,
+            );
+            vec![&residual_env, envmap]
+        };
         let (next, r) = next_light(
             renderer,
             obs,
-            envmap,
+            &guides,
             &lights,
             (center, size),
             &settings.search,
@@ -772,6 +794,7 @@ pub fn fit_sphere_models(
         let done = fitted.iter().any(|f| {
             f.status != LightStatus::Identified && f.status != LightStatus::DistanceUnidentified
         });
+        fitted_lights = refined.lights.clone();
         lights = refined
             .lights
             .iter()
@@ -799,6 +822,51 @@ pub fn fit_sphere_models(
         }
     }
     fits
+}
+
+/// An envmap (of `rings`) fitted to what `lights` leave unexplained in the references (the
+/// residual images, rendered with `settings`): where the next light should go.
+fn residual_envmap(
+    renderer: &Renderer,
+    obs: &Observations,
+    lights: &[SphereLight],
+    rings: u32,
+    settings: &RenderSettings,
+) -> crate::envmap::Envmap {
+    let l = Lights::new(lights.to_vec());
+    let with = renderer.with_lights(&l);
+    let residual: Vec<Image> = obs
+        .cameras
+        .iter()
+        .zip(obs.references)
+        .enumerate()
+        .map(|(v, (cam, reference))| {
+            let pred = with.render_radiance(cam, 3000 + v as u64, settings, &|_| {});
+            Image {
+                rgb: reference
+                    .rgb
+                    .iter()
+                    .zip(&pred.rgb)
+                    .map(|(r, p)| *r - *p)
+                    .collect(),
+                ..reference.clone()
+            }
+        })
+        .collect();
+    let fit = super::FitSettings {
+        holdout: obs.holdout,
+        ..super::FitSettings::new(settings, rings, super::Solver::Nnls, 2 * settings.spp, 1)
+    };
+    super::fit_reusing(
+        renderer,
+        obs.cameras,
+        &residual,
+        obs.masks,
+        &fit,
+        None,
+        &|_| {},
+    )
+    .envmap
 }
 
 /// Judges each refined light: merged (inseparable from a brighter one), contributing nothing,
