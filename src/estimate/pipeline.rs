@@ -304,7 +304,10 @@ pub fn run_sphere_models(
     evaluate: bool,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Vec<SphereOutcome>> {
-    let settings = SphereSettings::new(max_lights, render);
+    let settings = SphereSettings {
+        at_once: !all,
+        ..SphereSettings::new(max_lights, render)
+    };
     let mut fits = spheres::fit_sphere_models(renderer, obs, envmap, center, size, &settings);
     if !all {
         fits = fits.split_off(fits.len().saturating_sub(1));

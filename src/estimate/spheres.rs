@@ -551,6 +551,9 @@ pub fn initialise(
 pub struct SphereSettings {
     /// Most lights to fit.
     pub k: usize,
+    /// Fit only the K-light model, from all of the envmap's K brightest clusters at once when
+    /// it has that many (the fast path of `--model spheres:K`); else the nested sequence.
+    pub at_once: bool,
     /// Samples and seed of the start search's renders ([`next_light`]).
     pub search: RenderSettings,
     pub refine: RefineSettings,
@@ -569,6 +572,7 @@ impl SphereSettings {
         };
         SphereSettings {
             k,
+            at_once: false,
             search: at(32, 3),
             refine: RefineSettings {
                 residual: at(64, 5),
@@ -723,6 +727,27 @@ pub fn fit_sphere_models(
         .into_iter()
         .map(|c| c.direction)
         .collect();
+    if settings.at_once && clusters.len() >= settings.k {
+        let (start, r) = initialise(
+            renderer,
+            obs,
+            &clusters[..settings.k],
+            (center, size),
+            &settings.search,
+        );
+        let refined = refine(renderer, obs, &start, center, &settings.refine);
+        let (fitted, j) = judge(renderer, obs, &refined, center, &settings.refine.residual);
+        return vec![SphereFit {
+            requested: settings.k,
+            fitted,
+            start,
+            fit_rel_mae: refined.rel_mae,
+            iterations: refined.iterations,
+            renders: r + refined.evaluations + j,
+            history: refined.history,
+            seconds: t0.elapsed().as_secs_f64(),
+        }];
+    }
     let mut fitted_lights: Vec<SphereLight> = Vec::new();
     for k in 1..=settings.k {
         // Where the lights found so far leave light unexplained: an envmap fitted to the
