@@ -627,7 +627,11 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
         &env,
         center,
         2.0,
-        &SphereSettings::new(2, &render),
+        // Both clusters at once, so the second light starts straight down.
+        &SphereSettings {
+            at_once: true,
+            ..SphereSettings::new(2, &render)
+        },
     )
     .pop()
     .unwrap();
