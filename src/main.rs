@@ -970,19 +970,23 @@ fn metrics_json(m: &metrics::Metrics) -> serde_json::Value {
     serde_json::to_value(m).unwrap_or_default()
 }
 
-/// Writes a sphere-model estimate: the sidecar fragment, and per view the re-render and its
-/// error heat map.
-fn write_spheres(
+/// Writes re-renders of an estimate into `dir`: per view the EXR, a PNG preview exposed like
+/// its reference, and the error heat map against it.
+fn write_renders(
     dir: &Path,
-    so: &pipeline::SphereOutcome,
+    renders: &[Image],
     views: &[&lightprobe::scene::Camera],
     references: &[Image],
     masks: &[Vec<bool>],
 ) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir).map_err(|e| lightprobe::Error::io(dir, e))?;
-    imageio::write_bytes(&dir.join("lights.ron"), so.fit.fragment().as_bytes())?;
-    for (i, (img, cam)) in so.renders.iter().zip(views).enumerate() {
+    for (i, (img, cam)) in renders.iter().zip(views).enumerate() {
         imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
+        imageio::write_png(
+            &dir.join(format!("{}.png", cam.name)),
+            img,
+            imageio::auto_exposure(&references[i]),
+        )?;
         metrics::write_heatmap(
             &dir.join(format!("{}.error.png", cam.name)),
             img,
@@ -991,6 +995,19 @@ fn write_spheres(
             None,
         )?;
     }
+    Ok(())
+}
+
+/// Writes a sphere-model estimate: the sidecar fragment and the re-renders.
+fn write_spheres(
+    dir: &Path,
+    so: &pipeline::SphereOutcome,
+    views: &[&lightprobe::scene::Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+) -> anyhow::Result<()> {
+    write_renders(dir, &so.renders, views, references, masks)?;
+    imageio::write_bytes(&dir.join("lights.ron"), so.fit.fragment().as_bytes())?;
     Ok(())
 }
 
@@ -1255,23 +1272,13 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         attributes,
     )?;
     if !outcome.renders.is_empty() {
-        let dir = a.out.join("estimate");
-        std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;
-        for (i, (img, cam)) in outcome.renders.iter().zip(&views).enumerate() {
-            imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
-            imageio::write_png(
-                &dir.join(format!("{}.png", cam.name)),
-                img,
-                imageio::auto_exposure(&references[i]),
-            )?;
-            metrics::write_heatmap(
-                &dir.join(format!("{}.error.png", cam.name)),
-                img,
-                &references[i],
-                &masks[i],
-                None,
-            )?;
-        }
+        write_renders(
+            &a.out.join("estimate"),
+            &outcome.renders,
+            &views,
+            &references,
+            &masks,
+        )?;
     }
     let rerender_seconds = outcome.rerender_seconds;
 
