@@ -36,6 +36,7 @@ fn settings(spp: u32, max_bounces: u32, strategy: Strategy) -> RenderSettings {
         seed: 7,
         strategy,
         hide_emitters: true,
+        every_light: false,
     }
 }
 
@@ -91,14 +92,27 @@ fn diffuse_plane_under_sphere_light_matches_closed_form() {
     }
 }
 
-/// MIS, light-only and BSDF-only sampling give the same image mean within 1%, each averaged over
+/// MIS, light-only and BSDF-only sampling, with one light picked or every light sampled, give
+/// the same image mean within 1%, each averaged over
 /// 4 seeds (BSDF sampling alone varies by ~0.6% between seeds in these scenes, so 1% is several
 /// standard errors wide).
-fn assert_strategies_agree(render: impl Fn(Strategy, u64) -> lightprobe::imageio::Image) {
-    let means: Vec<Vec3> = [Strategy::Mis, Strategy::LightOnly, Strategy::BsdfOnly]
-        .iter()
-        .map(|&s| (0..4u64).map(|seed| render(s, seed).mean()).sum::<Vec3>() / 4.0)
-        .collect();
+fn assert_strategies_agree(render: impl Fn(Strategy, bool, u64) -> lightprobe::imageio::Image) {
+    // Light picking, and sampling every light ([`RenderSettings::every_light`]).
+    let means: Vec<Vec3> = [
+        (Strategy::Mis, false),
+        (Strategy::LightOnly, false),
+        (Strategy::BsdfOnly, false),
+        (Strategy::Mis, true),
+        (Strategy::LightOnly, true),
+    ]
+    .iter()
+    .map(|&(s, every)| {
+        (0..4u64)
+            .map(|seed| render(s, every, seed).mean())
+            .sum::<Vec3>()
+            / 4.0
+    })
+    .collect();
     for m in &means[1..] {
         let rel = ((*m - means[0]).abs() / means[0]).max_element();
         assert!(rel < 0.01, "means differ by {rel}: {means:?}");
@@ -127,12 +141,13 @@ fn mis_light_only_and_bsdf_only_agree() {
     let sc = scene(mesh, Vec3::splat(0.7), cam.clone(), vec![light, dim]);
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
-    assert_strategies_agree(|strategy, seed| {
+    assert_strategies_agree(|strategy, every_light, seed| {
         r.render_radiance(
             &cam,
             0,
             &RenderSettings {
                 seed,
+                every_light,
                 ..settings(1024, 3, strategy)
             },
             &|_| {},
@@ -390,13 +405,14 @@ fn envmap_strategies_agree() {
     let ball = icosphere(Vec3::new(-0.4, 0.35, 0.3), 0.35, 3);
     mesh.append(&ball, 0);
     let sc = scene(mesh, Vec3::splat(0.6), cam.clone(), vec![]);
-    assert_strategies_agree(|strategy, seed| {
+    assert_strategies_agree(|strategy, every_light, seed| {
         render_env(
             &sc,
             env.clone(),
             &cam,
             RenderSettings {
                 seed,
+                every_light,
                 ..settings(512, 3, strategy)
             },
         )

@@ -6,7 +6,7 @@
 
 use glam::{Vec2, Vec3};
 
-use super::lights::Lights;
+use super::lights::{LightSample, Lights};
 use super::sampling::{INV_PI, Rng, cosine_hemisphere, power_heuristic, r2};
 use super::{Accumulator, RenderSettings, Strategy};
 use crate::accel::{Accel, Hit};
@@ -110,7 +110,12 @@ impl Tracer<'_> {
                         }
                     } else if use_bsdf {
                         let w = if mis {
-                            power_heuristic(prev_pdf_bsdf, lights.pdf(e, prev_p))
+                            let light_pdf = if st.every_light {
+                                lights.pdf_light(e, prev_p)
+                            } else {
+                                lights.pdf(e, prev_p)
+                            };
+                            power_heuristic(prev_pdf_bsdf, light_pdf)
                         } else {
                             1.0
                         };
@@ -130,32 +135,17 @@ impl Tracer<'_> {
             let f = sp.albedo * INV_PI;
 
             // ---- Emitter sampling ----
-            if use_light {
+            if use_light && st.every_light {
+                for i in 0..lights.len() {
+                    let (u_cell, u) = (s.rng.next_f32(), s.rng.next_2d());
+                    if let Some(ls) = lights.sample_light(i, sp.p, u_cell, u) {
+                        self.shadow_ray(&sp, &ls, mis, throughput * f, acc, px);
+                    }
+                }
+            } else if use_light {
                 let (u_light, u) = (s.rng.next_2d(), s.rng.next_2d());
                 if let Some(ls) = lights.sample(sp.p, u_light, u) {
-                    let cos_s = ls.wi.dot(sp.ns);
-                    if cos_s > 0.0 && ls.wi.dot(sp.ng) > 0.0 {
-                        // Aim from the offset origin at the sampled point on the emitter; the
-                        // emitter itself cannot block its own near side.
-                        let o_shadow = offset(sp.p, sp.ng);
-                        let (d_shadow, t_shadow) = if ls.dist.is_finite() {
-                            let to_light = sp.p + ls.wi * ls.dist - o_shadow;
-                            let len = to_light.length();
-                            (to_light / len, len * (1.0 - 1e-4))
-                        } else {
-                            (ls.wi, f32::INFINITY)
-                        };
-                        let blocked = self.accel.occluded(o_shadow, d_shadow, t_shadow)
-                            || lights.occludes(o_shadow, d_shadow, t_shadow, ls.emitter);
-                        if !blocked {
-                            let w = if mis {
-                                power_heuristic(ls.pdf, cos_s * INV_PI)
-                            } else {
-                                1.0
-                            };
-                            acc.add(px, ls.emitter, throughput * f * (cos_s * w / ls.pdf));
-                        }
-                    }
+                    self.shadow_ray(&sp, &ls, mis, throughput * f, acc, px);
                 }
             }
 
@@ -175,6 +165,47 @@ impl Tracer<'_> {
             d = wi;
         }
         hit_geometry
+    }
+
+    /// Next-event estimation of one light sample: a shadow ray, and if the light is visible
+    /// its contribution, `throughput_f` being the path throughput times the BSDF.
+    #[inline]
+    fn shadow_ray<A: Accumulator>(
+        &self,
+        sp: &SurfacePoint,
+        ls: &LightSample,
+        mis: bool,
+        throughput_f: Vec3,
+        acc: &A,
+        px: &mut A::Pixel,
+    ) {
+        let cos_s = ls.wi.dot(sp.ns);
+        if cos_s <= 0.0 || ls.wi.dot(sp.ng) <= 0.0 {
+            return;
+        }
+        // Aim from the offset origin at the sampled point on the emitter; the emitter itself
+        // cannot block its own near side.
+        let o_shadow = offset(sp.p, sp.ng);
+        let (d_shadow, t_shadow) = if ls.dist.is_finite() {
+            let to_light = sp.p + ls.wi * ls.dist - o_shadow;
+            let len = to_light.length();
+            (to_light / len, len * (1.0 - 1e-4))
+        } else {
+            (ls.wi, f32::INFINITY)
+        };
+        if self.accel.occluded(o_shadow, d_shadow, t_shadow)
+            || self
+                .lights
+                .occludes(o_shadow, d_shadow, t_shadow, ls.emitter)
+        {
+            return;
+        }
+        let w = if mis {
+            power_heuristic(ls.pdf, cos_s * INV_PI)
+        } else {
+            1.0
+        };
+        acc.add(px, ls.emitter, throughput_f * (cos_s * w / ls.pdf));
     }
 
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading

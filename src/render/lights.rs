@@ -60,12 +60,13 @@ impl Lights {
         }
     }
 
-    fn count(&self) -> usize {
+    /// Lights to sample: each sphere, and the envmap as one (index `len() - 1`).
+    pub fn len(&self) -> usize {
         self.spheres.len() + self.env.is_some() as usize
     }
 
     pub fn is_empty(&self) -> bool {
-        self.count() == 0
+        self.len() == 0
     }
 
     /// Emitted radiance of `emitter` (linear RGB).
@@ -83,11 +84,11 @@ impl Lights {
     /// How likely each light is to be picked from `p`: in proportion to how strongly it
     /// lights `p` — luminance × the solid angle a sphere subtends there, and the envmap's
     /// Σ luminance × Ω — so a dim light beside a bright one costs the bright one few samples.
-    /// Uniform when every weight is zero, or beyond [`MAX_WEIGHTED`] lights. Index `count()`
+    /// Uniform when every weight is zero, or beyond [`MAX_WEIGHTED`] lights. Index `len()`
     /// holds the total.
     #[inline]
     fn pick_weights(&self, p: Vec3) -> Option<[f32; MAX_WEIGHTED + 1]> {
-        let n = self.count();
+        let n = self.len();
         if n > MAX_WEIGHTED {
             return None;
         }
@@ -111,8 +112,8 @@ impl Lights {
     #[inline]
     fn pick_pdf(&self, i: usize, p: Vec3) -> f32 {
         match self.pick_weights(p) {
-            Some(w) => w[i] / w[self.count()],
-            None => 1.0 / self.count() as f32,
+            Some(w) => w[i] / w[self.len()],
+            None => 1.0 / self.len() as f32,
         }
     }
 
@@ -120,7 +121,7 @@ impl Lights {
     /// `u_light.y`), then a direction to it with `u`.
     #[inline]
     pub fn sample(&self, p: Vec3, u_light: Vec2, u: Vec2) -> Option<LightSample> {
-        let n = self.count();
+        let n = self.len();
         if n == 0 {
             return None;
         }
@@ -144,22 +145,34 @@ impl Lights {
             }
             None => (((u_light.x * n as f32) as usize).min(n - 1), 1.0 / n as f32),
         };
+        let ls = self.sample_light(i, p, u_light.y, u)?;
+        Some(LightSample {
+            pdf: ls.pdf * pick,
+            ..ls
+        })
+    }
+
+    /// A direction toward light `i` alone (sphere `i`, or the envmap at `len() - 1`, its cell
+    /// picked with `u_cell`), its pdf excluding any choice of light: next-event estimation
+    /// that samples every light ([`super::RenderSettings::every_light`]).
+    #[inline]
+    pub fn sample_light(&self, i: usize, p: Vec3, u_cell: f32, u: Vec2) -> Option<LightSample> {
         if i < self.spheres.len() {
             let (wi, dist, pdf) = sample_sphere(&self.spheres[i], p, u)?;
             return Some(LightSample {
                 emitter: Emitter::Sphere(i as u32),
                 wi,
                 dist,
-                pdf: pdf * pick,
+                pdf,
             });
         }
         let env = self.env.as_ref()?;
-        let (cell, wi, pdf) = env.sample(u_light.y, u);
+        let (cell, wi, pdf) = env.sample(u_cell, u);
         Some(LightSample {
             emitter: Emitter::EnvCell(cell),
             wi,
             dist: f32::INFINITY,
-            pdf: pdf * pick,
+            pdf,
         })
     }
 
@@ -167,14 +180,19 @@ impl Lights {
     /// it) from `p`.
     #[inline]
     pub fn pdf(&self, emitter: Emitter, p: Vec3) -> f32 {
+        let i = match emitter {
+            Emitter::Sphere(i) => i as usize,
+            Emitter::EnvCell(_) => self.len() - 1,
+        };
+        self.pdf_light(emitter, p) * self.pick_pdf(i, p)
+    }
+
+    /// The pdf [`Lights::sample_light`] has for reaching `emitter` from `p`.
+    #[inline]
+    pub fn pdf_light(&self, emitter: Emitter, p: Vec3) -> f32 {
         match emitter {
-            Emitter::Sphere(i) => {
-                cone_pdf(&self.spheres[i as usize], p) * self.pick_pdf(i as usize, p)
-            }
-            Emitter::EnvCell(c) => self
-                .env
-                .as_ref()
-                .map_or(0.0, |e| e.pdf(c) * self.pick_pdf(self.count() - 1, p)),
+            Emitter::Sphere(i) => cone_pdf(&self.spheres[i as usize], p),
+            Emitter::EnvCell(c) => self.env.as_ref().map_or(0.0, |e| e.pdf(c)),
         }
     }
 

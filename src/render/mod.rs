@@ -58,6 +58,11 @@ pub struct RenderSettings {
     /// Emitters seen directly by the camera render black (they still occlude), like
     /// Mitsuba's `hide_emitters`.
     pub hide_emitters: bool,
+    /// Next-event estimation samples every light at every vertex (a shadow ray each) instead
+    /// of picking one. Picking costs little when one light dominates, but tosses a coin
+    /// between lights of similar weight, and its variance is of the order of the signal: the
+    /// sphere model's per-light transports, rendered at unit radiance, need every light.
+    pub every_light: bool,
 }
 
 impl RenderSettings {
@@ -69,6 +74,7 @@ impl RenderSettings {
             seed: s.seed,
             strategy: Strategy::Mis,
             hide_emitters: true,
+            every_light: false,
         }
     }
 
@@ -80,6 +86,7 @@ impl RenderSettings {
             seed: 1,
             strategy: Strategy::Mis,
             hide_emitters: true,
+            every_light: false,
         }
     }
 }
