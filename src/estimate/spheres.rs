@@ -426,6 +426,216 @@ fn joined(base: Option<&SphereProblem>, extra: &SphereProblem) -> SphereProblem 
     }
 }
 
+/// Adds to `dirs` the centres of the `count` brightest cells of `envmap` (by power) that lie
+/// at least 10° from each other, from `taken` and from those already in `dirs`.
+fn add_bright_directions(
+    envmap: &crate::envmap::Envmap,
+    count: usize,
+    taken: &[Vec3],
+    dirs: &mut Vec<Vec3>,
+) {
+    let g = &envmap.grid;
+    let mut cells: Vec<(f32, Vec3)> = (0..g.cell_count() as u32)
+        .map(|c| {
+            let p =
+                crate::imageio::luminance(envmap.radiance()[c as usize]) * envmap.solid_angle(c);
+            (p, g.center(c))
+        })
+        .filter(|(p, _)| *p > 0.0)
+        .collect();
+    cells.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let mut added = 0;
+    for (_, d) in cells {
+        if added == count {
+            break;
+        }
+        let far = |o: &Vec3| d.angle_between(*o) > 10f32.to_radians();
+        if taken.iter().all(far) && dirs.iter().all(far) {
+            dirs.push(d);
+            added += 1;
+        }
+    }
+}
+
+/// `n` directions spread evenly over the unit sphere (a Fibonacci lattice).
+fn even_directions(n: usize) -> Vec<Vec3> {
+    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    (0..n)
+        .map(|i| {
+            let y = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+            let r = (1.0 - y * y).max(0.0).sqrt();
+            let phi = golden * i as f32;
+            Vec3::new(r * phi.cos(), y, r * phi.sin())
+        })
+        .collect()
+}
+
+/// Candidate lights for a joint start: a small light (radius subtending 3°) in each of many
+/// directions from the scene centre at one distance, each one's binned transport rendered
+/// alone. With the Gram products of all pairs at hand, any set of candidates is scored with
+/// its radiances solved exactly and no further render, so the best *set* is found by
+/// exhaustive search — where adding one light at a time would keep a compromise between two
+/// lights that the first light found (measured on s35: a 0.9 m light between two true ones,
+/// and every single extra light, with the first held, scoring best below the table).
+pub struct Dictionary {
+    pub directions: Vec<Vec3>,
+    /// Per channel, `n × n`: Σ over rows of T_i T_j.
+    gram: [Vec<f64>; 3],
+    /// Per channel: Σ over rows of T_i y.
+    b: [Vec<f64>; 3],
+    /// Per channel: Σ over rows of y².
+    yy: [f64; 3],
+}
+
+/// Candidate directions of the [`Dictionary`] besides the envmap's (about 25° apart).
+const DICTIONARY_DIRECTIONS: usize = 64;
+
+impl Dictionary {
+    /// The envmap estimate's 12 brightest directions and an even scan of the sphere, at twice
+    /// the scene size from `center`, rendered with `settings`. Returns it and the renders made.
+    pub fn new(
+        renderer: &Renderer,
+        obs: &Observations,
+        envmap: &crate::envmap::Envmap,
+        (center, size): (Vec3, f32),
+        settings: &RenderSettings,
+    ) -> (Dictionary, usize) {
+        let mut directions = Vec::new();
+        add_bright_directions(envmap, 12, &[], &mut directions);
+        for d in even_directions(DICTIONARY_DIRECTIONS) {
+            if directions
+                .iter()
+                .all(|o| d.angle_between(*o) > 10f32.to_radians())
+            {
+                directions.push(d);
+            }
+        }
+        let distance = 2.0 * size;
+        let columns: Vec<SphereProblem> = directions
+            .iter()
+            .map(|&d| {
+                let light = SphereLight {
+                    center: center + d * distance,
+                    radius: distance * 3f32.to_radians().tan(),
+                    radiance: Vec3::ONE,
+                };
+                sphere_problem(renderer, obs, &[light], settings)
+            })
+            .collect();
+        let n = columns.len();
+        let dot = |a: &[f32], b: &[f32]| -> f64 {
+            a.iter().zip(b).map(|(&x, &y)| x as f64 * y as f64).sum()
+        };
+        let gram = std::array::from_fn(|ch| {
+            let mut g = vec![0.0; n * n];
+            for i in 0..n {
+                for j in i..n {
+                    let v = dot(&columns[i].t[ch], &columns[j].t[ch]);
+                    (g[i * n + j], g[j * n + i]) = (v, v);
+                }
+            }
+            g
+        });
+        let y = columns.first().map(|c| c.y.clone()).unwrap_or_default();
+        let b = std::array::from_fn(|ch| {
+            columns
+                .iter()
+                .map(|c| c.t[ch].iter().zip(&y[ch]).map(|(&t, &y)| t as f64 * y).sum())
+                .collect()
+        });
+        let yy = std::array::from_fn(|ch| y[ch].iter().map(|v| v * v).sum());
+        (
+            Dictionary {
+                directions,
+                gram,
+                b,
+                yy,
+            },
+            n,
+        )
+    }
+
+    /// Sum of squared residuals of the candidates `set` with their best non-negative
+    /// radiances: exact, over every passive subset (the optimum is the unconstrained one on
+    /// its passive set, and feasible; every feasible such point bounds it from above).
+    pub fn sse(&self, set: &[usize]) -> f64 {
+        let n = self.directions.len();
+        (0..3)
+            .map(|ch| {
+                let (g, b) = (&self.gram[ch], &self.b[ch]);
+                let mut best = self.yy[ch];
+                for mask in 1u32..(1 << set.len()) {
+                    let p: Vec<usize> = (0..set.len())
+                        .filter(|i| mask >> i & 1 == 1)
+                        .map(|i| set[i])
+                        .collect();
+                    let gp = p
+                        .iter()
+                        .flat_map(|&i| p.iter().map(move |&j| g[i * n + j]))
+                        .collect();
+                    let bp: Vec<f64> = p.iter().map(|&i| b[i]).collect();
+                    if let Some(x) = solve_dense(gp, bp.clone())
+                        && x.iter().all(|&v| v >= 0.0)
+                    {
+                        best = best.min(self.yy[ch] - x.iter().zip(&bp).map(|(a, b)| a * b).sum::<f64>());
+                    }
+                }
+                best.max(0.0)
+            })
+            .sum()
+    }
+
+    /// The `k` candidates that together explain the images best: by exhaustive search over
+    /// sets whose directions are at least 15° apart up to three, then adding one at a time.
+    pub fn best(&self, k: usize) -> Vec<Vec3> {
+        let n = self.directions.len();
+        let apart = |i: usize, j: usize| {
+            self.directions[i].angle_between(self.directions[j]) > 15f32.to_radians()
+        };
+        let mut best = (f64::INFINITY, Vec::new());
+        let mut consider = |set: &[usize]| {
+            let e = self.sse(set);
+            if e < best.0 {
+                best = (e, set.to_vec());
+            }
+        };
+        match k {
+            0 => {}
+            1 => (0..n).for_each(|i| consider(&[i])),
+            2 => {
+                for i in 0..n {
+                    for j in (i + 1..n).filter(|&j| apart(i, j)) {
+                        consider(&[i, j]);
+                    }
+                }
+            }
+            _ => {
+                for i in 0..n {
+                    for j in (i + 1..n).filter(|&j| apart(i, j)) {
+                        for l in (j + 1..n).filter(|&l| apart(i, l) && apart(j, l)) {
+                            consider(&[i, j, l]);
+                        }
+                    }
+                }
+            }
+        }
+        let mut set = best.1;
+        while set.len() < k.min(n) {
+            let Some(next) = (0..n)
+                .filter(|&i| set.iter().all(|&j| apart(i, j)))
+                .min_by(|&a, &b| {
+                    let with = |i: usize| self.sse(&[set.as_slice(), &[i]].concat());
+                    with(a).total_cmp(&with(b))
+                })
+            else {
+                break;
+            };
+            set.push(next);
+        }
+        set.iter().map(|&i| self.directions[i]).collect()
+    }
+}
+
 /// Where the next light starts, with no hand-given guess: the brightest cells of the `guides`
 /// (envmap estimates, by power, at least 10° from each other and from the lights already
 /// `placed`; 12 in all, shared among the guides) are candidate directions from `center`; each is tried at 3 scene sizes (radius subtending 3°)
@@ -447,27 +657,7 @@ pub fn next_light(
     let mut dirs: Vec<Vec3> = Vec::new();
     let per_guide = 12 / guides.len().max(1);
     for envmap in guides {
-        let g = &envmap.grid;
-        let mut cells: Vec<(f32, Vec3)> = (0..g.cell_count() as u32)
-            .map(|c| {
-                let p = crate::imageio::luminance(envmap.radiance()[c as usize])
-                    * envmap.solid_angle(c);
-                (p, g.center(c))
-            })
-            .filter(|(p, _)| *p > 0.0)
-            .collect();
-        cells.sort_by(|a, b| b.0.total_cmp(&a.0));
-        let mut mine = 0;
-        for (_, d) in cells {
-            let far = |o: &Vec3| d.angle_between(*o) > 10f32.to_radians();
-            if taken.iter().all(far) && dirs.iter().all(far) {
-                dirs.push(d);
-                mine += 1;
-            }
-            if mine == per_guide {
-                break;
-            }
-        }
+        add_bright_directions(envmap, per_guide, &taken, &mut dirs);
     }
     let mut renders = 0;
     let base = (!placed.is_empty()).then(|| {
@@ -726,18 +916,25 @@ pub fn fit_sphere_models(
     let mut iterations = 0;
     let mut lights: Vec<SphereLight> = Vec::new();
     let mut fits = Vec::new();
-    let clusters: Vec<Vec3> = super::recovery::clusters(envmap)
-        .into_iter()
-        .map(|c| c.direction)
-        .collect();
-    if settings.at_once && clusters.len() >= settings.k {
-        let (start, r) = initialise(
-            renderer,
-            obs,
-            &clusters[..settings.k],
-            (center, size),
-            &settings.search,
-        );
+    // The joint start's candidates, rendered once for every light count.
+    let coarse = RenderSettings {
+        spp: (settings.search.spp / 4).max(1),
+        ..settings.search
+    };
+    let mut dictionary: Option<Dictionary> = None;
+    let mut joint_start = |k: usize, renders: &mut usize| {
+        let d = dictionary.get_or_insert_with(|| {
+            let (d, r) = Dictionary::new(renderer, obs, envmap, (center, size), &coarse);
+            *renders += r;
+            d
+        });
+        let (start, r) = initialise(renderer, obs, &d.best(k), (center, size), &settings.search);
+        *renders += r;
+        start
+    };
+    if settings.at_once {
+        let mut r = 0;
+        let start = joint_start(settings.k, &mut r);
         let refined = refine(renderer, obs, &start, center, &settings.refine);
         let (fitted, j) = judge(renderer, obs, &refined, center, &settings.refine.residual);
         return vec![SphereFit {
@@ -799,17 +996,10 @@ pub fn fit_sphere_models(
         renders += refined.evaluations;
         iterations += refined.iterations;
         // A greedy start can stay in the compromise the smaller model found between two
-        // lights; with as many bright clusters as lights, a start from all of them at once
-        // competes, and the lower objective wins.
-        if k > 1 && clusters.len() >= k {
-            let (together, r) = initialise(
-                renderer,
-                obs,
-                &clusters[..k],
-                (center, size),
-                &settings.search,
-            );
-            renders += r;
+        // lights; the best set of k candidates, chosen together, competes, and the lower
+        // objective wins.
+        if k > 1 {
+            let together = joint_start(k, &mut renders);
             let other = refine(renderer, obs, &together, center, &settings.refine);
             renders += other.evaluations;
             iterations += other.iterations;
