@@ -62,7 +62,7 @@ cli_enum!(FilterArg => Filter {
     Smooth,
 });
 
-/// `--model`: the envmap, K sphere lights (None: as many as the envmap's clusters, ≤ 3), or
+/// `--model`: the envmap, K sphere lights (None: 1 to 3, chosen on held-out pixels), or
 /// chosen from the data.
 #[derive(Clone, Copy, Debug)]
 enum ModelArg {
@@ -235,10 +235,11 @@ struct EstimateArgs {
     #[arg(long, value_parser = parse_rings)]
     rings: Option<RingsArg>,
     /// Light model: `envmap` (the ring envmap); `spheres:K`: K sphere lights at finite
-    /// distance, started from the envmap's bright clusters and a distance search, refined by
-    /// Levenberg–Marquardt (centres, radii; radiances exact), written as a sidecar fragment
-    /// (spheres/lights.ron) with its own re-render and errors; `spheres`: 1, 2, … (up to the
-    /// envmap's clusters, at most 3) lights fitted on three quarters of the pixels, the fewest
+    /// distance, started from the best set of K candidate lights (the envmap's bright cells and
+    /// an even scan of directions) and a distance search, refined by Levenberg–Marquardt
+    /// (centres, radii; radiances exact), written as a sidecar fragment (spheres/lights.ron)
+    /// with its own re-render and errors; `spheres`: 1, 2, … (at most 3) lights fitted on
+    /// three quarters of the pixels, the fewest
     /// within one standard error of the best on the held-out quarter kept; `auto`: the same
     /// with the envmap as one more candidate.
     #[arg(long, default_value = "envmap", value_parser = parse_model)]

@@ -514,6 +514,7 @@ fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
             jacobian: settings(16, 6),
             max_iterations: 10,
             fixed: 0,
+            polish_radii: false,
         },
     );
     let got = out.lights[0];

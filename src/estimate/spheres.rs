@@ -163,6 +163,8 @@ pub struct RefineSettings {
     pub max_iterations: usize,
     /// The first `fixed` lights keep their geometry (their radiances are still solved).
     pub fixed: usize,
+    /// End with a direct search on each free light's apparent size.
+    pub polish_radii: bool,
 }
 
 /// Refined geometry and radiances.
@@ -373,6 +375,29 @@ pub fn refine(
             break;
         }
     }
+    // The apparent size is the slowest coordinate (a penumbra's width, traded against
+    // radiance): where the noisy Jacobian stalls, a direct search along it on the residual
+    // renders themselves still goes downhill. Halving steps from ×0.8/×1.25 in radius.
+    if settings.polish_radii {
+        for j in settings.fixed.min(base.len())..base.len() {
+            let mut h = 0.2;
+            for _ in 0..3 {
+                for sign in [-1.0, 1.0] {
+                    let mut q = zero.clone();
+                    q[4 * j + 3] = sign * h;
+                    let (rq, lq, relq) = eval(&base, &q, &settings.residual);
+                    let fq = sse(&rq);
+                    if fq < f {
+                        base[j] = base[j].moved(&q[4 * j..4 * j + 4], center).0;
+                        (r, radiance, rel, f) = (rq, lq, relq, fq);
+                        history.push(f);
+                        break;
+                    }
+                }
+                h /= 2.0;
+            }
+        }
+    }
     // σ² (JᵀJ)⁻¹, column by column (all lights free only); the radiances (3 per light)
     // count as fitted parameters.
     let dof = (r.len() as f64 - (n + 3 * start.len()) as f64).max(1.0);
@@ -540,7 +565,13 @@ impl Dictionary {
         let b = std::array::from_fn(|ch| {
             columns
                 .iter()
-                .map(|c| c.t[ch].iter().zip(&y[ch]).map(|(&t, &y)| t as f64 * y).sum())
+                .map(|c| {
+                    c.t[ch]
+                        .iter()
+                        .zip(&y[ch])
+                        .map(|(&t, &y)| t as f64 * y)
+                        .sum()
+                })
                 .collect()
         });
         let yy = std::array::from_fn(|ch| y[ch].iter().map(|v| v * v).sum());
@@ -577,7 +608,8 @@ impl Dictionary {
                     if let Some(x) = solve_dense(gp, bp.clone())
                         && x.iter().all(|&v| v >= 0.0)
                     {
-                        best = best.min(self.yy[ch] - x.iter().zip(&bp).map(|(a, b)| a * b).sum::<f64>());
+                        best = best
+                            .min(self.yy[ch] - x.iter().zip(&bp).map(|(a, b)| a * b).sum::<f64>());
                     }
                 }
                 best.max(0.0)
@@ -621,12 +653,13 @@ impl Dictionary {
         }
         let mut set = best.1;
         while set.len() < k.min(n) {
-            let Some(next) = (0..n)
-                .filter(|&i| set.iter().all(|&j| apart(i, j)))
-                .min_by(|&a, &b| {
-                    let with = |i: usize| self.sse(&[set.as_slice(), &[i]].concat());
-                    with(a).total_cmp(&with(b))
-                })
+            let Some(next) =
+                (0..n)
+                    .filter(|&i| set.iter().all(|&j| apart(i, j)))
+                    .min_by(|&a, &b| {
+                        let with = |i: usize| self.sse(&[set.as_slice(), &[i]].concat());
+                        with(a).total_cmp(&with(b))
+                    })
             else {
                 break;
             };
@@ -701,8 +734,8 @@ pub fn next_light(
     (best.map(|b| b.1), renders)
 }
 
-/// Starting lights all at once: the `k` brightest clusters of the envmap estimate give
-/// directions from `center`; each light in turn is placed at the distance (1 to 10 scene
+/// Starting lights all at once: `directions` from `center` (the [`Dictionary`]'s best set);
+/// each light in turn is placed at the distance (1 to 10 scene
 /// sizes, radius subtending 3°) whose exactly-fitted radiances explain the images best, the
 /// others held at their current place. Returns the lights and the renders made.
 pub fn initialise(
@@ -741,8 +774,8 @@ pub fn initialise(
 pub struct SphereSettings {
     /// Most lights to fit.
     pub k: usize,
-    /// Fit only the K-light model, from all of the envmap's K brightest clusters at once when
-    /// it has that many (the fast path of `--model spheres:K`); else the nested sequence.
+    /// Fit only the K-light model, from the [`Dictionary`]'s best set of K (the fast path of
+    /// `--model spheres:K`); else the nested sequence.
     pub at_once: bool,
     /// Samples and seed of the start search's renders ([`next_light`]).
     pub search: RenderSettings,
@@ -772,6 +805,7 @@ impl SphereSettings {
                 jacobian: at(16, 6),
                 max_iterations: 20,
                 fixed: 0,
+                polish_radii: true,
             },
         }
     }
@@ -985,6 +1019,7 @@ pub fn fit_sphere_models(
             let alone = RefineSettings {
                 fixed: k - 1,
                 max_iterations: 8,
+                polish_radii: false,
                 ..settings.refine
             };
             let r = refine(renderer, obs, &start, center, &alone);
