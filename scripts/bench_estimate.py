@@ -26,9 +26,10 @@ lightprobe: `estimate --reference REFDIR --rings 9` (the issue's setting),
 Sphere lights (unless --spheres 0): `estimate --reference REFDIR --rings 9
   --model spheres:K` (default K = 2, the bundled scene's number of true
   lights), --lp-repeat times (median times), after the envmap runs. The model:
-  K sphere lights started from the 9-ring envmap estimate's bright clusters, a
-  distance search along each, then Levenberg-Marquardt on centres and radii
-  (radiances solved exactly). Its error is report.json spheres.rel_mae (the
+  K sphere lights started from the best set of K candidate lights (the 9-ring
+  envmap estimate's bright cells and an even scan of directions), a distance
+  search along each, then Levenberg-Marquardt on centres and radii (radiances
+  solved exactly) and a direct search on each light's apparent size. Its error is report.json spheres.rel_mae (the
   same metric: a fresh full-quality re-render of the fitted lights); its time,
   the model's stand-alone cost, is timings.fit_seconds (the envmap fit it
   starts from) + spheres.fit_seconds (distance search + LM), excluding the
