@@ -125,6 +125,21 @@ fn render_all(r: &Renderer, sc: &Scene, spp: u32, seed: u64) -> (Vec<Image>, Vec
     (imgs, masks)
 }
 
+/// The sphere model's observations: every pixel, summed over 4×4 bins.
+fn binned<'a>(
+    cameras: &'a [&'a Camera],
+    masks: &'a [Vec<bool>],
+    references: &'a [Image],
+) -> estimate::spheres::Observations<'a> {
+    estimate::spheres::Observations {
+        cameras,
+        masks,
+        references,
+        bin: 4,
+        holdout: false,
+    }
+}
+
 /// A 3-ring sky (zenith, four horizon sectors, nadir) with distinct colours.
 fn three_ring_sky() -> Envmap {
     Envmap::new(
@@ -457,13 +472,7 @@ fn per_light_transports_sample_every_light() {
     let r = Renderer::new(&sc, &lights);
     let (refs, masks) = render_all(&r, &sc, 256, 1);
     let cams: Vec<&Camera> = sc.cameras.iter().collect();
-    let obs = estimate::spheres::Observations {
-        cameras: &cams,
-        masks: &masks,
-        references: &refs,
-        bin: 4,
-        holdout: false,
-    };
+    let obs = binned(&cams, &masks, &refs);
     let error = |geometry: &[SphereLight], every_light: bool| {
         let st = RenderSettings {
             every_light,
@@ -497,13 +506,7 @@ fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
         radius: 0.24,
         radiance: Vec3::ONE,
     };
-    let obs = estimate::spheres::Observations {
-        cameras: &cams,
-        masks: &masks,
-        references: &refs,
-        bin: 4,
-        holdout: false,
-    };
+    let obs = binned(&cams, &masks, &refs);
     let out = estimate::spheres::refine(
         &r,
         &obs,
@@ -660,13 +663,7 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
     let r = Renderer::new(&sc, &lights);
     let (refs, masks) = render_all(&r, &sc, 256, 1);
     let cams: Vec<&Camera> = sc.cameras.iter().collect();
-    let obs = Observations {
-        cameras: &cams,
-        masks: &masks,
-        references: &refs,
-        bin: 4,
-        holdout: false,
-    };
+    let obs = binned(&cams, &masks, &refs);
     // Started there by hand (the joint search would not put a light below the table).
     let st = SphereSettings::new(2, &render);
     let below = SphereLight {

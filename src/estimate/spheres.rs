@@ -496,6 +496,16 @@ fn add_bright_directions(
     }
 }
 
+/// A trial light of the start searches: unit radiance, `distance` metres from `center` along
+/// unit `dir`, its radius subtending 3° from there.
+fn trial_light(center: Vec3, dir: Vec3, distance: f32) -> SphereLight {
+    SphereLight {
+        center: center + dir * distance,
+        radius: distance * 3f32.to_radians().tan(),
+        radiance: Vec3::ONE,
+    }
+}
+
 /// `n` directions spread evenly over the unit sphere (a Fibonacci lattice).
 fn even_directions(n: usize) -> Vec<Vec3> {
     let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
@@ -552,14 +562,7 @@ impl Dictionary {
         let distance = 2.0 * size;
         let columns: Vec<SphereProblem> = directions
             .iter()
-            .map(|&d| {
-                let light = SphereLight {
-                    center: center + d * distance,
-                    radius: distance * 3f32.to_radians().tan(),
-                    radiance: Vec3::ONE,
-                };
-                sphere_problem(renderer, obs, &[light], settings)
-            })
+            .map(|&d| sphere_problem(renderer, obs, &[trial_light(center, d, distance)], settings))
             .collect();
         let n = columns.len();
         let dot = |a: &[f32], b: &[f32]| -> f64 {
@@ -711,11 +714,7 @@ pub fn next_light(
         renders += 1;
         sphere_problem(renderer, obs, placed, settings)
     });
-    let place = |dir: Vec3, d: f32| SphereLight {
-        center: center + dir * d,
-        radius: d * 3f32.to_radians().tan(),
-        radiance: Vec3::ONE,
-    };
+    let place = |dir: Vec3, d: f32| trial_light(center, dir, d);
     let mut sse = |l: SphereLight| {
         renders += 1;
         let (r, _, _) = residuals(&joined(
@@ -759,11 +758,7 @@ pub fn initialise(
     (center, size): (Vec3, f32),
     settings: &RenderSettings,
 ) -> (Vec<SphereLight>, usize) {
-    let place = |dir: Vec3, d: f32| SphereLight {
-        center: center + dir * d,
-        radius: d * 3f32.to_radians().tan(),
-        radiance: Vec3::ONE,
-    };
+    let place = |dir: Vec3, d: f32| trial_light(center, dir, d);
     let mut lights: Vec<SphereLight> = directions.iter().map(|&d| place(d, 3.0 * size)).collect();
     let mut renders = 0;
     for i in 0..lights.len() {
@@ -1152,14 +1147,14 @@ pub fn judge(
 ) -> (Vec<FittedLight>, usize) {
     let l = &refined.lights;
     let n = 4 * l.len();
-    let mut renders = 1; // p0 below
+    let p0 = sphere_problem(renderer, obs, l, residual);
+    let (r0, radiance0, _) = residuals(&p0);
+    let mut renders = 1;
     let mut sse_at = |lights: &[SphereLight]| {
         renders += 1;
         let (r, _, _) = residuals(&sphere_problem(renderer, obs, lights, residual));
-        (r.iter().map(|v| v * v).sum::<f64>(), r.len())
+        r.iter().map(|v| v * v).sum::<f64>()
     };
-    let p0 = sphere_problem(renderer, obs, l, residual);
-    let (r0, radiance0, _) = residuals(&p0);
     let (f0, rows) = (r0.iter().map(|v| v * v).sum::<f64>(), r0.len());
     let sigma2 = f0 / (rows as f64 - 7.0 * l.len() as f64).max(1.0);
     // Each light's share of the light in the images: its predicted pixels over the
@@ -1218,7 +1213,7 @@ pub fn judge(
                     let mut moved = l.clone();
                     moved[j].center = center + (light.center - center) * scale;
                     moved[j].radius *= scale;
-                    (sse_at(&moved).0 - f0).max(0.0)
+                    (sse_at(&moved) - f0).max(0.0)
                 })
                 .fold(f64::INFINITY, f64::min);
             (worst / sigma2.max(f64::MIN_POSITIVE)).sqrt()
