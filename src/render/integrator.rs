@@ -101,7 +101,21 @@ impl Tracer<'_> {
         loop {
             let light_hit = lights.intersect(o, d, 0.0, f32::INFINITY);
             let t_max = light_hit.map_or(f32::INFINITY, |h| h.0);
-            let Some(hit) = self.accel.intersect(o, d, t_max) else {
+            let hit = if depth > 0 && depth == st.max_bounces {
+                // The path's last segment only counts if it reaches an emitter: an occlusion
+                // test toward that emitter replaces the closest-hit query, and most such
+                // segments (those toward no sphere light, with no envmap) need no ray at all.
+                let reaches = use_bsdf
+                    && (light_hit.is_some() || lights.env.is_some())
+                    && !self.accel.occluded(o, d, t_max);
+                if !reaches {
+                    break;
+                }
+                None
+            } else {
+                self.accel.intersect(o, d, t_max)
+            };
+            let Some(hit) = hit else {
                 // ---- An emitter seen directly, or through BSDF sampling ----
                 if let Some(e) = light_hit.map(|h| h.1).or_else(|| lights.escape(d)) {
                     if depth == 0 {
