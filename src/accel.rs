@@ -1,8 +1,12 @@
-//! Ray queries over a triangle soup: a compressed wide BVH (obvhs' CWBVH) with closest-hit and
-//! occlusion traversal. Knows nothing of materials or lights.
+//! Ray queries over a triangle soup: an 8-wide BVH with closest-hit and occlusion traversal.
+//! Knows nothing of materials or lights.
 //!
-//! Triangles are copied into BVH leaf order (as `RtTriangle`) so traversal reads them
-//! contiguously; `order` maps a leaf slot back to the caller's triangle index.
+//! obvhs builds a binary BVH (PLOC with reinsertion); [`Accel::build`] collapses it into 8-wide
+//! nodes whose child boxes are plain `f32` in structure-of-arrays form, so one node test is a
+//! few 8-lane vector operations (fixed-size loops the compiler vectorises). obvhs' own
+//! compressed wide BVH decodes quantised boxes at every node test, which was most of our
+//! render time. Closest-hit traversal visits hit children nearest first and skips any whose
+//! entry distance lies beyond the closest hit so far.
 //!
 //! ```
 //! use glam::Vec3;
@@ -16,12 +20,10 @@
 
 use std::time::Duration;
 
-use glam::{Vec3, Vec3A};
+use glam::Vec3;
 use obvhs::BvhBuildParams;
-use obvhs::cwbvh::CwBvh;
-use obvhs::cwbvh::builder::build_cwbvh_from_tris;
-use obvhs::ray::{Ray, RayHit};
-use obvhs::rt_triangle::RtTriangle;
+use obvhs::bvh2::Bvh2;
+use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::triangle::Triangle;
 
 /// The closest intersection along a ray.
@@ -36,21 +38,95 @@ pub struct Hit {
     pub b2: f32,
 }
 
+/// Children per node.
+const WIDTH: usize = 8;
+/// A child reference with this bit set is a leaf, `LEAF | packet index`; otherwise it is a
+/// node index.
+const LEAF: u32 = 1 << 31;
+/// Traversal stack entries kept on the machine stack; deeper trees use a heap stack.
+const STACK: usize = 128;
+
+/// One 8-wide node: the boxes of its children, world space, metres.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Node {
+    /// `[min x, max x, min y, max y, min z, max z]`, one lane per child.
+    bounds: [[f32; WIDTH]; 6],
+    /// One child reference per lane (see [`LEAF`]).
+    child: [u32; WIDTH],
+    /// Bit i set if lane i holds a child.
+    lanes: u32,
+}
+
+/// The triangles of one leaf, ready for Möller–Trumbore on all lanes at once: per lane,
+/// corner 0 and the edges to corners 1 and 2 (`[axis][lane]`).
+#[derive(Clone, Copy)]
+#[repr(C, align(32))]
+struct Packet {
+    v0: [[f32; WIDTH]; 3],
+    e1: [[f32; WIDTH]; 3],
+    e2: [[f32; WIDTH]; 3],
+    /// Bit i set if lane i holds a triangle.
+    lanes: u32,
+}
+
+/// What every node test of one ray needs.
+struct RayData {
+    origin: Vec3,
+    dir: Vec3,
+    /// 1 / direction, with zero components replaced by a tiny signed value (no 0 × ∞).
+    inv: [f32; 3],
+    /// Per axis, the `bounds` row of the near slab (the far one is `near ^ 1`).
+    near: [usize; 3],
+}
+
+impl RayData {
+    #[inline(always)]
+    fn new(origin: Vec3, dir: Vec3) -> RayData {
+        let inv = dir.to_array().map(|c| {
+            let c = if c.abs() < 1e-20 {
+                1e-20f32.copysign(c)
+            } else {
+                c
+            };
+            1.0 / c
+        });
+        RayData {
+            origin,
+            dir,
+            near: [0, 1, 2].map(|a| 2 * a + (inv[a] < 0.0) as usize),
+            inv,
+        }
+    }
+}
+
 /// A BVH over triangles, ready for ray queries from many threads.
 pub struct Accel {
-    bvh: CwBvh,
-    /// Triangles in BVH leaf order.
-    tris: Vec<RtTriangle>,
-    /// Leaf slot → caller's triangle index.
+    nodes: Vec<Node>,
+    /// One packet per leaf.
+    packets: Vec<Packet>,
+    /// Leaf slot (packet × WIDTH + lane) → caller's triangle index.
     order: Vec<u32>,
-    /// The caller's triangles, for exact barycentrics of the final hit.
-    corners: Vec<[Vec3; 3]>,
+    /// Traversal stack entries the deepest path can need.
+    stack_len: usize,
+    /// Number of the caller's triangles.
+    len: usize,
 }
 
 impl Accel {
     /// Builds the BVH (in parallel). Degenerate triangles are allowed; they are never hit.
     pub fn build(triangles: &[[Vec3; 3]]) -> Accel {
-        let tris: Vec<Triangle> = triangles
+        let mut accel = Accel {
+            nodes: Vec::new(),
+            packets: Vec::new(),
+            order: Vec::new(),
+            stack_len: 1,
+            len: triangles.len(),
+        };
+        if triangles.is_empty() {
+            return accel;
+        }
+        let input: Vec<Triangle> = triangles
             .iter()
             .map(|[a, b, c]| Triangle {
                 v0: (*a).into(),
@@ -58,107 +134,297 @@ impl Accel {
                 v2: (*c).into(),
             })
             .collect();
-        if tris.is_empty() {
-            return Accel {
-                bvh: CwBvh::default(),
-                tris: Vec::new(),
-                order: Vec::new(),
-                corners: Vec::new(),
-            };
-        }
-        let bvh = build_cwbvh_from_tris(
-            &tris,
+        let bvh2 = build_bvh2_from_tris(
+            &input,
+            // At most WIDTH triangles per leaf: one packet.
             BvhBuildParams::medium_build(),
             &mut Duration::default(),
         );
-        let order = bvh.primitive_indices.clone();
-        let leaf_tris = order
-            .iter()
-            .map(|&i| RtTriangle::from(&tris[i as usize]))
-            .collect();
-        Accel {
-            bvh,
-            tris: leaf_tris,
-            order,
-            corners: triangles.to_vec(),
+        let depth = accel.collapse(&bvh2, triangles, 0);
+        // Each level pops one entry and pushes at most WIDTH.
+        accel.stack_len = depth * (WIDTH - 1) + 1;
+        accel
+    }
+
+    /// Appends the 8-wide node for binary node `b` (and, first, its subtree). Returns the depth
+    /// of the wide subtree.
+    fn collapse(&mut self, bvh2: &Bvh2, triangles: &[[Vec3; 3]], b: usize) -> usize {
+        // Open the largest inner child until there are WIDTH children or only leaves: large
+        // boxes are the ones rays hit most, so they are the ones worth flattening.
+        let mut kids: Vec<usize> = if bvh2.nodes[b].is_leaf() {
+            vec![b]
+        } else {
+            let first = bvh2.nodes[b].first_index as usize;
+            vec![first, first + 1]
+        };
+        while kids.len() < WIDTH {
+            let widest = kids
+                .iter()
+                .enumerate()
+                .filter(|(_, k)| !bvh2.nodes[**k].is_leaf())
+                .max_by(|a, b| {
+                    let area = |k: usize| bvh2.nodes[k].aabb().half_area();
+                    area(*a.1).total_cmp(&area(*b.1))
+                })
+                .map(|(i, _)| i);
+            let Some(i) = widest else { break };
+            let first = bvh2.nodes[kids[i]].first_index as usize;
+            kids[i] = first;
+            kids.push(first + 1);
         }
+        let index = self.nodes.len();
+        self.nodes.push(Node {
+            bounds: [[0.0; WIDTH]; 6],
+            child: [0; WIDTH],
+            lanes: (1 << kids.len()) - 1,
+        });
+        let mut depth = 0;
+        for (lane, &k) in kids.iter().enumerate() {
+            let node2 = &bvh2.nodes[k];
+            let child = if node2.is_leaf() {
+                let (first, count) = (node2.first_index as usize, node2.prim_count as usize);
+                assert!(count <= WIDTH, "BVH leaf of {count} triangles");
+                let mut packet = Packet {
+                    v0: [[0.0; WIDTH]; 3],
+                    e1: [[0.0; WIDTH]; 3],
+                    e2: [[0.0; WIDTH]; 3],
+                    lanes: (1 << count) - 1,
+                };
+                self.order
+                    .extend(&bvh2.primitive_indices[first..first + count]);
+                self.order
+                    .resize(self.order.len() + WIDTH - count, u32::MAX);
+                for (lane, &i) in bvh2.primitive_indices[first..first + count]
+                    .iter()
+                    .enumerate()
+                {
+                    let [a, b, c] = triangles[i as usize];
+                    let (e1, e2) = (b - a, c - a);
+                    for axis in 0..3 {
+                        packet.v0[axis][lane] = a[axis];
+                        packet.e1[axis][lane] = e1[axis];
+                        packet.e2[axis][lane] = e2[axis];
+                    }
+                }
+                self.packets.push(packet);
+                LEAF | (self.packets.len() - 1) as u32
+            } else {
+                let below = self.nodes.len() as u32;
+                depth = depth.max(self.collapse(bvh2, triangles, k));
+                below
+            };
+            let aabb = node2.aabb();
+            let node = &mut self.nodes[index];
+            node.child[lane] = child;
+            for axis in 0..3 {
+                node.bounds[2 * axis][lane] = aabb.min[axis];
+                node.bounds[2 * axis + 1][lane] = aabb.max[axis];
+            }
+        }
+        depth + 1
     }
 
     /// Number of triangles indexed.
     pub fn len(&self) -> usize {
-        self.corners.len()
+        self.len
     }
 
     /// True when there are no triangles.
     pub fn is_empty(&self) -> bool {
-        self.corners.is_empty()
+        self.len == 0
     }
 
     /// The closest hit with `t` in (0, `t_max`], for a unit `dir`.
     #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
-        if self.tris.is_empty() {
+        if self.nodes.is_empty() {
             return None;
         }
-        let ray = Ray::new(origin.into(), canonical(dir), 0.0, t_max);
-        let mut hit = RayHit::none();
-        if !self
-            .bvh
-            .ray_traverse(ray, &mut hit, |r, id| self.tris[id].intersect(r))
-        {
-            return None;
+        let ray = RayData::new(origin, dir);
+        if self.stack_len <= STACK {
+            self.closest(&ray, t_max, &mut [(0, 0.0); STACK])
+        } else {
+            self.closest(&ray, t_max, &mut vec![(0, 0.0); self.stack_len])
         }
-        let triangle = self.order[hit.primitive_id as usize];
-        let (b1, b2) = barycentrics(&self.corners[triangle as usize], origin, dir);
-        Some(Hit {
-            t: hit.t,
-            triangle,
-            b1,
-            b2,
-        })
     }
 
     /// True if anything lies on the segment from `origin` along unit `dir` up to `t_max`.
     #[inline]
     pub fn occluded(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
-        if self.tris.is_empty() {
+        if self.nodes.is_empty() {
             return false;
         }
-        let ray = Ray::new(origin.into(), canonical(dir), 0.0, t_max);
-        !self
-            .bvh
-            .ray_traverse_miss(ray, |r, id| self.tris[id].intersect(r))
+        let ray = RayData::new(origin, dir);
+        if self.stack_len <= STACK {
+            self.any(&ray, t_max, &mut [0; STACK])
+        } else {
+            self.any(&ray, t_max, &mut vec![0; self.stack_len])
+        }
+    }
+
+    /// Closest-hit traversal with a stack of (child reference, entry distance).
+    #[inline(always)]
+    fn closest(&self, ray: &RayData, mut t_max: f32, stack: &mut [(u32, f32)]) -> Option<Hit> {
+        let mut best: Option<(u32, f32, f32)> = None;
+        stack[0] = (0, 0.0);
+        let mut top = 1;
+        while top > 0 {
+            top -= 1;
+            let (child, t_enter) = stack[top];
+            if t_enter > t_max {
+                continue;
+            }
+            if child & LEAF != 0 {
+                let packet = (child & !LEAF) as usize;
+                if let Some((lane, t, b1, b2)) = hit_packet(&self.packets[packet], ray, t_max) {
+                    t_max = t;
+                    best = Some(((packet * WIDTH + lane) as u32, b1, b2));
+                }
+                continue;
+            }
+            let node = &self.nodes[child as usize];
+            let (t_near, mut mask) = node_test(node, ray, t_max);
+            // Push the hit children farthest first, so the nearest is popped next.
+            let mut order = [(0u32, 0f32); WIDTH];
+            let mut n = 0;
+            while mask != 0 {
+                let lane = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                let entry = (node.child[lane], t_near[lane]);
+                let mut j = n;
+                while j > 0 && order[j - 1].1 < entry.1 {
+                    order[j] = order[j - 1];
+                    j -= 1;
+                }
+                order[j] = entry;
+                n += 1;
+            }
+            stack[top..top + n].copy_from_slice(&order[..n]);
+            top += n;
+        }
+        best.map(|(slot, b1, b2)| Hit {
+            t: t_max,
+            triangle: self.order[slot as usize],
+            b1,
+            b2,
+        })
+    }
+
+    /// Any-hit traversal: stops at the first triangle within (0, `t_max`].
+    #[inline(always)]
+    fn any(&self, ray: &RayData, t_max: f32, stack: &mut [u32]) -> bool {
+        stack[0] = 0;
+        let mut top = 1;
+        while top > 0 {
+            top -= 1;
+            let child = stack[top];
+            if child & LEAF != 0 {
+                if hit_packet(&self.packets[(child & !LEAF) as usize], ray, t_max).is_some() {
+                    return true;
+                }
+                continue;
+            }
+            let node = &self.nodes[child as usize];
+            let (_, mut mask) = node_test(node, ray, t_max);
+            while mask != 0 {
+                let lane = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                stack[top] = node.child[lane];
+                top += 1;
+            }
+        }
+        false
     }
 }
 
-/// The direction with −0.0 components turned into +0.0: obvhs takes the traversal octant from
-/// `d < 0` but the inverse direction from the sign bit, and the two disagree on −0.0 (an exactly
-/// axis-aligned ray like −Y then misses everything).
-#[inline]
-fn canonical(dir: Vec3) -> Vec3A {
-    Vec3A::from(dir) + Vec3A::ZERO
+/// `a.max(b)` without NaN handling, so it compiles to one vector instruction.
+#[inline(always)]
+fn fmax(a: f32, b: f32) -> f32 {
+    if a > b { a } else { b }
 }
 
-/// Barycentrics of the ray's crossing of the triangle's plane (Möller–Trumbore), clamped
-/// into the triangle so a grazing hit never extrapolates attributes.
-fn barycentrics([a, b, c]: &[Vec3; 3], origin: Vec3, dir: Vec3) -> (f32, f32) {
-    let (e1, e2) = (Vec3A::from(*b - *a), Vec3A::from(*c - *a));
-    let (o, d) = (Vec3A::from(origin), Vec3A::from(dir));
-    let p = d.cross(e2);
-    let det = e1.dot(p);
-    if det == 0.0 {
-        return (1.0 / 3.0, 1.0 / 3.0);
+#[inline(always)]
+fn fmin(a: f32, b: f32) -> f32 {
+    if a < b { a } else { b }
+}
+
+/// Slab test of the ray against all children of `node` over (0, `t_max`]: the entry
+/// distances, and a bit mask of the children hit.
+#[inline(always)]
+fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
+    // (box − origin) · (1/d) rounds twice; widening the exit distance by 1 + 2γ₃ (pbrt-v4's
+    // bound) keeps rays that graze a box from missing it.
+    const WIDEN: f32 = 1.0 + 2.0 * 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
+    let b = &node.bounds;
+    let o = ray.origin.to_array();
+    let [nx, ny, nz] = ray.near;
+    let mut t_near = [0.0; WIDTH];
+    let mut t_far = [0.0; WIDTH];
+    for i in 0..WIDTH {
+        let tx0 = (b[nx][i] - o[0]) * ray.inv[0];
+        let tx1 = (b[nx ^ 1][i] - o[0]) * ray.inv[0];
+        let ty0 = (b[ny][i] - o[1]) * ray.inv[1];
+        let ty1 = (b[ny ^ 1][i] - o[1]) * ray.inv[1];
+        let tz0 = (b[nz][i] - o[2]) * ray.inv[2];
+        let tz1 = (b[nz ^ 1][i] - o[2]) * ray.inv[2];
+        let t0 = fmax(fmax(tx0, ty0), fmax(tz0, 0.0));
+        let t1 = fmin(fmin(tx1, ty1), fmin(tz1, t_max)) * WIDEN;
+        t_near[i] = t0;
+        t_far[i] = t1;
     }
-    let s = o - Vec3A::from(*a);
-    let q = s.cross(e1);
-    let (b1, b2) = (s.dot(p) / det, d.dot(q) / det);
-    let (b1, b2) = (b1.clamp(0.0, 1.0), b2.clamp(0.0, 1.0));
-    let sum = b1 + b2;
-    if sum > 1.0 {
-        (b1 / sum, b2 / sum)
-    } else {
-        (b1, b2)
+    let mut mask = 0u8;
+    for i in 0..WIDTH {
+        mask |= ((t_near[i] <= t_far[i]) as u8) << i;
     }
+    (t_near, mask as u32 & node.lanes)
+}
+
+/// Möller–Trumbore on every lane of a leaf: the closest crossing with `t` in (0, `t_max`] as
+/// `(lane, t, b1, b2)`.
+#[inline(always)]
+fn hit_packet(k: &Packet, ray: &RayData, t_max: f32) -> Option<(usize, f32, f32, f32)> {
+    let [dx, dy, dz] = ray.dir.to_array();
+    let [ox, oy, oz] = ray.origin.to_array();
+    let (mut t, mut b1, mut b2) = ([f32::INFINITY; WIDTH], [0.0; WIDTH], [0.0; WIDTH]);
+    for i in 0..WIDTH {
+        let (e1x, e1y, e1z) = (k.e1[0][i], k.e1[1][i], k.e1[2][i]);
+        let (e2x, e2y, e2z) = (k.e2[0][i], k.e2[1][i], k.e2[2][i]);
+        let (px, py, pz) = (
+            dy * e2z - dz * e2y,
+            dz * e2x - dx * e2z,
+            dx * e2y - dy * e2x,
+        );
+        let det = e1x * px + e1y * py + e1z * pz;
+        let inv_det = 1.0 / det;
+        let (sx, sy, sz) = (ox - k.v0[0][i], oy - k.v0[1][i], oz - k.v0[2][i]);
+        let u = (sx * px + sy * py + sz * pz) * inv_det;
+        let (qx, qy, qz) = (
+            sy * e1z - sz * e1y,
+            sz * e1x - sx * e1z,
+            sx * e1y - sy * e1x,
+        );
+        let v = (dx * qx + dy * qy + dz * qz) * inv_det;
+        let h = (e2x * qx + e2y * qy + e2z * qz) * inv_det;
+        // Each comparison fails on NaN, so degenerate lanes (det = 0) never hit.
+        let inside = det != 0.0 && u >= 0.0 && v >= 0.0 && u + v <= 1.0;
+        t[i] = if inside && h > 0.0 && h <= t_max {
+            h
+        } else {
+            f32::INFINITY
+        };
+        b1[i] = u;
+        b2[i] = v;
+    }
+    let mut best: Option<usize> = None;
+    let mut lanes = k.lanes;
+    while lanes != 0 {
+        let i = lanes.trailing_zeros() as usize;
+        lanes &= lanes - 1;
+        if t[i] < best.map_or(f32::INFINITY, |b| t[b]) {
+            best = Some(i);
+        }
+    }
+    best.map(|i| (i, t[i], b1[i], b2[i]))
 }
 
 #[cfg(test)]
@@ -173,7 +439,7 @@ mod tests {
         (*state >> 40) as f32 / (1u64 << 24) as f32
     }
 
-    /// Independent of obvhs: a plain f64 Möller–Trumbore over every triangle.
+    /// Independent of the BVH: a plain f64 Möller–Trumbore over every triangle.
     fn brute_force(tris: &[[Vec3; 3]], o: Vec3, d: Vec3, t_max: f32) -> Option<(f32, u32)> {
         let mut best: Option<(f32, u32)> = None;
         let (o, d) = (o.as_dvec3(), d.as_dvec3());

@@ -202,7 +202,7 @@ fn closed_sphere_around_a_light_follows_the_bounce_series() {
             (got / want - 1.0).abs() < 0.01,
             "ρ={rho} k={k}: {got} vs {want}"
         );
-        // Every camera ray should hit the closed wall. obvhs' Möller–Trumbore test is not
+        // Every camera ray should hit the closed wall. Our Möller–Trumbore test is not
         // watertight: measured, about 1 ray in 65,536 slips through an edge here. Bound it.
         let alpha = img.alpha.as_ref().unwrap();
         let coverage = alpha.iter().map(|&a| a as f64).sum::<f64>() / alpha.len() as f64;
