@@ -216,6 +216,7 @@ impl<'a> Renderer<'a> {
         let tracer = self.tracer(settings);
         let tiles = tiles(w, h);
         let key = mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)));
+        let ray_dir = camera.ray_dirs();
         let done: Vec<Vec<(u32, A::Pixel, f32)>> = tiles
             .par_iter()
             .map(|&(x0, y0, x1, y1)| {
@@ -234,7 +235,7 @@ impl<'a> Renderer<'a> {
                                 pixel_offset,
                             };
                             let j = s.pixel_jitter();
-                            let dir = camera.ray_dir_world(x as f32 + j.x, y as f32 + j.y);
+                            let dir = ray_dir(x as f32 + j.x, y as f32 + j.y);
                             hits +=
                                 tracer.trace(camera.origin_world, dir, &mut s, acc, &mut px) as u32;
                         }

@@ -67,11 +67,21 @@ impl Camera {
     /// and `y` grows down, pixel (i, j) covers [i, i+1) × [j, j+1), row 0 is the top.
     #[inline]
     pub fn ray_dir_world(&self, x: f32, y: f32) -> Vec3 {
+        self.ray_dirs()(x, y)
+    }
+
+    /// [`Camera::ray_dir_world`] with the per-camera constants computed once (the render
+    /// loop calls it for every sample).
+    #[inline]
+    pub fn ray_dirs(&self) -> impl Fn(f32, f32) -> Vec3 + Sync + '_ {
         let tan_half = (0.5 * self.yfov).tan();
         let aspect = self.width as f32 / self.height as f32;
-        let cx = (2.0 * x / self.width as f32 - 1.0) * tan_half * aspect;
-        let cy = (1.0 - 2.0 * y / self.height as f32) * tan_half;
-        (self.world_from_camera * Vec3::new(cx, cy, -1.0)).normalize()
+        let (w, h) = (self.width as f32, self.height as f32);
+        move |x, y| {
+            let cx = (2.0 * x / w - 1.0) * tan_half * aspect;
+            let cy = (1.0 - 2.0 * y / h) * tan_half;
+            (self.world_from_camera * Vec3::new(cx, cy, -1.0)).normalize()
+        }
     }
 }
 
