@@ -61,10 +61,13 @@ impl Texture {
         }
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = (x - x0, y - y0);
-        let at = |i: i64, j: i64| self.texels[(j.rem_euclid(h) * w + i.rem_euclid(w)) as usize];
-        let (i, j) = (x0 as i64, y0 as i64);
-        let top = at(i, j) * (1.0 - fx) + at(i + 1, j) * fx;
-        let bottom = at(i, j + 1) * (1.0 - fx) + at(i + 1, j + 1) * fx;
+        // Wrap once per axis (an integer division each); the next texel wraps by comparison.
+        let (i0, j0) = ((x0 as i64).rem_euclid(w), (y0 as i64).rem_euclid(h));
+        let next = |k: i64, n: i64| if k + 1 == n { 0 } else { k + 1 };
+        let (i1, j1) = (next(i0, w), next(j0, h));
+        let at = |i: i64, j: i64| self.texels[(j * w + i) as usize];
+        let top = at(i0, j0) * (1.0 - fx) + at(i1, j0) * fx;
+        let bottom = at(i0, j1) * (1.0 - fx) + at(i1, j1) * fx;
         top * (1.0 - fy) + bottom * fy
     }
 
