@@ -241,7 +241,9 @@ struct EstimateArgs {
     /// with its own re-render and errors; `spheres`: 1, 2, … (at most 3) lights fitted on
     /// three quarters of the pixels, the fewest
     /// within one standard error of the best on the held-out quarter kept; `auto`: the same
-    /// with the envmap as one more candidate.
+    /// with two more candidates, the envmap, and the sphere model chosen so far with an envmap
+    /// behind its lights (`envmap+spheres:K`, for light from afar beside near lights; written
+    /// as spheres/lights.ron plus spheres/background.ron and .exr).
     #[arg(long, default_value = "envmap", value_parser = parse_model)]
     model: ModelArg,
     /// Resolutions `--rings auto` chooses from.
@@ -999,6 +1001,21 @@ fn write_renders(
     Ok(())
 }
 
+/// Writes `NAME.ron` and its lat-long `NAME.exr` (Mitsuba's convention) into `dir`.
+fn write_envmap(dir: &Path, name: &str, env: &lightprobe::envmap::Envmap) -> anyhow::Result<()> {
+    env.save(&dir.join(format!("{name}.ron")))?;
+    let attributes = exr::meta::header::LayerAttributes {
+        environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
+        ..Default::default()
+    };
+    imageio::write_exr_with(
+        &dir.join(format!("{name}.exr")),
+        &latlong::export(env, Target::Mitsuba, Filter::Box, 4096),
+        attributes,
+    )?;
+    Ok(())
+}
+
 /// Writes a sphere-model estimate: the sidecar fragment and the re-renders.
 fn write_spheres(
     dir: &Path,
@@ -1009,12 +1026,17 @@ fn write_spheres(
 ) -> anyhow::Result<()> {
     write_renders(dir, &so.renders, views, references, masks)?;
     imageio::write_bytes(&dir.join("lights.ron"), so.fit.fragment().as_bytes())?;
+    if let Some(bg) = &so.fit.background {
+        write_envmap(dir, "background", bg)?;
+    }
     Ok(())
 }
 
 /// report.json's view of a sphere-model estimate.
 fn spheres_report(so: &pipeline::SphereOutcome) -> serde_json::Value {
     json!({
+        "model": so.fit.model_name(),
+        "background_rings": so.fit.background.as_ref().map(|b| b.grid.rings()),
         "lights": so.fit.fitted,
         "start": so.fit.start.iter().map(|l| json!({ "center": l.center.to_array(), "radius": l.radius })).collect::<Vec<_>>(),
         "requested": so.fit.requested,
@@ -1262,16 +1284,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         }
     }
     let converged = fit.channels.iter().all(|c| c.converged);
-    fit.envmap.save(&a.out.join("envmap.ron"))?;
-    let attributes = exr::meta::header::LayerAttributes {
-        environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
-        ..Default::default()
-    };
-    imageio::write_exr_with(
-        &a.out.join("envmap.exr"),
-        &latlong::export(&fit.envmap, Target::Mitsuba, Filter::Box, 4096),
-        attributes,
-    )?;
+    write_envmap(&a.out, "envmap", &fit.envmap)?;
     if !outcome.renders.is_empty() {
         write_renders(
             &a.out.join("estimate"),
@@ -1300,6 +1313,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         references: &references,
         bin: 4,
         holdout: choose_k,
+        background: None,
     };
     let mut sphere_models = Vec::new();
     if max_lights > 0 {
@@ -1320,6 +1334,27 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         .with_context(|| format!("{}: --model spheres", a.scene.display()))?;
         pb.finish_and_clear();
     }
+    // --model auto: the spheres' own choice again, with an envmap behind its lights.
+    if let Some(base) =
+        pipeline::best_sphere_model(&sphere_models, &references, &masks).filter(|_| model_auto)
+    {
+        let pb = bar("lights + envmap", 1);
+        let combined = pipeline::run_with_background(
+            &renderer,
+            &renderer,
+            &obs,
+            &base.fit,
+            rings,
+            &scene.lights,
+            (scene.center(), size),
+            &settings,
+            true,
+            &|k| pb.inc(k),
+        )
+        .with_context(|| format!("{}: --model auto (lights + envmap)", a.scene.display()))?;
+        pb.finish_and_clear();
+        sphere_models.push(combined);
+    }
     let mut chosen = sphere_models.len().checked_sub(1);
     if choose_k {
         let sel = pipeline::select_model(
@@ -1331,7 +1366,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         .context("--model: no candidate")?;
         chosen = sphere_models
             .iter()
-            .position(|m| sel.chosen == format!("spheres:{}", m.fit.requested));
+            .position(|m| sel.chosen == m.fit.model_name());
         spheres_lines.push(format!(
             "model chosen: {} (held-out relMAE {}; lowest: {})",
             sel.chosen,
@@ -1387,7 +1422,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "channels": fit.channels,
         "light_recovery": recovery,
         "model": model_selection.as_ref().map_or(
-            chosen.map_or("envmap".to_string(), |i| format!("spheres:{}", sphere_models[i].fit.requested)),
+            chosen.map_or("envmap".to_string(), |i| sphere_models[i].fit.model_name()),
             |m| m.chosen.clone(),
         ),
         "model_selection": model_selection,

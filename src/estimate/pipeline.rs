@@ -13,7 +13,7 @@ use glam::Vec3;
 use super::recovery::{self, LightRecovery, SphereRecovery};
 use super::spheres::{self, Observations, SphereFit, SphereSettings};
 use super::{Fit, FitSettings, Solver, Transport, Validation, fit_reusing, is_held_out};
-use crate::envmap::Envmap;
+use crate::envmap::{Envmap, RingGrid};
 use crate::error::{Error, Result};
 use crate::imageio::{self, Image};
 use crate::metrics::{self, Metrics};
@@ -346,6 +346,95 @@ pub fn run_sphere_models(
     Ok(out)
 }
 
+/// The sphere model held-out selection takes among `spheres` alone (see [`select_model`]):
+/// the base for [`run_with_background`].
+pub fn best_sphere_model<'a>(
+    spheres: &'a [SphereOutcome],
+    references: &[Image],
+    masks: &[Vec<bool>],
+) -> Option<&'a SphereOutcome> {
+    let sel = select_model(None, spheres, references, masks)?;
+    spheres.iter().find(|s| s.fit.model_name() == sel.chosen)
+}
+
+/// The sphere model `base` with an envmap of `rings` fitted behind its lights, for light
+/// from afar beside the near lights (a sky through a window and a lamp): Levenberg–Marquardt
+/// from `base`'s lights with the background's cells as further linear unknowns, then judged
+/// and, with `evaluate`, re-rendered (lights and background) like [`run_sphere_models`].
+#[allow(clippy::too_many_arguments)]
+pub fn run_with_background(
+    renderer: &Renderer,
+    truth_renderer: &Renderer,
+    obs: &Observations,
+    base: &SphereFit,
+    rings: u32,
+    truth: &[SphereLight],
+    (center, size): (Vec3, f32),
+    render: &RenderSettings,
+    evaluate: bool,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<SphereOutcome> {
+    let t0 = Instant::now();
+    let grid = RingGrid::new(rings);
+    let obs = Observations {
+        background: Some(&grid),
+        ..*obs
+    };
+    // Only the directions are kept: without a background, the lights had grown to take in
+    // the light from afar. The distance search places small lights again, background fitted.
+    let directions: Vec<Vec3> = base
+        .lights()
+        .iter()
+        .map(|l| (l.center - center).normalize())
+        .collect();
+    let settings = SphereSettings::new(directions.len(), render);
+    let (start, searched) = spheres::initialise(
+        renderer,
+        &obs,
+        &directions,
+        (center, size),
+        &settings.search,
+    );
+    let refined = spheres::refine(renderer, &obs, &start, center, &settings.refine);
+    let (fitted, judged) =
+        spheres::judge(renderer, &obs, &refined, center, &settings.refine.residual);
+    let background = Envmap::new(rings, refined.background.clone()).map_err(Error::Invalid)?;
+    let fit = SphereFit {
+        requested: start.len(),
+        fitted,
+        start,
+        fit_rel_mae: refined.rel_mae,
+        iterations: refined.iterations,
+        renders: searched + refined.evaluations + judged,
+        history: refined.history,
+        seconds: t0.elapsed().as_secs_f64(),
+        background: Some(background),
+    };
+    let lights = fit.lights();
+    let t = Instant::now();
+    let (mut renders, mut errors) = (Vec::new(), Vec::new());
+    if evaluate {
+        let l = Lights {
+            spheres: lights.clone(),
+            env: fit.background.clone(),
+        };
+        renders = render_views(
+            &truth_renderer.with_lights(&l),
+            obs.cameras,
+            &evaluation_settings(render),
+            progress,
+        );
+        errors = compare_views(&renders, obs.references, obs.masks)?;
+    }
+    Ok(SphereOutcome {
+        recovery: recovery::recover_spheres(&lights, truth, center),
+        fit,
+        renders,
+        errors,
+        rerender_seconds: t.elapsed().as_secs_f64(),
+    })
+}
+
 /// Error of re-rendered images on the held-out pixels ([`super::is_held_out`]), in one fixed
 /// order, so candidates fitted without those pixels can be compared pixel by pixel.
 pub fn held_out(images: &[Image], references: &[Image], masks: &[Vec<bool>]) -> Validation {
@@ -373,8 +462,9 @@ pub fn held_out(images: &[Image], references: &[Image], masks: &[Vec<bool>]) -> 
 /// Chooses among light models fitted without the held-out pixels (the envmap with
 /// [`FitSettings::holdout`], sphere models with [`Observations::holdout`]), by their
 /// re-renders' error on the held-out pixels: the fewest parameters within one standard error
-/// of the best. Sphere models are named `spheres:K` for the K lights asked of them. None when
-/// nothing was re-rendered.
+/// of the best. Sphere models are named `spheres:K` for the K lights asked of them
+/// (`envmap+spheres:K` with a background, counting its cells too). None when nothing was
+/// re-rendered.
 pub fn select_model(
     envmap: Option<&Outcome>,
     spheres: &[SphereOutcome],
@@ -390,8 +480,12 @@ pub fn select_model(
         .filter(|(so, k)| so.fit.lights().len() == *k)
         .map(|(so, k)| {
             (
-                format!("spheres:{k}"),
-                7 * so.fit.lights().len(),
+                so.fit.model_name(),
+                7 * k
+                    + so.fit
+                        .background
+                        .as_ref()
+                        .map_or(0, |b| 3 * b.grid.cell_count()),
                 held_out(&so.renders, references, masks),
                 so.fit.seconds + so.rerender_seconds,
             )

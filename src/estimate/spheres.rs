@@ -22,6 +22,7 @@ use serde::Serialize;
 use super::is_held_out;
 use super::nnls;
 use super::transport::{EmitterKind, PerEmitterAccumulator};
+use crate::envmap::{Envmap, RingGrid};
 use crate::imageio::Image;
 use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::{Camera, SphereLight};
@@ -36,12 +37,17 @@ pub struct Observations<'a> {
     pub bin: u32,
     /// Leave out the held-out quarter of the pixels ([`is_held_out`]), for model selection.
     pub holdout: bool,
+    /// Also fit an envmap on this grid behind the lights (light from afar, e.g. a sky): its
+    /// cells become further linear unknowns after the lights' ([`SphereProblem::lights`]
+    /// counts both). For [`refine`] and [`judge`]; the start searches take None.
+    pub background: Option<&'a RingGrid>,
 }
 
 /// The fitting problem at one geometry: per-light transport and references, summed per bin
 /// over the kept pixels. Per channel, T is `rows × lights`, row-major.
 #[derive(Debug, Clone)]
 pub struct SphereProblem {
+    /// Columns of T: the sphere lights, then the background's cells if any.
     pub lights: usize,
     pub t: [Vec<f32>; 3],
     pub y: [Vec<f64>; 3],
@@ -62,7 +68,6 @@ pub fn sphere_problem(
     geometry: &[SphereLight],
     settings: &RenderSettings,
 ) -> SphereProblem {
-    let k = geometry.len();
     let unit: Vec<SphereLight> = geometry
         .iter()
         .map(|l| SphereLight {
@@ -70,12 +75,25 @@ pub fn sphere_problem(
             ..*l
         })
         .collect();
-    let lights = Lights::new(unit);
-    let renderer = renderer.with_lights(&lights);
-    let acc = PerEmitterAccumulator {
+    let mut lights = Lights::new(unit);
+    let mut acc = PerEmitterAccumulator {
         kind: EmitterKind::Spheres,
-        count: k,
+        count: geometry.len(),
     };
+    if let Some(grid) = obs.background {
+        let cells = grid.cell_count();
+        lights.env = Some(
+            Envmap::new(grid.rings(), vec![Vec3::ONE; cells]).expect("a unit envmap is valid"),
+        );
+        acc = PerEmitterAccumulator {
+            kind: EmitterKind::SpheresThenCells {
+                spheres: geometry.len() as u32,
+            },
+            count: geometry.len() + cells,
+        };
+    }
+    let k = acc.count;
+    let renderer = renderer.with_lights(&lights);
     let bin = obs.bin.max(1);
     let mut t: [Vec<f32>; 3] = std::array::from_fn(|_| Vec::new());
     let mut y: [Vec<f64>; 3] = std::array::from_fn(|_| Vec::new());
@@ -174,6 +192,8 @@ pub struct RefineSettings {
 #[derive(Debug, Clone)]
 pub struct Refined {
     pub lights: Vec<SphereLight>,
+    /// Radiance of each background cell ([`Observations::background`]; empty without).
+    pub background: Vec<Vec3>,
     /// relMAE of the fit over the problem's rows (against the transport's own prediction).
     pub rel_mae: f64,
     pub iterations: usize,
@@ -403,7 +423,7 @@ pub fn refine(
     }
     // σ² (JᵀJ)⁻¹, column by column (all lights free only); the radiances (3 per light)
     // count as fitted parameters.
-    let dof = (r.len() as f64 - (n + 3 * start.len()) as f64).max(1.0);
+    let dof = (r.len() as f64 - (n + 3 * radiance.len()) as f64).max(1.0);
     let sigma2 = f / dof;
     let covariance = (0..n)
         .map(|j| {
@@ -437,6 +457,7 @@ pub fn refine(
         .collect();
     Refined {
         lights,
+        background: radiance.split_off(base.len()),
         rel_mae: rel,
         iterations,
         evaluations,
@@ -887,12 +908,25 @@ pub struct SphereFit {
     /// Sum of squared binned residuals after each accepted step (of the last refinement).
     pub history: Vec<f64>,
     pub seconds: f64,
+    /// The envmap fitted behind the lights ([`Observations::background`]), if any.
+    #[serde(skip)]
+    pub background: Option<Envmap>,
 }
 
 impl SphereFit {
     /// The objective (binned sum of squared residuals) at the end of the refinement.
     fn history_last(&self) -> f64 {
         self.history.last().copied().unwrap_or(f64::INFINITY)
+    }
+
+    /// The model's name in a selection: `spheres:K`, or `envmap+spheres:K` with a background.
+    pub fn model_name(&self) -> String {
+        let bg = if self.background.is_some() {
+            "envmap+"
+        } else {
+            ""
+        };
+        format!("{bg}spheres:{}", self.requested)
     }
 
     /// The model's lights: those that contribute and were not merged away.
@@ -991,6 +1025,7 @@ pub fn fit_sphere_models(
             renders: r + refined.evaluations + j,
             history: refined.history,
             seconds: t0.elapsed().as_secs_f64(),
+            background: None,
         }];
     }
     let mut fitted_lights: Vec<SphereLight> = Vec::new();
@@ -1077,6 +1112,7 @@ pub fn fit_sphere_models(
             renders,
             history: refined.history,
             seconds: t0.elapsed().as_secs_f64(),
+            background: None,
         });
         let gain = match fits.as_slice() {
             [.., before, after] => 1.0 - after.history_last() / before.history_last(),
@@ -1156,18 +1192,18 @@ pub fn judge(
         r.iter().map(|v| v * v).sum::<f64>()
     };
     let (f0, rows) = (r0.iter().map(|v| v * v).sum::<f64>(), r0.len());
-    let sigma2 = f0 / (rows as f64 - 7.0 * l.len() as f64).max(1.0);
+    // Parameters: 4 per light's geometry, 3 per column's radiance (lights and background).
+    let sigma2 = f0 / (rows as f64 - (4 * l.len() + 3 * p0.lights) as f64).max(1.0);
     // Each light's share of the light in the images: its predicted pixels over the
     // references'. (Not its power: a light below the table can pick up a huge radiance from
     // the few samples that slip through mesh edges, and still light nothing.)
-    let k = l.len();
     let total: f64 = p0.y.iter().flatten().map(|v| v.abs()).sum();
-    let share: Vec<f64> = (0..k)
+    let share: Vec<f64> = (0..l.len())
         .map(|j| {
             let lit: f64 = (0..3)
                 .map(|ch| {
                     p0.t[ch]
-                        .chunks_exact(k)
+                        .chunks_exact(p0.lights)
                         .map(|row| row[j] as f64 * radiance0[j][ch] as f64)
                         .sum::<f64>()
                 })

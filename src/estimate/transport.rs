@@ -20,6 +20,8 @@ pub enum EmitterKind {
     EnvCells,
     /// The sphere lights (the sphere model's transport, [`super::spheres`]).
     Spheres,
+    /// The sphere lights, then the envmap's cells (the sphere model with a background).
+    SpheresThenCells { spheres: u32 },
 }
 
 /// Accumulates one row of a transport per pixel: the weight (per unit radiance) each emitter
@@ -38,7 +40,12 @@ impl Accumulator for PerEmitterAccumulator {
     fn add(&self, pixel: &mut Vec<Vec3>, emitter: Emitter, weight: Vec3) {
         match (self.kind, emitter) {
             (EmitterKind::EnvCells, Emitter::EnvCell(i))
-            | (EmitterKind::Spheres, Emitter::Sphere(i)) => pixel[i as usize] += weight,
+            | (EmitterKind::Spheres | EmitterKind::SpheresThenCells { .. }, Emitter::Sphere(i)) => {
+                pixel[i as usize] += weight
+            }
+            (EmitterKind::SpheresThenCells { spheres }, Emitter::EnvCell(c)) => {
+                pixel[(spheres + c) as usize] += weight
+            }
             _ => {}
         }
     }

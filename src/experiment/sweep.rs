@@ -717,6 +717,7 @@ pub fn run(
                     references: &obs.references,
                     bin: 4,
                     holdout: true,
+                    background: None,
                 };
                 // As `estimate --model spheres`: 1..=3 lights, chosen on held-out pixels.
                 Some(
@@ -741,7 +742,7 @@ pub fn run(
                                 })?;
                         let i = models
                             .iter()
-                            .position(|m| sel.chosen == format!("spheres:{}", m.fit.requested))
+                            .position(|m| sel.chosen == m.fit.model_name())
                             .unwrap_or(0);
                         // Nested fits: the last one's time includes the others'.
                         let seconds = models.last().map_or(0.0, |m| m.fit.seconds);
