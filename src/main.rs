@@ -1307,6 +1307,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     };
     let (lo, hi) = scene.mesh.bounds();
     let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
+    let paths = estimate::spheres::PathCache::default();
     let obs = estimate::spheres::Observations {
         cameras: &views,
         masks: &masks,
@@ -1314,6 +1315,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         bin: 4,
         holdout: choose_k,
         background: None,
+        paths: Some(&paths),
     };
     let mut sphere_models = Vec::new();
     if max_lights > 0 {
@@ -1334,16 +1336,19 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         .with_context(|| format!("{}: --model spheres", a.scene.display()))?;
         pb.finish_and_clear();
     }
-    // --model auto: the spheres' own choice again, with an envmap behind its lights.
-    if let Some(base) =
-        pipeline::best_sphere_model(&sphere_models, &references, &masks).filter(|_| model_auto)
-    {
-        let pb = bar("lights + envmap", 1);
+    // --model auto: sphere models again, with an envmap behind their lights.
+    let bases: Vec<_> = pipeline::background_bases(&sphere_models, &references, &masks)
+        .into_iter()
+        .filter(|_| model_auto)
+        .map(|b| b.fit.clone())
+        .collect();
+    for base in &bases {
+        let pb = bar(&format!("spheres:{} + envmap", base.requested), 1);
         let combined = pipeline::run_with_background(
             &renderer,
             &renderer,
             &obs,
-            &base.fit,
+            base,
             rings,
             &scene.lights,
             (scene.center(), size),

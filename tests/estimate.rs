@@ -139,6 +139,7 @@ fn binned<'a>(
         bin: 4,
         holdout: false,
         background: None,
+        paths: None,
     }
 }
 
@@ -432,6 +433,7 @@ fn sphere_light_radiance_is_recovered_given_its_geometry_and_wrong_geometry_show
         bin: 1,
         holdout: false,
         background: None,
+        paths: None,
     };
     let solve = |geometry: SphereLight| {
         let p = estimate::spheres::sphere_problem(&r, &obs, &[geometry], &st);
@@ -581,6 +583,7 @@ fn select_model(
         &|_| {},
     )
     .unwrap();
+    let paths = estimate::spheres::PathCache::default();
     let obs = estimate::spheres::Observations {
         cameras: &cams,
         masks,
@@ -588,6 +591,7 @@ fn select_model(
         bin: 4,
         holdout: true,
         background: None,
+        paths: Some(&paths),
     };
     let spheres = pipeline::run_sphere_models(
         r,
@@ -603,23 +607,27 @@ fn select_model(
         &|_| {},
     )
     .unwrap();
-    // The sphere model the spheres alone would take, with a 5-ring envmap behind its lights.
-    let base = pipeline::best_sphere_model(&spheres, refs, masks).unwrap();
-    let combined = pipeline::run_with_background(
-        r,
-        r,
-        &obs,
-        &base.fit,
-        5,
-        &[],
-        (center, 2.0),
-        &render,
-        true,
-        &|_| {},
-    )
-    .unwrap();
+    // Sphere models again with a 5-ring envmap behind their lights.
+    let combined: Vec<_> = pipeline::background_bases(&spheres, refs, masks)
+        .into_iter()
+        .map(|base| {
+            pipeline::run_with_background(
+                r,
+                r,
+                &obs,
+                &base.fit,
+                5,
+                &[],
+                (center, 2.0),
+                &render,
+                true,
+                &|_| {},
+            )
+            .unwrap()
+        })
+        .collect();
     let mut all = spheres;
-    all.push(combined);
+    all.extend(combined);
     let sel = pipeline::select_model(Some(&env), &all, refs, masks).unwrap();
     (sel, all)
 }
@@ -673,6 +681,61 @@ fn model_selection_picks_a_sphere_for_a_near_light_and_the_envmap_for_a_smooth_s
 }
 
 #[test]
+fn paths_walked_once_and_lit_again_render_what_a_fresh_render_does() {
+    // The sphere model's renders re-light kept camera paths: under any lights, with any
+    // accumulator and strategy, that must give the render's own image.
+    let sc = scene(vec![NEAR_LIGHT]);
+    let none = Lights::default();
+    let base = Renderer::new(&sc, &none);
+    let cam = &sc.cameras[1];
+    let walked = settings(16, 7);
+    let paths = base.trace_paths(cam, 3, &walked);
+    let moved = SphereLight {
+        center: Vec3::new(-0.5, 1.2, 0.9),
+        ..NEAR_LIGHT
+    };
+    let lit = [
+        Lights::new(vec![NEAR_LIGHT]),
+        Lights::new(vec![moved, NEAR_LIGHT]),
+        Lights {
+            spheres: vec![moved],
+            env: Some(three_ring_sky()),
+        },
+    ];
+    for (i, lights) in lit.iter().enumerate() {
+        for (strategy, every_light) in [
+            (Strategy::Mis, false),
+            (Strategy::Mis, true),
+            (Strategy::LightOnly, false),
+            (Strategy::BsdfOnly, false),
+        ] {
+            let st = RenderSettings {
+                strategy,
+                every_light,
+                ..walked
+            };
+            let r = base.with_lights(lights);
+            let acc = lightprobe::render::RadianceAccumulator(lights);
+            let fresh = r.render(cam, 3, &st, &acc, &|_| {});
+            let again = r.render_paths(&paths, cam, &st, &acc);
+            let (mut worst, mut total) = (0.0f32, 0.0f32);
+            for (a, b) in fresh.pixels.iter().zip(&again.pixels) {
+                worst = worst.max((*a - *b).abs().max_element());
+                total += a.element_sum();
+            }
+            let mean = total / (3 * fresh.pixels.len()) as f32;
+            // Bit-identical but where the last segment grazes an edge (closest hit against
+            // an occlusion test): measured 0.
+            assert!(
+                worst <= 1e-4 * mean,
+                "lights {i} {strategy:?} every_light {every_light}: {worst} (mean {mean})"
+            );
+            assert_eq!(fresh.coverage, again.coverage);
+        }
+    }
+}
+
+#[test]
 fn model_selection_puts_an_envmap_behind_a_near_light_under_a_sky() {
     // A near lamp under a dim sky (about a third of the light on the table): no few spheres
     // fit the sky and no envmap fits the lamp (parallax); the lamp with an envmap behind it
@@ -697,11 +760,25 @@ fn model_selection_puts_an_envmap_behind_a_near_light_under_a_sky() {
     let (refs, masks) = render_all(&r, &sc, 256, 1);
     let (sel, all) = select_model(&sc, &r, &refs, &masks, 2);
     eprintln!("lamp under a sky: {sel:#?}");
-    // Measured: envmap+spheres:1 5.00% (± 0.02%), spheres:1 6.71%, envmap 14.9%; the lamp
-    // 0.35% of its distance off, power ×0.998.
+    // Measured: envmap+spheres:1 4.71%, envmap+spheres:2 4.72%, spheres:2 5.97%, spheres:1
+    // 6.65%, envmap 14.9%; the lamp 0.35% of its distance off, power ×0.998.
     assert_eq!(sel.chosen, "envmap+spheres:1", "{sel:#?}");
+    let best = sel
+        .candidates
+        .iter()
+        .find(|c| c.model == sel.chosen)
+        .unwrap();
     for c in sel.candidates.iter().filter(|c| c.model != sel.chosen) {
-        assert!(c.excess_over_best > 3.0 * c.standard_error, "{sel:#?}");
+        if c.model.starts_with("envmap+") {
+            // A bigger model of the same kind holds this one (a light at zero): not much
+            // worse, but its extra light must not buy a bigger model's gain.
+            assert!(
+                c.validation_rel_mae > best.validation_rel_mae * (1.0 - MODEL_TOLERANCE),
+                "{sel:#?}"
+            );
+        } else {
+            assert!(c.excess_over_best > 3.0 * c.standard_error, "{sel:#?}");
+        }
     }
     let combined = all
         .iter()

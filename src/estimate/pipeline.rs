@@ -346,15 +346,29 @@ pub fn run_sphere_models(
     Ok(out)
 }
 
-/// The sphere model held-out selection takes among `spheres` alone (see [`select_model`]):
-/// the base for [`run_with_background`].
-pub fn best_sphere_model<'a>(
+/// The bases for [`run_with_background`]: the sphere models (all their lights kept) with no
+/// more lights than the one held-out selection takes among `spheres` alone (see
+/// [`select_model`]). Not that one alone: a lamp under a sky can take a second light to patch
+/// the sky, which the background then makes needless.
+pub fn background_bases<'a>(
     spheres: &'a [SphereOutcome],
     references: &[Image],
     masks: &[Vec<bool>],
-) -> Option<&'a SphereOutcome> {
-    let sel = select_model(None, spheres, references, masks)?;
-    spheres.iter().find(|s| s.fit.model_name() == sel.chosen)
+) -> Vec<&'a SphereOutcome> {
+    let Some(sel) = select_model(None, spheres, references, masks) else {
+        return Vec::new();
+    };
+    let Some(chosen) = spheres.iter().find(|s| s.fit.model_name() == sel.chosen) else {
+        return Vec::new();
+    };
+    spheres
+        .iter()
+        .filter(|s| {
+            s.fit.background.is_none()
+                && s.fit.requested <= chosen.fit.requested
+                && s.fit.lights().len() == s.fit.requested
+        })
+        .collect()
 }
 
 /// The sphere model `base` with an envmap of `rings` fitted behind its lights, for light

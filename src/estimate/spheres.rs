@@ -24,7 +24,7 @@ use super::nnls;
 use super::transport::{EmitterKind, PerEmitterAccumulator};
 use crate::envmap::{Envmap, RingGrid};
 use crate::imageio::Image;
-use crate::render::{Lights, RenderSettings, Renderer};
+use crate::render::{Lights, Paths, RenderSettings, Renderer};
 use crate::scene::{Camera, SphereLight};
 
 /// The images a sphere model is fitted to.
@@ -41,6 +41,52 @@ pub struct Observations<'a> {
     /// cells become further linear unknowns after the lights' ([`SphereProblem::lights`]
     /// counts both). For [`refine`] and [`judge`]; the start searches take None.
     pub background: Option<&'a RingGrid>,
+    /// Camera paths kept between renders (None: every render traces its own).
+    pub paths: Option<&'a PathCache>,
+}
+
+/// Camera paths walked once per (scene, view, seed, samples, bounces) and lit again by every
+/// later transport render with those settings ([`Renderer::trace_paths`]): the sphere model's
+/// hundreds of renders differ only in their lights, so only their shadow rays are traced again.
+/// Renders above [`PathCache::MAX_SPP`] samples are not kept (memory: about 64 bytes per path
+/// vertex, 150 MB for 2 views of 128×96 at 64 spp and 2 bounces).
+#[derive(Default)]
+pub struct PathCache {
+    #[allow(clippy::type_complexity)]
+    paths: std::sync::Mutex<
+        std::collections::HashMap<(usize, u64, u64, u32, u32), std::sync::Arc<Paths>>,
+    >,
+}
+
+impl PathCache {
+    pub const MAX_SPP: u32 = 64;
+
+    /// The paths of view `view` (random stream `stream`) under `settings`, walked now if new.
+    fn get(
+        &self,
+        renderer: &Renderer,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+    ) -> std::sync::Arc<Paths> {
+        let key = (
+            renderer.scene as *const _ as usize,
+            stream,
+            settings.seed,
+            settings.spp,
+            settings.max_bounces,
+        );
+        let mut map = self.paths.lock().unwrap_or_else(|e| e.into_inner());
+        map.entry(key)
+            .or_insert_with(|| std::sync::Arc::new(renderer.trace_paths(camera, stream, settings)))
+            .clone()
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        let map = self.paths.lock().unwrap_or_else(|e| e.into_inner());
+        map.values().map(|p| p.bytes()).sum()
+    }
 }
 
 /// The fitting problem at one geometry: per-light transport and references, summed per bin
@@ -98,7 +144,14 @@ pub fn sphere_problem(
     let mut t: [Vec<f32>; 3] = std::array::from_fn(|_| Vec::new());
     let mut y: [Vec<f64>; 3] = std::array::from_fn(|_| Vec::new());
     for (v, (cam, mask)) in obs.cameras.iter().zip(obs.masks).enumerate() {
-        let frame = renderer.render(cam, 2000 + v as u64, settings, &acc, &|_| {});
+        let stream = 2000 + v as u64;
+        let frame = match obs.paths.filter(|_| settings.spp <= PathCache::MAX_SPP) {
+            Some(cache) => {
+                let paths = cache.get(&renderer, cam, stream, settings);
+                renderer.render_paths(&paths, cam, settings, &acc)
+            }
+            None => renderer.render(cam, stream, settings, &acc, &|_| {}),
+        };
         let (w, h) = (frame.width, frame.height);
         let bw = w.div_ceil(bin) as usize;
         let bins = bw * h.div_ceil(bin) as usize;

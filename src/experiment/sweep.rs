@@ -25,7 +25,7 @@ use crate::error::{Error, Result};
 use crate::estimate::pipeline::{self, EstimateOptions};
 use crate::estimate::recovery::SphereRecovery;
 use crate::estimate::select::{self, Selection};
-use crate::estimate::spheres::{LightStatus, Observations};
+use crate::estimate::spheres::{LightStatus, Observations, PathCache};
 use crate::estimate::{FitSettings, Solver, Transport, first_round_transport};
 use crate::imageio::{self, Image};
 use crate::render::sampling::mix64;
@@ -711,6 +711,7 @@ pub fn run(
             (Ok(o), true) => {
                 report(&format!("{} spheres", sf.name), progress);
                 let (lo, hi) = scene.mesh.bounds();
+                let paths = PathCache::default();
                 let sphere_obs = Observations {
                     cameras: &views,
                     masks: &obs.masks,
@@ -718,6 +719,7 @@ pub fn run(
                     bin: 4,
                     holdout: true,
                     background: None,
+                    paths: Some(&paths),
                 };
                 // As `estimate --model spheres`: 1..=3 lights, chosen on held-out pixels.
                 Some(

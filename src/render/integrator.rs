@@ -3,6 +3,13 @@
 //! sampling (power heuristic). What a path delivers goes to an [`Accumulator`] as
 //! (emitter, weight per unit emitted radiance), so the same tracer renders radiance or
 //! accumulates derivatives with respect to each emitter.
+//!
+//! A path is traced in two steps: [`Tracer::walk`] finds its scattering vertices (camera ray,
+//! BSDF samples, closest hits: the scene's geometry only), then [`Tracer::light`] lights them
+//! (emitter samples, shadow rays, and the emitters the BSDF segments reach). Nothing in the
+//! walk depends on the lights, and the two draw from separate random streams, so a walked path
+//! can be kept and lit again under other lights ([`super::Paths`]): the sphere model's many
+//! renders differ only in their lights.
 
 use glam::{Vec2, Vec3};
 
@@ -13,20 +20,52 @@ use crate::accel::{Accel, Hit};
 use crate::scene::Scene;
 
 /// The random numbers of one camera sample. The pixel jitter comes from a per-pixel-rotated
-/// R2 sequence (stratified across the pixel's samples); everything else from PCG. (Drawing
-/// further dimensions from the same R2 sequence would tie them to the pixel position: each
-/// pixel's estimate would then converge to a shifted, wrong integral.)
+/// R2 sequence (stratified across the pixel's samples); the walk's BSDF samples (two numbers
+/// per vertex) from a PCG stream, and the light samples from the same stream further on. (Drawing further dimensions from the same R2
+/// sequence would tie them to the pixel position: each pixel's estimate would then converge to
+/// a shifted, wrong integral.)
 pub(super) struct PathSampler {
     pub rng: Rng,
+    pub light_rng: Rng,
     pub index: u32,
     pub pixel_offset: Vec2,
 }
 
 impl PathSampler {
+    /// The sampler of camera sample `index` of the pixel keyed `pixel_key`.
+    #[inline]
+    pub fn new(pixel_key: u64, pixel_offset: Vec2, index: u32, max_bounces: u32) -> PathSampler {
+        let rng = Rng::new(pixel_key.wrapping_add(super::sampling::mix64(index as u64 + 1)));
+        PathSampler {
+            light_rng: rng.ahead(2 * max_bounces),
+            rng,
+            index,
+            pixel_offset,
+        }
+    }
+
     #[inline]
     pub fn pixel_jitter(&self) -> Vec2 {
         r2(self.index, self.pixel_offset)
     }
+}
+
+/// A scattering vertex of a camera path: what lighting it needs, none of it dependent on the
+/// lights.
+#[derive(Debug, Clone, Copy)]
+pub struct Vertex {
+    /// Position, world space (metres).
+    p: Vec3,
+    /// Geometric normal facing the incoming ray; shading normal on the same side.
+    ng: Vec3,
+    ns: Vec3,
+    /// Path throughput up to this vertex times its BSDF (albedo / π).
+    throughput_f: Vec3,
+    /// The BSDF-sampled direction leaving the vertex; zero where the path ends here.
+    wi: Vec3,
+    /// Distance to scene geometry along `wi` from the offset origin: ∞ if the ray escapes,
+    /// NaN if not traced (a path's last segment, which matters only if it reaches an emitter).
+    t_next: f32,
 }
 
 /// Local geometry at a surface hit, with both normals facing the incoming ray.
@@ -75,13 +114,91 @@ pub(super) struct Tracer<'a> {
 }
 
 impl Tracer<'_> {
-    /// Traces one camera path from `origin` along unit `dir`, handing every emitter it reaches
-    /// to `acc`. Returns whether the camera ray hit scene geometry (for the coverage mask).
+    /// Traces one camera path from `origin` along unit `dir` and hands every emitter it
+    /// reaches to `acc`; `verts` is scratch space. Returns whether the camera ray saw scene
+    /// geometry (for the coverage mask).
     pub fn trace<A: Accumulator>(
         &self,
         origin: Vec3,
         dir: Vec3,
         s: &mut PathSampler,
+        verts: &mut Vec<Vertex>,
+        acc: &A,
+        px: &mut A::Pixel,
+    ) -> bool {
+        let t_first = self.walk(origin, dir, &mut s.rng, false, verts);
+        self.light(origin, dir, t_first, verts, &mut s.light_rng, acc, px)
+    }
+
+    /// The scattering vertices of a camera path from `origin` along unit `dir` (at most
+    /// `max_bounces`), into `out`, BSDF directions drawn from `rng`. With `trace_last` the
+    /// last segment's geometry is found too (worth it for a path lit many times). Returns the
+    /// distance to the first surface (∞ if the camera ray sees none).
+    #[inline(always)]
+    pub fn walk(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        rng: &mut Rng,
+        trace_last: bool,
+        out: &mut Vec<Vertex>,
+    ) -> f32 {
+        out.clear();
+        let (mut o, mut d) = (origin, dir);
+        let mut t_first = f32::INFINITY;
+        let mut throughput = Vec3::ONE;
+        // One closest-hit query per segment, camera ray first (a single call site: the
+        // compiler lays the loop out as tightly as the one-pass tracer's).
+        loop {
+            let hit = self.accel.intersect(o, d, f32::INFINITY);
+            let t = hit.map_or(f32::INFINITY, |h| h.t);
+            match out.last_mut() {
+                Some(v) => v.t_next = t,
+                None => t_first = t,
+            }
+            let Some(hit) = hit else { break };
+            if out.len() as u32 == self.settings.max_bounces {
+                break;
+            }
+            let sp = surface_point(self.scene, &hit, d);
+            let mut v = Vertex {
+                p: sp.p,
+                ng: sp.ng,
+                ns: sp.ns,
+                throughput_f: throughput * sp.albedo * INV_PI,
+                wi: Vec3::ZERO,
+                t_next: f32::NAN,
+            };
+            let wi = cosine_hemisphere(sp.ns, rng.next_2d());
+            let pdf = wi.dot(sp.ns) * INV_PI;
+            throughput *= sp.albedo; // f · cos / pdf for a Lambertian
+            let ends = wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 || throughput == Vec3::ZERO;
+            if !ends {
+                v.wi = wi;
+            }
+            out.push(v);
+            let last = out.len() as u32 == self.settings.max_bounces;
+            if ends || (last && !trace_last) {
+                break;
+            }
+            (o, d) = (offset(sp.p, sp.ng), wi);
+        }
+        t_first
+    }
+
+    /// Lights a walked path (`t_first`, `verts` from [`Tracer::walk`] of the camera ray
+    /// `origin`, `dir`), light samples drawn from `rng`: next-event estimation at each vertex
+    /// and the emitters its segments reach, handed to `acc`. An emitter in front of a vertex
+    /// ends the path there. Returns whether the camera ray saw scene geometry before any
+    /// emitter.
+    #[allow(clippy::too_many_arguments)]
+    pub fn light<A: Accumulator>(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_first: f32,
+        verts: &[Vertex],
+        rng: &mut Rng,
         acc: &A,
         px: &mut A::Pixel,
     ) -> bool {
@@ -93,115 +210,100 @@ impl Tracer<'_> {
         };
         let mis = use_light && use_bsdf;
 
-        let (mut o, mut d) = (origin, dir);
-        let mut throughput = Vec3::ONE;
-        let mut depth = 0u32; // scattering events so far
-        let (mut prev_p, mut prev_pdf_bsdf) = (origin, 0.0f32);
-        let mut hit_geometry = false;
-        loop {
-            let light_hit = lights.intersect(o, d, 0.0, f32::INFINITY);
-            let t_max = light_hit.map_or(f32::INFINITY, |h| h.0);
-            let hit = if depth > 0 && depth == st.max_bounces {
-                // The path's last segment only counts if it reaches an emitter: an occlusion
-                // test toward that emitter replaces the closest-hit query, and most such
-                // segments (those toward no sphere light, with no envmap) need no ray at all.
-                let reaches = use_bsdf
-                    && (light_hit.is_some() || lights.env.is_some())
-                    && !self.accel.occluded(o, d, t_max);
-                if !reaches {
-                    break;
-                }
-                None
-            } else {
-                self.accel.intersect(o, d, t_max)
-            };
-            let Some(hit) = hit else {
-                // ---- An emitter seen directly, or through BSDF sampling ----
-                if let Some(e) = light_hit.map(|h| h.1).or_else(|| lights.escape(d)) {
-                    if depth == 0 {
-                        if !st.hide_emitters {
-                            acc.add(px, e, throughput);
-                        }
-                    } else if use_bsdf {
-                        let w = if mis {
-                            let light_pdf = if st.every_light {
-                                lights.pdf_light(e, prev_p)
-                            } else {
-                                lights.pdf(e, prev_p)
-                            };
-                            power_heuristic(prev_pdf_bsdf, light_pdf)
-                        } else {
-                            1.0
-                        };
-                        acc.add(px, e, throughput * w);
-                    }
-                }
-                break;
-            };
-            if depth == 0 {
-                hit_geometry = true;
+        // ---- The camera ray: an emitter seen directly ----
+        let seen = match lights.intersect(origin, dir, 0.0, t_first) {
+            Some((_, e)) => Some(e),
+            None if t_first.is_infinite() => lights.escape(dir),
+            None => None,
+        };
+        if let Some(e) = seen {
+            if !st.hide_emitters {
+                acc.add(px, e, Vec3::ONE);
             }
-            if depth == st.max_bounces {
-                break;
-            }
-            depth += 1;
-            let sp = surface_point(self.scene, &hit, d);
-            let f = sp.albedo * INV_PI;
+            return false;
+        }
+        if t_first.is_infinite() {
+            return false;
+        }
 
+        for v in verts {
             // ---- Emitter sampling ----
             if use_light && st.every_light {
                 for i in 0..lights.len() {
-                    let (u_cell, u) = (s.rng.next_f32(), s.rng.next_2d());
-                    if let Some(ls) = lights.sample_light(i, sp.p, u_cell, u) {
-                        self.shadow_ray(&sp, &ls, mis, throughput * f, acc, px);
+                    let (u_cell, u) = (rng.next_f32(), rng.next_2d());
+                    if let Some(ls) = lights.sample_light(i, v.p, u_cell, u) {
+                        self.shadow_ray(v, &ls, mis, acc, px);
                     }
                 }
             } else if use_light {
-                let (u_light, u) = (s.rng.next_2d(), s.rng.next_2d());
-                if let Some(ls) = lights.sample(sp.p, u_light, u) {
-                    self.shadow_ray(&sp, &ls, mis, throughput * f, acc, px);
+                let (u_light, u) = (rng.next_2d(), rng.next_2d());
+                if let Some(ls) = lights.sample(v.p, u_light, u) {
+                    self.shadow_ray(v, &ls, mis, acc, px);
                 }
             }
 
-            // ---- BSDF sampling ----
-            let wi = cosine_hemisphere(sp.ns, s.rng.next_2d());
-            let pdf = wi.dot(sp.ns) * INV_PI;
-            if wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 {
+            // ---- BSDF sampling: the emitter the next segment reaches, if any ----
+            if v.wi == Vec3::ZERO {
                 break;
             }
-            throughput *= sp.albedo; // f · cos / pdf for a Lambertian
-            if throughput == Vec3::ZERO {
-                break;
+            let o = offset(v.p, v.ng);
+            let light_hit = lights.intersect(o, v.wi, 0.0, f32::INFINITY);
+            let reached = if v.t_next.is_nan() {
+                // Not traced: one occlusion test toward the emitter it would reach (no ray
+                // at all toward none, or without `use_bsdf`).
+                let target = light_hit.or_else(|| lights.escape(v.wi).map(|e| (f32::INFINITY, e)));
+                target
+                    .filter(|&(t, _)| use_bsdf && !self.accel.occluded(o, v.wi, t))
+                    .map(|(_, e)| e)
+            } else {
+                match light_hit {
+                    Some((t, e)) if t < v.t_next => Some(e),
+                    _ if v.t_next.is_infinite() => lights.escape(v.wi),
+                    _ => None,
+                }
+            };
+            let Some(e) = reached else {
+                continue;
+            };
+            if use_bsdf {
+                let w = if mis {
+                    let light_pdf = if st.every_light {
+                        lights.pdf_light(e, v.p)
+                    } else {
+                        lights.pdf(e, v.p)
+                    };
+                    power_heuristic(v.wi.dot(v.ns) * INV_PI, light_pdf)
+                } else {
+                    1.0
+                };
+                // Throughput after the bounce: f · cos / pdf = albedo, i.e. π · f.
+                acc.add(px, e, v.throughput_f * std::f32::consts::PI * w);
             }
-            prev_p = sp.p;
-            prev_pdf_bsdf = pdf;
-            o = offset(sp.p, sp.ng);
-            d = wi;
+            break;
         }
-        hit_geometry
+        true
     }
 
-    /// Next-event estimation of one light sample: a shadow ray, and if the light is visible
-    /// its contribution, `throughput_f` being the path throughput times the BSDF.
+    /// Next-event estimation of one light sample at vertex `v`: a shadow ray, and if the
+    /// light is visible its contribution.
     #[inline]
     fn shadow_ray<A: Accumulator>(
         &self,
-        sp: &SurfacePoint,
+        v: &Vertex,
         ls: &LightSample,
         mis: bool,
-        throughput_f: Vec3,
         acc: &A,
         px: &mut A::Pixel,
     ) {
-        let cos_s = ls.wi.dot(sp.ns);
-        if cos_s <= 0.0 || ls.wi.dot(sp.ng) <= 0.0 {
+        let cos_s = ls.wi.dot(v.ns);
+        if cos_s <= 0.0 || ls.wi.dot(v.ng) <= 0.0 {
             return;
         }
         // Aim from the offset origin at the sampled point on the emitter; the emitter itself
         // cannot block its own near side.
-        let o_shadow = offset(sp.p, sp.ng);
+        let o_shadow = offset(v.p, v.ng);
         let (d_shadow, t_shadow) = if ls.dist.is_finite() {
-            let to_light = sp.p + ls.wi * ls.dist - o_shadow;
+            let to_light = v.p + ls.wi * ls.dist - o_shadow;
             let len = to_light.length();
             (to_light / len, len * (1.0 - 1e-4))
         } else {
@@ -219,7 +321,7 @@ impl Tracer<'_> {
         } else {
             1.0
         };
-        acc.add(px, ls.emitter, throughput_f * (cos_s * w / ls.pdf));
+        acc.add(px, ls.emitter, v.throughput_f * (cos_s * w / ls.pdf));
     }
 
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading

@@ -27,7 +27,7 @@ pub use lights::{Emitter, LightSample, Lights};
 use crate::accel::Accel;
 use crate::imageio::Image;
 use crate::scene::{Camera, Scene, SceneSettings};
-use integrator::{PathSampler, Tracer};
+use integrator::{PathSampler, Tracer, Vertex};
 use sampling::{Rng, mix64};
 
 /// Side of the square tiles work is split into.
@@ -215,29 +215,21 @@ impl<'a> Renderer<'a> {
         let (w, h) = (camera.width, camera.height);
         let tracer = self.tracer(settings);
         let tiles = tiles(w, h);
-        let key = mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)));
+        let key = render_key(settings, stream);
         let ray_dir = camera.ray_dirs();
         let done: Vec<Vec<(u32, A::Pixel, f32)>> = tiles
             .par_iter()
             .map(|&(x0, y0, x1, y1)| {
                 let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+                let mut verts = Vec::with_capacity(settings.max_bounces as usize);
                 for y in y0..y1 {
                     for x in x0..x1 {
                         let index = y * w + x;
-                        let pixel_key = mix64(key ^ index as u64);
-                        let pixel_offset = Rng::new(pixel_key).next_2d();
                         let mut px = acc.new_pixel();
                         let mut hits = 0u32;
-                        for i in 0..settings.spp {
-                            let mut s = PathSampler {
-                                rng: Rng::new(pixel_key.wrapping_add(mix64(i as u64 + 1))),
-                                index: i,
-                                pixel_offset,
-                            };
-                            let j = s.pixel_jitter();
-                            let dir = ray_dir(x as f32 + j.x, y as f32 + j.y);
-                            hits +=
-                                tracer.trace(camera.origin_world, dir, &mut s, acc, &mut px) as u32;
+                        for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, settings) {
+                            let o = camera.origin_world;
+                            hits += tracer.trace(o, dir, &mut s, &mut verts, acc, &mut px) as u32;
                         }
                         acc.finish(&mut px, settings.spp);
                         out.push((index, px, hits as f32 / settings.spp as f32));
@@ -248,23 +240,103 @@ impl<'a> Renderer<'a> {
             })
             .collect();
 
-        let n = (w * h) as usize;
-        let mut slots: Vec<Option<A::Pixel>> = (0..n).map(|_| None).collect();
-        let mut coverage = vec![0.0; n];
-        for (index, px, cov) in done.into_iter().flatten() {
-            slots[index as usize] = Some(px);
-            coverage[index as usize] = cov;
-        }
-        let pixels = slots
-            .into_iter()
-            .map(|p| p.expect("every pixel belongs to one tile"))
+        assemble(w, h, done)
+    }
+
+    /// Walks every camera path of a render of `camera` (as [`Renderer::render`] would with
+    /// these settings and `stream`), keeping their vertices to be lit later by
+    /// [`Renderer::render_paths`], under any lights. Memory: about 64 bytes per vertex, up to
+    /// `max_bounces` vertices per sample.
+    pub fn trace_paths(&self, camera: &Camera, stream: u64, settings: &RenderSettings) -> Paths {
+        let (w, h) = (camera.width, camera.height);
+        let tracer = self.tracer(settings);
+        let key = render_key(settings, stream);
+        let ray_dir = camera.ray_dirs();
+        let tiles = tiles(w, h)
+            .par_iter()
+            .map(|&(x0, y0, x1, y1)| {
+                let mut tile = TilePaths {
+                    samples: Vec::with_capacity(((x1 - x0) * (y1 - y0) * settings.spp) as usize),
+                    vertices: Vec::new(),
+                };
+                let mut verts = Vec::with_capacity(settings.max_bounces as usize);
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let index = y * w + x;
+                        for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, settings) {
+                            let t =
+                                tracer.walk(camera.origin_world, dir, &mut s.rng, true, &mut verts);
+                            tile.samples.push((t, verts.len() as u8));
+                            tile.vertices.extend_from_slice(&verts);
+                        }
+                    }
+                }
+                tile
+            })
             .collect();
-        Frame {
+        Paths {
             width: w,
             height: h,
-            pixels,
-            coverage,
+            settings: *settings,
+            stream,
+            tiles,
         }
+    }
+
+    /// Lights `paths` (walked by [`Renderer::trace_paths`] from `camera`) with this renderer's
+    /// lights: the image [`Renderer::render`] makes with the paths' seed, samples and bounces
+    /// and `settings`' strategy and emitter options, without tracing a camera path again.
+    pub fn render_paths<A: Accumulator>(
+        &self,
+        paths: &Paths,
+        camera: &Camera,
+        settings: &RenderSettings,
+        acc: &A,
+    ) -> Frame<A::Pixel> {
+        let (w, h) = (paths.width, paths.height);
+        let settings = RenderSettings {
+            spp: paths.settings.spp,
+            seed: paths.settings.seed,
+            max_bounces: paths.settings.max_bounces,
+            ..*settings
+        };
+        let tracer = self.tracer(&settings);
+        let key = render_key(&settings, paths.stream);
+        let ray_dir = camera.ray_dirs();
+        let done: Vec<Vec<(u32, A::Pixel, f32)>> = tiles(w, h)
+            .par_iter()
+            .zip(&paths.tiles)
+            .map(|(&(x0, y0, x1, y1), tile)| {
+                let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+                let (mut sample, mut vertex) = (0, 0);
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let index = y * w + x;
+                        let mut px = acc.new_pixel();
+                        let mut hits = 0u32;
+                        for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, &settings) {
+                            let (t_first, n) = tile.samples[sample];
+                            let verts = &tile.vertices[vertex..vertex + n as usize];
+                            (sample, vertex) = (sample + 1, vertex + n as usize);
+                            let o = camera.origin_world;
+                            hits += tracer.light(
+                                o,
+                                dir,
+                                t_first,
+                                verts,
+                                &mut s.light_rng,
+                                acc,
+                                &mut px,
+                            ) as u32;
+                        }
+                        acc.finish(&mut px, settings.spp);
+                        out.push((index, px, hits as f32 / settings.spp as f32));
+                    }
+                }
+                out
+            })
+            .collect();
+        assemble(w, h, done)
     }
 
     /// Renders radiance; the coverage becomes the image's alpha.
@@ -316,6 +388,83 @@ impl<'a> Renderer<'a> {
             normal: make(&|h| h.1),
             albedo: make(&|h| h.2),
         }
+    }
+}
+
+/// Camera paths of one view, walked once ([`Renderer::trace_paths`]) to be lit many times.
+pub struct Paths {
+    pub width: u32,
+    pub height: u32,
+    /// The settings they were walked with (seed, samples, bounces).
+    pub settings: RenderSettings,
+    pub stream: u64,
+    /// Per tile, in [`tiles`] order.
+    tiles: Vec<TilePaths>,
+}
+
+impl Paths {
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        self.tiles
+            .iter()
+            .map(|t| {
+                t.samples.len() * std::mem::size_of::<(f32, u8)>()
+                    + t.vertices.len() * std::mem::size_of::<Vertex>()
+            })
+            .sum()
+    }
+}
+
+/// The paths of one tile: per camera sample (pixels row by row, samples in order), the
+/// distance to its first surface and how many vertices it has, which follow in `vertices`.
+struct TilePaths {
+    samples: Vec<(f32, u8)>,
+    vertices: Vec<Vertex>,
+}
+
+/// The key every random stream of a render derives from.
+fn render_key(settings: &RenderSettings, stream: u64) -> u64 {
+    mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)))
+}
+
+/// The camera samples of pixel (`x`, `y`) (`index` = y · width + x): each one's ray direction
+/// and random streams.
+fn camera_samples<'a>(
+    key: u64,
+    index: u32,
+    x: u32,
+    y: u32,
+    ray_dir: &'a (impl Fn(f32, f32) -> Vec3 + 'a),
+    settings: &RenderSettings,
+) -> impl Iterator<Item = (Vec3, PathSampler)> + 'a {
+    let pixel_key = mix64(key ^ index as u64);
+    let pixel_offset = Rng::new(pixel_key).next_2d();
+    let max_bounces = settings.max_bounces;
+    (0..settings.spp).map(move |i| {
+        let s = PathSampler::new(pixel_key, pixel_offset, i, max_bounces);
+        let j = s.pixel_jitter();
+        (ray_dir(x as f32 + j.x, y as f32 + j.y), s)
+    })
+}
+
+/// Puts tiles' pixels (index, pixel, coverage) in their places.
+fn assemble<P>(w: u32, h: u32, done: Vec<Vec<(u32, P, f32)>>) -> Frame<P> {
+    let n = (w * h) as usize;
+    let mut slots: Vec<Option<P>> = (0..n).map(|_| None).collect();
+    let mut coverage = vec![0.0; n];
+    for (index, px, cov) in done.into_iter().flatten() {
+        slots[index as usize] = Some(px);
+        coverage[index as usize] = cov;
+    }
+    let pixels = slots
+        .into_iter()
+        .map(|p| p.expect("every pixel belongs to one tile"))
+        .collect();
+    Frame {
+        width: w,
+        height: h,
+        pixels,
+        coverage,
     }
 }
 

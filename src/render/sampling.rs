@@ -46,6 +46,20 @@ impl Rng {
         xorshifted.rotate_right(rot)
     }
 
+    /// The stream `n` draws ahead of this one (a cheap second stream: a consumer that never
+    /// draws more than `n` numbers from this one never overlaps it).
+    #[inline]
+    pub fn ahead(&self, n: u32) -> Rng {
+        let mut r = self.clone();
+        for _ in 0..n {
+            r.state = r
+                .state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(r.inc);
+        }
+        r
+    }
+
     /// Uniform in [0, 1).
     #[inline]
     pub fn next_f32(&mut self) -> f32 {
