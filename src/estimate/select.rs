@@ -150,10 +150,11 @@ pub struct ModelSelection {
 /// A light model with more parameters must beat a smaller one by more than this fraction of
 /// the error, besides one standard error. The standard error treats held-out pixels as
 /// independent, but a misfit spans many neighbours (a shadow edge, a penumbra), so it
-/// understates the uncertainty: measured on s02, s05 and s50, an extra light bought 0.7–1.2%
-/// "significant" held-out improvement by patching a slightly misfit real one, where a true
-/// second light gains 50–80%.
-pub const MODEL_TOLERANCE: f64 = 0.02;
+/// understates the uncertainty: measured on s02, s05 and s50, an extra light bought 0.7–3.5%
+/// "significant" held-out improvement by patching a slightly misfit real one (3.5%: s50, a
+/// third light beside two), where a true second light gains 50–80% and an envmap behind a
+/// lamp under a sky 29%.
+pub const MODEL_TOLERANCE: f64 = 0.10;
 
 /// Chooses among light models fitted without the held-out pixels, by the error of their
 /// re-renders there: the fewest parameters within one standard error (and within
@@ -270,11 +271,16 @@ mod tests {
 
     #[test]
     fn a_light_model_must_gain_more_than_the_tolerance() {
-        // A bigger model consistently better by 1% of the error (far beyond one standard error
-        // of the paired differences) loses to the smaller one; better by 10%, it wins.
+        // A bigger model consistently better by 1% or 3.5% of the error (far beyond one
+        // standard error of the paired differences) loses to the smaller one; better by 20%,
+        // it wins.
         let base: Vec<f64> = (0..8).map(|i| 1.0 + 0.1 * i as f64).collect();
         let by = |f: f64| -> Vec<f64> { base.iter().map(|b| b * f).collect() };
-        for (gain, want) in [(0.99, "spheres:1"), (0.90, "spheres:2")] {
+        for (gain, want) in [
+            (0.99, "spheres:1"),
+            (0.965, "spheres:1"),
+            (0.80, "spheres:2"),
+        ] {
             let s = choose_model(vec![
                 ("spheres:2".into(), 14, v(&by(gain)), 0.0),
                 ("spheres:1".into(), 7, v(&base), 0.0),
