@@ -318,25 +318,16 @@ pub fn run_sphere_models(
         if lights.is_empty() {
             continue;
         }
-        let t = Instant::now();
-        let (mut renders, mut errors) = (Vec::new(), Vec::new());
-        if evaluate {
-            let l = Lights::new(lights.clone());
-            renders = render_views(
-                &truth_renderer.with_lights(&l),
-                obs.cameras,
-                &evaluation_settings(render),
-                progress,
-            );
-            errors = compare_views(&renders, obs.references, obs.masks)?;
-        }
-        out.push(SphereOutcome {
-            recovery: recovery::recover_spheres(&lights, truth, center),
+        out.push(outcome_of(
             fit,
-            renders,
-            errors,
-            rerender_seconds: t.elapsed().as_secs_f64(),
-        });
+            truth_renderer,
+            obs,
+            truth,
+            center,
+            render,
+            evaluate,
+            progress,
+        )?);
     }
     if out.is_empty() {
         return Err(Error::Invalid(
@@ -424,6 +415,32 @@ pub fn run_with_background(
         seconds: t0.elapsed().as_secs_f64(),
         background: Some(background),
     };
+    outcome_of(
+        fit,
+        truth_renderer,
+        &obs,
+        truth,
+        center,
+        render,
+        evaluate,
+        progress,
+    )
+}
+
+/// A sphere-model fit with its figures: with `evaluate`, its lights (and background)
+/// re-rendered with a seed the fit never saw, in the scene of `truth_renderer`, and its
+/// errors; its recovery of `truth`.
+#[allow(clippy::too_many_arguments)]
+fn outcome_of(
+    fit: SphereFit,
+    truth_renderer: &Renderer,
+    obs: &Observations,
+    truth: &[SphereLight],
+    center: Vec3,
+    render: &RenderSettings,
+    evaluate: bool,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<SphereOutcome> {
     let lights = fit.lights();
     let t = Instant::now();
     let (mut renders, mut errors) = (Vec::new(), Vec::new());
