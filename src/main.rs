@@ -1384,6 +1384,23 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         ));
         model_selection = Some(sel);
     }
+    // Chosen on held-out pixels: fitted again on all of them.
+    if let Some(i) = chosen.filter(|_| choose_k) {
+        let pb = bar("refit on all pixels", 1);
+        sphere_models[i] = pipeline::refit_on_all_pixels(
+            &renderer,
+            &renderer,
+            &obs,
+            &sphere_models[i].fit,
+            &scene.lights,
+            scene.center(),
+            &settings,
+            true,
+            &|k| pb.inc(k),
+        )
+        .with_context(|| format!("{}: --model (refit on all pixels)", a.scene.display()))?;
+        pb.finish_and_clear();
+    }
     if let Some(so) = chosen.map(|i| &sphere_models[i]) {
         write_spheres(&a.out.join("spheres"), so, &views, &references, &masks)?;
         spheres_lines.extend(spheres_summary(so, errors));

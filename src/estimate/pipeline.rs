@@ -427,6 +427,66 @@ pub fn run_with_background(
     )
 }
 
+/// The model held-out selection chose (fitted on three quarters of the pixels), fitted again
+/// on all of them: the selection needs pixels the fits never saw, the estimate does not.
+/// Levenberg–Marquardt from the chosen lights (and background), then judged and scored like
+/// [`run_sphere_models`].
+#[allow(clippy::too_many_arguments)]
+pub fn refit_on_all_pixels(
+    renderer: &Renderer,
+    truth_renderer: &Renderer,
+    obs: &Observations,
+    chosen: &SphereFit,
+    truth: &[SphereLight],
+    center: Vec3,
+    render: &RenderSettings,
+    evaluate: bool,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Result<SphereOutcome> {
+    let t0 = Instant::now();
+    let grid = chosen
+        .background
+        .as_ref()
+        .map(|b| RingGrid::new(b.grid.rings()));
+    let obs = Observations {
+        holdout: false,
+        background: grid.as_ref(),
+        ..*obs
+    };
+    let start = chosen.lights();
+    let settings = SphereSettings::new(start.len(), render);
+    let refined = spheres::refine(renderer, &obs, &start, center, &settings.refine);
+    let (fitted, judged) =
+        spheres::judge(renderer, &obs, &refined, center, &settings.refine.residual);
+    let background = match &grid {
+        Some(g) => {
+            Some(Envmap::new(g.rings(), refined.background.clone()).map_err(Error::Invalid)?)
+        }
+        None => None,
+    };
+    let fit = SphereFit {
+        requested: chosen.requested,
+        fitted,
+        start: chosen.start.clone(),
+        fit_rel_mae: refined.rel_mae,
+        iterations: chosen.iterations + refined.iterations,
+        renders: chosen.renders + refined.evaluations + judged,
+        history: refined.history,
+        seconds: chosen.seconds + t0.elapsed().as_secs_f64(),
+        background,
+    };
+    outcome_of(
+        fit,
+        truth_renderer,
+        &obs,
+        truth,
+        center,
+        render,
+        evaluate,
+        progress,
+    )
+}
+
 /// A sphere-model fit with its figures: with `evaluate`, its lights (and background)
 /// re-rendered with a seed the fit never saw, in the scene of `truth_renderer`, and its
 /// errors; its recovery of `truth`.

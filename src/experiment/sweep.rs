@@ -748,7 +748,18 @@ pub fn run(
                             .unwrap_or(0);
                         // Nested fits: the last one's time includes the others'.
                         let seconds = models.last().map_or(0.0, |m| m.fit.seconds);
-                        let so = models.into_iter().nth(i).expect("chosen among them");
+                        let so = pipeline::refit_on_all_pixels(
+                            &fit_renderer,
+                            &renderer,
+                            &sphere_obs,
+                            &models[i].fit,
+                            &sf.lights,
+                            scene.center(),
+                            &render,
+                            true,
+                            &|_| {},
+                        )?;
+                        let seconds = seconds + so.fit.seconds - models[i].fit.seconds;
                         Ok((so, sel, seconds))
                     }),
                 )
