@@ -400,21 +400,9 @@ pub fn run_with_background(
         (center, size),
         &settings.search,
     );
-    let refined = spheres::refine(renderer, &obs, &start, center, &settings.refine);
-    let (fitted, judged) =
-        spheres::judge(renderer, &obs, &refined, center, &settings.refine.residual);
-    let background = Envmap::new(rings, refined.background.clone()).map_err(Error::Invalid)?;
-    let fit = SphereFit {
-        requested: start.len(),
-        fitted,
-        start,
-        fit_rel_mae: refined.rel_mae,
-        iterations: refined.iterations,
-        renders: searched + refined.evaluations + judged,
-        history: refined.history,
-        seconds: t0.elapsed().as_secs_f64(),
-        background: Some(background),
-    };
+    let mut fit = refine_and_judge(renderer, &obs, &start, center, render)?;
+    fit.renders += searched;
+    fit.seconds = t0.elapsed().as_secs_f64();
     outcome_of(
         fit,
         truth_renderer,
@@ -453,27 +441,14 @@ pub fn refit_on_all_pixels(
         background: grid.as_ref(),
         ..*obs
     };
-    let start = chosen.lights();
-    let settings = SphereSettings::new(start.len(), render);
-    let refined = spheres::refine(renderer, &obs, &start, center, &settings.refine);
-    let (fitted, judged) =
-        spheres::judge(renderer, &obs, &refined, center, &settings.refine.residual);
-    let background = match &grid {
-        Some(g) => {
-            Some(Envmap::new(g.rings(), refined.background.clone()).map_err(Error::Invalid)?)
-        }
-        None => None,
-    };
+    let fit = refine_and_judge(renderer, &obs, &chosen.lights(), center, render)?;
     let fit = SphereFit {
         requested: chosen.requested,
-        fitted,
         start: chosen.start.clone(),
-        fit_rel_mae: refined.rel_mae,
-        iterations: chosen.iterations + refined.iterations,
-        renders: chosen.renders + refined.evaluations + judged,
-        history: refined.history,
+        iterations: chosen.iterations + fit.iterations,
+        renders: chosen.renders + fit.renders,
         seconds: chosen.seconds + t0.elapsed().as_secs_f64(),
-        background,
+        ..fit
     };
     outcome_of(
         fit,
@@ -485,6 +460,39 @@ pub fn refit_on_all_pixels(
         evaluate,
         progress,
     )
+}
+
+/// Levenberg–Marquardt from `start` on `obs` (with its background's cells, if any), then each
+/// light judged: the fit, with the iterations and renders of these two steps.
+fn refine_and_judge(
+    renderer: &Renderer,
+    obs: &Observations,
+    start: &[SphereLight],
+    center: Vec3,
+    render: &RenderSettings,
+) -> Result<SphereFit> {
+    let t0 = Instant::now();
+    let settings = SphereSettings::new(start.len(), render);
+    let refined = spheres::refine(renderer, obs, start, center, &settings.refine);
+    let (fitted, judged) =
+        spheres::judge(renderer, obs, &refined, center, &settings.refine.residual);
+    let background = match obs.background {
+        Some(g) => {
+            Some(Envmap::new(g.rings(), refined.background.clone()).map_err(Error::Invalid)?)
+        }
+        None => None,
+    };
+    Ok(SphereFit {
+        requested: start.len(),
+        fitted,
+        start: start.to_vec(),
+        fit_rel_mae: refined.rel_mae,
+        iterations: refined.iterations,
+        renders: refined.evaluations + judged,
+        history: refined.history,
+        seconds: t0.elapsed().as_secs_f64(),
+        background,
+    })
 }
 
 /// A sphere-model fit with its figures: with `evaluate`, its lights (and background)
