@@ -12,6 +12,7 @@
 pub mod nnls;
 pub mod pipeline;
 pub mod recovery;
+pub mod rounds;
 pub mod select;
 pub mod spheres;
 pub mod transport;
@@ -63,13 +64,14 @@ pub struct FitSettings {
     /// cells the views barely see stay dark instead of taking wild values; 0 = none.
     pub ridge: f64,
     /// Transport rounds (sequential Monte Carlo): each round after the first samples cells by
-    /// the current estimate (plus a defensive floor). NNLS solves once on the average of all
-    /// rounds' transports; the gradient solver continues from its current estimate each round.
+    /// the current estimate (plus a defensive floor). NNLS solves on the rounds' transports
+    /// combined ([`rounds`]: their mean, and cross products for TᵀT); the gradient solver
+    /// continues from its current estimate each round.
     pub rounds: u32,
     /// Wall-clock budget of each channel's solve.
     pub time_limit: Duration,
-    /// Fit on three quarters of the pixels only and measure the error on the held-out
-    /// quarter ([`is_held_out`]): for choosing the resolution ([`select`]).
+    /// Fit on three quarters of the pixels only, leaving the quarter [`is_held_out`] picks for
+    /// judging candidates on re-renders ([`select`]).
     pub holdout: bool,
 }
 
@@ -134,8 +136,6 @@ pub struct Fit {
     pub transport_seconds: f64,
     pub solve_seconds: f64,
     pub transport_bytes: usize,
-    /// With `holdout`: the error on the held-out pixels.
-    pub validation: Option<Validation>,
     /// The solver produced values that are not finite (replaced by 0): the fit failed.
     pub non_finite: bool,
 }
@@ -165,12 +165,23 @@ pub fn neighbours(grid: &RingGrid) -> Vec<(u32, u32)> {
     pairs.into_iter().collect()
 }
 
-/// Normal equations of one channel: (TᵀT + smoothness, TᵀI, ‖I‖²), dense row-major f64.
+/// TᵀT of channel `ch` over `rows`: dense row-major `n × n`, f64.
+fn gram(tr: &Transport, ch: usize, rows: &[usize]) -> Vec<f64> {
+    let n = tr.cells;
+    let t = faer::Mat::<f64>::from_fn(rows.len(), n, |i, j| tr.t[ch][rows[i] * n + j] as f64);
+    let gram = t.transpose() * &t;
+    (0..n * n).map(|k| gram[(k / n, k % n)]).collect()
+}
+
+/// Normal equations of one channel from its Gram matrix `g` (TᵀT): (TᵀT + ridge + smoothness,
+/// TᵀI, ‖I‖²), dense row-major f64.
+#[allow(clippy::too_many_arguments)]
 fn normal_equations(
     tr: &Transport,
     ch: usize,
     y: &[f64],
     rows: &[usize],
+    mut g: Vec<f64>,
     smooth_pairs: &[(u32, u32)],
     smooth: f64,
     ridge: f64,
@@ -178,14 +189,7 @@ fn normal_equations(
     let (m, n) = (rows.len(), tr.cells);
     let t = faer::Mat::<f64>::from_fn(m, n, |i, j| tr.t[ch][rows[i] * n + j] as f64);
     let yv = faer::Mat::<f64>::from_fn(m, 1, |i, _| y[rows[i]]);
-    let gram = t.transpose() * &t;
     let tb = t.transpose() * &yv;
-    let mut g = vec![0.0; n * n];
-    for i in 0..n {
-        for j in 0..n {
-            g[i * n + j] = gram[(i, j)];
-        }
-    }
     let mean_diag = (0..n).map(|i| g[i * n + i]).sum::<f64>() / n as f64;
     if ridge > 0.0 {
         for i in 0..n {
@@ -216,29 +220,41 @@ fn observed(tr: &Transport, references: &[Image]) -> [Vec<f64>; 3] {
     })
 }
 
-/// Solves all three channels on transport `tr`, starting the gradient solver from `start`;
-/// records iterations and objectives into `channels` when given.
+/// The rows a fit uses: all, or without the held-out quarter.
+fn fit_rows(tr: &Transport, settings: &FitSettings) -> Vec<usize> {
+    (0..tr.rows)
+        .filter(|&r| !settings.holdout || !is_held_out(tr.pixel_of_row[r]))
+        .collect()
+}
+
+/// Solves all three channels on transport `tr`, starting the gradient solver from `start`, with
+/// `grams` as TᵀT when given (else `tr`'s own); records iterations and objectives into
+/// `channels` when given.
 fn solve_all(
     tr: &Transport,
     references: &[Image],
     pairs: &[(u32, u32)],
     settings: &FitSettings,
     start: &[Vec<f64>],
+    grams: Option<&[Vec<f64>; 3]>,
     mut channels: Option<&mut Vec<ChannelFit>>,
 ) -> Vec<Vec<f64>> {
     let n = tr.cells;
     let y = observed(tr, references);
     let rounds = settings.rounds.max(1);
-    let rows: Vec<usize> = (0..tr.rows)
-        .filter(|&r| !settings.holdout || !is_held_out(tr.pixel_of_row[r]))
-        .collect();
+    let rows = fit_rows(tr, settings);
     (0..3)
         .map(|ch| {
+            let g = match grams {
+                Some(g) => g[ch].clone(),
+                None => gram(tr, ch, &rows),
+            };
             let (g, b, yy) = normal_equations(
                 tr,
                 ch,
                 &y[ch],
                 &rows,
+                g,
                 pairs,
                 settings.smooth,
                 settings.ridge,
@@ -339,9 +355,8 @@ pub fn fit_reusing(
         .collect();
     let (mut transport_seconds, mut solve_seconds, mut transport_bytes) = (0.0, 0.0, 0);
     let rounds = settings.rounds.max(1);
-    // NNLS averages the rounds' transports (each an unbiased estimate of the same T).
-    let mut t_avg: Option<Transport> = None;
-    let mut validation = None;
+    // NNLS combines the rounds' transports (each an unbiased estimate of the same T).
+    let mut combined = rounds::Rounds::new(n);
     let mut non_finite = false;
     for round in 0..rounds {
         let t0 = Instant::now();
@@ -361,17 +376,18 @@ pub fn fit_reusing(
         };
         transport_seconds += t0.elapsed().as_secs_f64();
         transport_bytes = transport_bytes.max(tr.memory_bytes() * if rounds > 1 { 2 } else { 1 });
-        let tr = match (settings.solver, t_avg.take()) {
-            (Solver::Nnls, Some(mut acc)) => {
-                let k = round as f32;
-                for (a, b) in acc.t.iter_mut().zip(&tr.t) {
-                    a.iter_mut()
-                        .zip(b)
-                        .for_each(|(x, y)| *x = (*x * k + *y) / (k + 1.0));
-                }
-                acc
+        let single;
+        let (tr, grams) = match settings.solver {
+            Solver::Nnls => {
+                let rows = fit_rows(&tr, settings);
+                combined.add(tr, &rows);
+                let tr = combined.transport().expect("a round was added");
+                (tr, combined.gram())
             }
-            _ => tr,
+            Solver::Gradient => {
+                single = tr;
+                (&single, None)
+            }
         };
         let last = round + 1 == rounds;
         let t1 = Instant::now();
@@ -379,20 +395,15 @@ pub fn fit_reusing(
         // not the fit's.
         let record = settings.solver == Solver::Gradient || last;
         lambda = solve_all(
-            &tr,
+            tr,
             references,
             &pairs,
             settings,
             &lambda,
+            grams.as_ref(),
             record.then_some(&mut channels),
         );
         solve_seconds += t1.elapsed().as_secs_f64();
-        if last && settings.holdout {
-            validation = Some(validate(&tr, references, &lambda));
-        }
-        if settings.solver == Solver::Nnls {
-            t_avg = Some(tr);
-        }
         // A value that is not a finite f32 ≥ 0 (a solver blown up, or beyond f32's range)
         // becomes 0 and marks the fit, which callers report as a failure.
         let mut cell = |v: f64| {
@@ -425,34 +436,7 @@ pub fn fit_reusing(
         transport_seconds,
         solve_seconds,
         transport_bytes,
-        validation,
         non_finite,
-    }
-}
-
-/// The error of λ on the held-out rows of `tr`.
-fn validate(tr: &Transport, references: &[Image], lambda: &[Vec<f64>]) -> Validation {
-    let y = observed(tr, references);
-    let n = tr.cells;
-    let mut abs_error = Vec::new();
-    let mut reference_abs = 0.0;
-    for r in (0..tr.rows).filter(|&r| is_held_out(tr.pixel_of_row[r])) {
-        let mut e = 0.0;
-        for ch in 0..3 {
-            let row = &tr.t[ch][r * n..(r + 1) * n];
-            let pred: f64 = row
-                .iter()
-                .zip(&lambda[ch])
-                .map(|(&t, &l)| t as f64 * l)
-                .sum();
-            e += (pred - y[ch][r]).abs();
-            reference_abs += y[ch][r].abs();
-        }
-        abs_error.push(e);
-    }
-    Validation {
-        abs_error,
-        reference_abs,
     }
 }
 

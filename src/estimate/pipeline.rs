@@ -11,8 +11,9 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::recovery::{self, LightRecovery, SphereRecovery};
+use super::select::held_out;
 use super::spheres::{self, Observations, SphereFit, SphereSettings};
-use super::{Fit, FitSettings, Solver, Transport, Validation, fit_reusing, is_held_out};
+use super::{Fit, FitSettings, Solver, Transport, fit_reusing};
 use crate::envmap::{Envmap, RingGrid};
 use crate::error::{Error, Result};
 use crate::imageio::{self, Image};
@@ -532,30 +533,6 @@ fn outcome_of(
         errors,
         rerender_seconds: t.elapsed().as_secs_f64(),
     })
-}
-
-/// Error of re-rendered images on the held-out pixels ([`super::is_held_out`]), in one fixed
-/// order, so candidates fitted without those pixels can be compared pixel by pixel.
-pub fn held_out(images: &[Image], references: &[Image], masks: &[Vec<bool>]) -> Validation {
-    let mut v = Validation {
-        abs_error: Vec::new(),
-        reference_abs: 0.0,
-    };
-    for (view, ((img, r), m)) in images.iter().zip(references).zip(masks).enumerate() {
-        for (_, ((x, y), _)) in img
-            .rgb
-            .iter()
-            .zip(&r.rgb)
-            .zip(m)
-            .enumerate()
-            .filter(|(i, (_, m))| **m && is_held_out((view, *i as u32)))
-        {
-            v.abs_error
-                .push((x.as_dvec3() - y.as_dvec3()).abs().element_sum());
-            v.reference_abs += y.as_dvec3().abs().element_sum();
-        }
-    }
-    v
 }
 
 /// Chooses among light models fitted without the held-out pixels (the envmap with
