@@ -267,9 +267,9 @@ struct EstimateArgs {
     #[arg(long, default_value_t = 1e-2)]
     ridge: f64,
     /// Transport rounds (sequential Monte Carlo), sharing --spp: rounds after the first sample
-    /// cells by the current estimate. Default 2 for nnls (which averages the rounds'
-    /// transports; measured on the bundled scene: closer to the representation limit than one
-    /// round at equal samples), 3 for gradient (which continues from its estimate each round).
+    /// cells by the current estimate. Default 4 for nnls (which fits their mean transport,
+    /// with TᵀT from products of different rounds: unbiased from 2 rounds on), 3 for gradient
+    /// (which continues from its estimate each round).
     #[arg(long)]
     rounds: Option<u32>,
     /// Also compute the representation limit: the best envmap of this resolution, fitted to a

@@ -39,12 +39,14 @@ pub enum Solver {
 }
 
 impl Solver {
-    /// Transport rounds by default: NNLS averages two (measured on the bundled scene: closer to
-    /// the representation limit than one round at equal samples); the gradient solver
-    /// continues from its estimate over three.
+    /// Transport rounds by default: NNLS combines four ([`rounds`]; it needs two or more for
+    /// an unbiased TᵀT). Measured on the bundled scene at 9 rings, mean relMAE over 3 seeds,
+    /// 2 → 4 rounds at equal samples: 10.09% → 9.94% at 128 spp, 9.87% → 9.84% at 512; 8
+    /// rounds of 8 spp steer worse than 4 of 16. The gradient solver continues from its
+    /// estimate over three.
     pub fn default_rounds(self) -> u32 {
         match self {
-            Solver::Nnls => 2,
+            Solver::Nnls => 4,
             Solver::Gradient => 3,
         }
     }
