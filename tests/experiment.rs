@@ -456,23 +456,31 @@ fn albedo_error_perturbs_every_material_within_bounds_and_is_swept() {
     assert!(changed >= 3);
 
     let tmp = tempfile::tempdir().unwrap();
+    // References at 64 spp and a 9-ring fit: at 8 spp and 3 rings, noise and the grid's own
+    // error (relMAE 31%) hid what a 20% albedo error costs.
     let a = small_scenario(tmp.path(), "a", KEY);
+    let text = std::fs::read_to_string(&a).unwrap();
+    std::fs::write(&a, text.replace("spp: 8,", "spp: 64,")).unwrap();
     let out = tmp.path().join("sweep");
     ok(&sweep(
         &[&a],
         &out,
-        &["--rings", "3", "--spp", "16", "--albedo-error", "0,0.2"],
+        &["--rings", "9", "--spp", "64", "--albedo-error", "0,0.2"],
     ));
     let recs = read_records(&out).unwrap();
     assert_eq!(recs.len(), 2);
     let exact = recs.iter().find(|r| r.albedo_error == 0.0).unwrap();
     let off = recs
         .iter()
-        .find(|r| r.id == "a/spp16/rings3/nnls/albedo20")
+        .find(|r| r.id == "a/spp64/rings9/nnls/albedo20")
         .unwrap();
     assert!((off.albedo_error - 0.2).abs() < 1e-6);
     // Fitting with wrong albedos costs accuracy in the true scene.
-    assert!(off.rel_mae.unwrap() > exact.rel_mae.unwrap(), "{off:?}");
+    // Measured: 19.9% exact, 21.3% with 20% albedo error.
+    assert!(
+        off.rel_mae.unwrap() > 1.03 * exact.rel_mae.unwrap(),
+        "{off:?}"
+    );
     let o = sweep(&[&a], &out, &["--albedo-error", "1.5"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("--albedo-error"));
 }

@@ -23,6 +23,12 @@ pub struct RingGrid {
     counts: Vec<u32>,
     /// Index of each ring's first cell; `first[rings]` is the cell count.
     first: Vec<u32>,
+    /// cos θ of the band edges between rings, `cos((k + ½)Δ)` for k = 0..N−2 (decreasing):
+    /// lookup and sampling compare against these same numbers, so a sampled direction finds
+    /// its own cell, and neither needs an inverse cosine.
+    edges_cos: Vec<f64>,
+    /// The ring of each cell.
+    ring_of_cell: Vec<u32>,
 }
 
 /// Where a cell lies: its polar band and azimuth sector, radians.
@@ -91,10 +97,19 @@ impl RingGrid {
             acc += c;
         }
         first.push(acc);
+        let delta = PI / (rings.max(2) - 1) as f64;
+        let edges_cos = (0..rings.saturating_sub(1))
+            .map(|k| ((k as f64 + 0.5) * delta).cos())
+            .collect();
+        let ring_of_cell = (0..rings)
+            .flat_map(|r| std::iter::repeat_n(r, counts[r as usize] as usize))
+            .collect();
         RingGrid {
             rings,
             counts,
             first,
+            edges_cos,
+            ring_of_cell,
         }
     }
 
@@ -117,8 +132,9 @@ impl RingGrid {
     }
 
     /// The ring of a cell and its index within the ring.
+    #[inline]
     pub fn ring_of(&self, cell: u32) -> (u32, u32) {
-        let ring = self.first.partition_point(|&f| f <= cell) as u32 - 1;
+        let ring = self.ring_of_cell[cell as usize];
         (ring, cell - self.first[ring as usize])
     }
 
@@ -142,11 +158,33 @@ impl RingGrid {
         self.first[ring as usize] + j
     }
 
-    /// The cell containing unit direction `d`.
+    /// The cell containing unit direction `d`: the same cell as [`Self::lookup_angles`] (up to
+    /// rounding at cell edges), without an inverse cosine and with an f32 arctangent (this is
+    /// on the tracer's path for every ray that escapes).
     #[inline]
     pub fn lookup(&self, d: Vec3) -> u32 {
-        let (t, p) = angles(d);
-        self.lookup_angles(t, p)
+        // Ring: how many band edges lie at or above d (θ ≥ edge, i.e. cos θ ≤ cos edge).
+        let y = d.y as f64;
+        let ring = self.edges_cos.partition_point(|&e| y <= e);
+        let n = self.counts[ring];
+        if n == 1 {
+            return self.first[ring];
+        }
+        let mut phi = d.x.atan2(-d.z) as f64;
+        if phi < 0.0 {
+            phi += TAU;
+        }
+        let j = (phi * n as f64 / TAU).round() as u32 % n;
+        self.first[ring] + j
+    }
+
+    /// cos θ at the top and bottom of ring `ring`'s band (the top is the larger).
+    #[inline]
+    fn band_cos(&self, ring: u32) -> (f64, f64) {
+        let r = ring as usize;
+        let top = if r == 0 { 1.0 } else { self.edges_cos[r - 1] };
+        let bottom = self.edges_cos.get(r).copied().unwrap_or(-1.0);
+        (top, bottom)
     }
 
     /// A cell's band and sector.
@@ -188,15 +226,18 @@ impl RingGrid {
         self.bounds(cell).solid_angle()
     }
 
-    /// A direction uniformly distributed (per solid angle) over the cell, from `u` ∈ [0,1)².
+    /// A direction uniformly distributed (per solid angle) over the cell, from `u` ∈ [0,1)²:
+    /// cos θ uniform over the band, φ uniform over the sector.
     #[inline]
     pub fn sample_in_cell(&self, cell: u32, u: Vec2) -> Vec3 {
-        let b = self.bounds(cell);
-        let (c0, c1) = (b.theta_min.cos(), b.theta_max.cos());
+        let (ring, j) = self.ring_of(cell);
+        let (c0, c1) = self.band_cos(ring);
         let cos_t = c0 + (c1 - c0) * u.x as f64;
-        let theta = cos_t.clamp(-1.0, 1.0).acos();
-        let phi = b.phi_min + (b.phi_max - b.phi_min) * u.y as f64;
-        direction(theta, phi).as_vec3()
+        let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+        let n = self.counts[ring as usize] as f64;
+        let phi = TAU * (j as f64 - 0.5 + u.y as f64) / n;
+        let (sp, cp) = phi.sin_cos();
+        DVec3::new(sin_t * sp, cos_t, -sin_t * cp).as_vec3()
     }
 }
 
@@ -242,6 +283,23 @@ mod tests {
             for c in 0..g.cell_count() as u32 {
                 assert_eq!(g.lookup(g.center(c)), c, "N = {n}");
             }
+        }
+    }
+
+    #[test]
+    fn fast_lookup_agrees_with_the_angles() {
+        // `lookup` (band edges by cosine, f32 arctangent) against `lookup_angles` (f64 θ, φ):
+        // equal except within rounding of an edge.
+        let mut r = Rng::new(5);
+        for n in [1, 2, 3, 9, 21, 25] {
+            let g = RingGrid::new(n);
+            let mut differ = 0;
+            for _ in 0..100_000 {
+                let d = uniform_sphere(r.next_2d());
+                let (t, p) = angles(d);
+                differ += (g.lookup(d) != g.lookup_angles(t, p)) as u32;
+            }
+            assert!(differ <= 2, "N = {n}: {differ} of 100000 differ");
         }
     }
 
