@@ -16,7 +16,9 @@ use std::f64::consts::{PI, TAU};
 use glam::{DVec3, Vec3};
 
 use super::Envmap;
-use super::grid::{angles, direction};
+use rayon::prelude::*;
+
+use super::grid::direction;
 use crate::imageio::Image;
 
 /// Which renderer's lat-long convention to write.
@@ -38,9 +40,12 @@ pub enum Filter {
     Smooth,
 }
 
-/// The glTF-frame direction of a pixel centre.
-pub fn pixel_direction(target: Target, width: u32, height: u32, col: u32, row: u32) -> DVec3 {
+/// The grid angles of a pixel centre: θ from +Y and φ = atan2(x, −z) in [0, 2π) (see
+/// [`super::grid`]). Blender's azimuth a = atan2(z, x) is φ − π/2, pbrt-v3's atan2(−z, x) is
+/// π/2 − φ. Export and import look cells up from these directly: no inverse trigonometry.
+pub fn pixel_angles(target: Target, width: u32, height: u32, col: u32, row: u32) -> (f64, f64) {
     let u = (col as f64 + 0.5) / width as f64;
+    let centred = (row as f64 + 0.5) * PI / height as f64;
     match target {
         Target::Mitsuba => {
             let theta = if height > 1 {
@@ -48,21 +53,17 @@ pub fn pixel_direction(target: Target, width: u32, height: u32, col: u32, row: u
             } else {
                 PI / 2.0
             };
-            direction(theta, TAU * u)
+            (theta, TAU * u)
         }
-        Target::Blender => {
-            let theta = (row as f64 + 0.5) * PI / height as f64;
-            let a = TAU * (u - 0.5); // atan2(z, x)
-            let (st, ct) = theta.sin_cos();
-            DVec3::new(st * a.cos(), ct, st * a.sin())
-        }
-        Target::PbrtV3 => {
-            let theta = (row as f64 + 0.5) * PI / height as f64;
-            let a = TAU * u; // atan2(−z, x)
-            let (st, ct) = theta.sin_cos();
-            DVec3::new(st * a.cos(), ct, -st * a.sin())
-        }
+        Target::Blender => (centred, (PI / 2.0 + TAU * (u - 0.5)).rem_euclid(TAU)),
+        Target::PbrtV3 => (centred, (PI / 2.0 - TAU * u).rem_euclid(TAU)),
     }
+}
+
+/// The glTF-frame direction of a pixel centre.
+pub fn pixel_direction(target: Target, width: u32, height: u32, col: u32, row: u32) -> DVec3 {
+    let (theta, phi) = pixel_angles(target, width, height, col, row);
+    direction(theta, phi)
 }
 
 /// The solid angle a pixel row stands for (per pixel), for area-weighted averages.
@@ -81,30 +82,32 @@ fn pixel_solid_angle(target: Target, width: u32, height: u32, row: u32) -> f64 {
     (lo.cos() - hi.cos()) * TAU / width as f64
 }
 
-/// Renders the envmap as a `width × width/2` lat-long image.
+/// Renders the envmap as a `width × width/2` lat-long image (rows in parallel).
 pub fn export(env: &Envmap, target: Target, filter: Filter, width: u32) -> Image {
     let height = (width / 2).max(2);
     let mut img = Image::new(width, height);
-    for row in 0..height {
-        for col in 0..width {
-            let d = pixel_direction(target, width, height, col, row).as_vec3();
-            img.rgb[(row * width + col) as usize] = match filter {
-                Filter::Box => env.eval(d).1,
-                Filter::Smooth => smooth(env, d),
-            };
-        }
-    }
+    img.rgb
+        .par_chunks_mut(width as usize)
+        .enumerate()
+        .for_each(|(row, pixels)| {
+            for (col, px) in pixels.iter_mut().enumerate() {
+                let (theta, phi) = pixel_angles(target, width, height, col as u32, row as u32);
+                *px = match filter {
+                    Filter::Box => env.radiance()[env.grid.lookup_angles(theta, phi) as usize],
+                    Filter::Smooth => smooth(env, theta, phi),
+                };
+            }
+        });
     img
 }
 
-/// Bilinear interpolation between grid points: along each of the two nearest rings in φ, then
-/// between the rings in θ.
-fn smooth(env: &Envmap, d: Vec3) -> Vec3 {
+/// Bilinear interpolation between grid points at grid angles (θ, φ): along each of the two
+/// nearest rings in φ, then between the rings in θ.
+fn smooth(env: &Envmap, theta: f64, phi: f64) -> Vec3 {
     let g = &env.grid;
     if g.rings() == 1 {
         return env.radiance()[0];
     }
-    let (theta, phi) = angles(d);
     let delta = PI / (g.rings() - 1) as f64;
     let x = theta / delta;
     let r0 = (x.floor() as u32).min(g.rings() - 2);
@@ -139,9 +142,8 @@ pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<En
                     c.to_array()
                 ));
             }
-            let cell = grid
-                .lookup(pixel_direction(target, img.width, img.height, col, row).as_vec3())
-                as usize;
+            let (theta, phi) = pixel_angles(target, img.width, img.height, col, row);
+            let cell = grid.lookup_angles(theta, phi) as usize;
             sum[cell] += c.as_dvec3() * w;
             weight[cell] += w;
         }
@@ -180,6 +182,27 @@ mod tests {
                 let img = export(&env, target, Filter::Box, 512);
                 let back = import(&img, target, rings).unwrap();
                 assert_eq!(back.radiance(), env.radiance(), "{target:?} {rings}");
+            }
+        }
+    }
+
+    #[test]
+    fn pixel_angles_are_the_angles_of_the_pixel_direction() {
+        use super::super::grid::angles;
+        for target in [Target::Mitsuba, Target::Blender, Target::PbrtV3] {
+            let (w, h) = (24, 12);
+            for row in 1..h - 1 {
+                for col in 0..w {
+                    let (t, p) = pixel_angles(target, w, h, col, row);
+                    let d = pixel_direction(target, w, h, col, row);
+                    let (t2, p2) = angles(d.as_vec3());
+                    let dp = (p - p2).abs();
+                    assert!((t - t2).abs() < 1e-6, "{target:?} ({col}, {row})");
+                    assert!(
+                        dp.min(TAU - dp) < 1e-6,
+                        "{target:?} ({col}, {row}): {p} vs {p2}"
+                    );
+                }
             }
         }
     }
