@@ -14,7 +14,7 @@
 use glam::{Vec2, Vec3};
 
 use super::lights::{LightSample, Lights};
-use super::sampling::{INV_PI, Rng, cosine_hemisphere, power_heuristic, r2};
+use super::sampling::{INV_PI, Rng, cosine_hemisphere, permute, power_heuristic, r2, sobol2};
 use super::{Accumulator, RenderSettings, Strategy};
 use crate::accel::{Accel, Hit};
 use crate::scene::Scene;
@@ -29,24 +29,52 @@ pub(super) struct PathSampler {
     pub light_rng: Rng,
     pub index: u32,
     pub pixel_offset: Vec2,
+    /// Per pixel: the permutation keys and digital shifts of the first light sample's two
+    /// Sobol pairs ([`PathSampler::first_light`]).
+    pub light_keys: [u32; 6],
+    /// Samples per pixel (the permutations' range).
+    pub spp: u32,
 }
 
 impl PathSampler {
     /// The sampler of camera sample `index` of the pixel keyed `pixel_key`.
     #[inline]
-    pub fn new(pixel_key: u64, pixel_offset: Vec2, index: u32, max_bounces: u32) -> PathSampler {
+    pub fn new(
+        pixel_key: u64,
+        pixel_offset: Vec2,
+        light_keys: [u32; 6],
+        index: u32,
+        spp: u32,
+        max_bounces: u32,
+    ) -> PathSampler {
         let rng = Rng::new(pixel_key.wrapping_add(super::sampling::mix64(index as u64 + 1)));
         PathSampler {
             light_rng: rng.ahead(2 * max_bounces),
             rng,
             index,
             pixel_offset,
+            light_keys,
+            spp,
         }
     }
 
     #[inline]
     pub fn pixel_jitter(&self) -> Vec2 {
         r2(self.index, self.pixel_offset)
+    }
+
+    /// The first vertex's light sample: (light and cell pick, direction), two padded Sobol
+    /// pairs, so a pixel's first-bounce light samples are stratified over its samples (the
+    /// light sample at the first vertex is most of a diffuse image's noise). Each pair has its
+    /// own per-pixel permutation of the sample index and digital shift: the pairs are
+    /// independent of each other and of the pixel jitter, and every point is uniform, so each
+    /// pixel's estimate stays unbiased.
+    #[inline]
+    pub fn first_light(&self) -> (Vec2, Vec2) {
+        let k = self.light_keys;
+        let pick = sobol2(permute(self.index, self.spp, k[0]), [k[1], k[2]]);
+        let dir = sobol2(permute(self.index, self.spp, k[3]), [k[4], k[5]]);
+        (pick, dir)
     }
 }
 
@@ -127,7 +155,17 @@ impl Tracer<'_> {
         px: &mut A::Pixel,
     ) -> bool {
         let t_first = self.walk(origin, dir, &mut s.rng, false, verts);
-        self.light(origin, dir, t_first, verts, &mut s.light_rng, acc, px)
+        let first = s.first_light();
+        self.light(
+            origin,
+            dir,
+            t_first,
+            verts,
+            first,
+            &mut s.light_rng,
+            acc,
+            px,
+        )
     }
 
     /// The scattering vertices of a camera path from `origin` along unit `dir` (at most
@@ -198,6 +236,7 @@ impl Tracer<'_> {
         dir: Vec3,
         t_first: f32,
         verts: &[Vertex],
+        first: (Vec2, Vec2),
         rng: &mut Rng,
         acc: &A,
         px: &mut A::Pixel,
@@ -226,17 +265,27 @@ impl Tracer<'_> {
             return false;
         }
 
-        for v in verts {
+        for (k, v) in verts.iter().enumerate() {
             // ---- Emitter sampling ----
             if use_light && st.every_light {
                 for i in 0..lights.len() {
-                    let (u_cell, u) = (rng.next_f32(), rng.next_2d());
+                    // At the first vertex every light gets the stratified sample (each
+                    // light's estimate is stratified; their correlation biases nothing).
+                    let (u_cell, u) = if k == 0 {
+                        (first.0.y, first.1)
+                    } else {
+                        (rng.next_f32(), rng.next_2d())
+                    };
                     if let Some(ls) = lights.sample_light(i, v.p, u_cell, u) {
                         self.shadow_ray(v, &ls, mis, acc, px);
                     }
                 }
             } else if use_light {
-                let (u_light, u) = (rng.next_2d(), rng.next_2d());
+                let (u_light, u) = if k == 0 {
+                    first
+                } else {
+                    (rng.next_2d(), rng.next_2d())
+                };
                 if let Some(ls) = lights.sample(v.p, u_light, u) {
                     self.shadow_ray(v, &ls, mis, acc, px);
                 }

@@ -324,6 +324,7 @@ impl<'a> Renderer<'a> {
                                 dir,
                                 t_first,
                                 verts,
+                                s.first_light(),
                                 &mut s.light_rng,
                                 acc,
                                 &mut px,
@@ -438,10 +439,12 @@ fn camera_samples<'a>(
     settings: &RenderSettings,
 ) -> impl Iterator<Item = (Vec3, PathSampler)> + 'a {
     let pixel_key = mix64(key ^ index as u64);
-    let pixel_offset = Rng::new(pixel_key).next_2d();
-    let max_bounces = settings.max_bounces;
-    (0..settings.spp).map(move |i| {
-        let s = PathSampler::new(pixel_key, pixel_offset, i, max_bounces);
+    let mut keys = Rng::new(pixel_key);
+    let pixel_offset = keys.next_2d();
+    let light_keys = [(); 6].map(|_| keys.next_u32());
+    let (spp, max_bounces) = (settings.spp, settings.max_bounces);
+    (0..spp).map(move |i| {
+        let s = PathSampler::new(pixel_key, pixel_offset, light_keys, i, spp, max_bounces);
         let j = s.pixel_jitter();
         (ray_dir(x as f32 + j.x, y as f32 + j.y), s)
     })

@@ -86,6 +86,68 @@ pub fn r2(i: u32, offset: Vec2) -> Vec2 {
 
 const ONE_MINUS_EPS: f32 = 1.0 - f32::EPSILON / 2.0;
 
+/// Point `i` of the 2-D Sobol (0,2)-sequence (Kollig & Keller 2002: the van der Corput
+/// sequence and Sobol's second dimension), randomised by a digital shift (XOR with
+/// `scramble`), which keeps its stratification: 2^k consecutive points from 0 put exactly one
+/// point in every dyadic box of area 2^−k, of any shape.
+#[inline]
+pub fn sobol2(i: u32, scramble: [u32; 2]) -> Vec2 {
+    let x = i.reverse_bits() ^ scramble[0];
+    let mut y = scramble[1];
+    let (mut i, mut v) = (i, 1u32 << 31);
+    while i != 0 {
+        if i & 1 != 0 {
+            y ^= v;
+        }
+        i >>= 1;
+        v ^= v >> 1;
+    }
+    let unit = |b: u32| ((b >> 8) as f32 * (1.0 / (1u32 << 24) as f32)).min(ONE_MINUS_EPS);
+    Vec2::new(unit(x), unit(y))
+}
+
+/// Element `i` of a pseudo-random permutation of [0, `n`) keyed by `key` (Kensler 2013,
+/// "Correlated multi-jittered sampling": a hash on the next power of two, cycle-walked into
+/// range). Giving each pair of sample dimensions its own permutation of the sample index
+/// decorrelates the pairs (the padding of pbrt-v4's padded Sobol sampler).
+#[inline]
+pub fn permute(i: u32, n: u32, key: u32) -> u32 {
+    if n <= 1 {
+        return 0;
+    }
+    let mut w = n - 1;
+    w |= w >> 1;
+    w |= w >> 2;
+    w |= w >> 4;
+    w |= w >> 8;
+    w |= w >> 16;
+    let mut i = i;
+    loop {
+        i ^= key;
+        i = i.wrapping_mul(0xe170_893d);
+        i ^= key >> 16;
+        i ^= (i & w) >> 4;
+        i ^= key >> 8;
+        i = i.wrapping_mul(0x0929_eb3f);
+        i ^= key >> 23;
+        i ^= (i & w) >> 1;
+        i = i.wrapping_mul(1 | key >> 27);
+        i = i.wrapping_mul(0x6935_fa69);
+        i ^= (i & w) >> 11;
+        i = i.wrapping_mul(0x74dc_b303);
+        i ^= (i & w) >> 2;
+        i = i.wrapping_mul(0x9e50_1cc3);
+        i ^= (i & w) >> 2;
+        i = i.wrapping_mul(0xc860_a3df);
+        i &= w;
+        i ^= i >> 5;
+        if i < n {
+            break;
+        }
+    }
+    (i.wrapping_add(key)) % n
+}
+
 /// An orthonormal basis (t, b, n) around unit `n` (Duff et al. 2017, branchless).
 #[inline]
 pub fn frame(n: Vec3) -> (Vec3, Vec3) {
@@ -172,6 +234,69 @@ mod tests {
         }
         assert_ne!(Rng::new(1).next_u32(), Rng::new(2).next_u32());
         assert_eq!(Rng::new(9).next_u32(), Rng::new(9).next_u32());
+    }
+
+    #[test]
+    fn permute_is_a_permutation() {
+        for n in [1, 2, 3, 7, 64, 100, 512, 1000] {
+            for key in [0, 1, 0xdead_beef, 12345] {
+                let mut seen = vec![false; n as usize];
+                for i in 0..n {
+                    let j = permute(i, n, key) as usize;
+                    assert!(!seen[j], "n {n} key {key}: {j} twice");
+                    seen[j] = true;
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn padded_sobol_pairs_are_stratified_and_the_pairs_independent() {
+        // One pixel's 256 samples: each pair (its own permuted index and shift) puts exactly
+        // one point in each cell of a 16 × 16 grid; across pairs, and against the R2 pixel
+        // jitter, counts in a 4 × 4 grid look independent. Every dimension alone is evenly
+        // stratified (64 points per row and column), so that is a contingency table with
+        // (4 − 1)² = 9 degrees of freedom: χ² averages about 9 and stays below 40 (p ≈ 10⁻⁵).
+        // A resonance between two sequences (R2 beside R4, tried first) gives χ² above 30
+        // here, and in the hundreds on finer grids.
+        let n = 256;
+        let mut r = Rng::new(3);
+        let (mut chi2_sum, mut pairs) = (0.0, 0);
+        for _ in 0..20 {
+            let keys = [(); 6].map(|_| r.next_u32());
+            let jitter_offset = r.next_2d();
+            let pts: Vec<[f32; 6]> = (0..n)
+                .map(|i| {
+                    let a = sobol2(permute(i, n, keys[0]), [keys[1], keys[2]]);
+                    let b = sobol2(permute(i, n, keys[3]), [keys[4], keys[5]]);
+                    let j = r2(i, jitter_offset);
+                    [a.x, a.y, b.x, b.y, j.x, j.y]
+                })
+                .collect();
+            for (da, db) in [(0, 1), (2, 3)] {
+                let mut grid = [0u32; 256];
+                for p in &pts {
+                    grid[(p[db] * 16.0) as usize * 16 + (p[da] * 16.0) as usize] += 1;
+                }
+                assert!(grid.iter().all(|&c| c == 1), "dims {da}, {db}");
+            }
+            for da in 0..6 {
+                for db in da + 1..6 {
+                    if (da, db) == (0, 1) || (da, db) == (2, 3) {
+                        continue;
+                    }
+                    let mut grid = [0u32; 16];
+                    for p in &pts {
+                        grid[(p[db] * 4.0) as usize * 4 + (p[da] * 4.0) as usize] += 1;
+                    }
+                    let chi2: f64 = grid.iter().map(|&c| (c as f64 - 16.0).powi(2) / 16.0).sum();
+                    assert!(chi2 < 40.0, "dims {da}, {db}: {grid:?}");
+                    (chi2_sum, pairs) = (chi2_sum + chi2, pairs + 1);
+                }
+            }
+        }
+        let mean = chi2_sum / pairs as f64;
+        assert!((7.0..11.0).contains(&mean), "mean χ² {mean}");
     }
 
     #[test]
