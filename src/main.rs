@@ -262,9 +262,10 @@ struct EstimateArgs {
     #[arg(long, default_value_t = 0.0)]
     smooth: f64,
     /// Ridge weight pulling cells toward zero (relative to the mean diagonal of TᵀT): keeps
-    /// cells the views barely see from taking wild values. 0.01 shrinks a cell of average
-    /// visibility by about 1%.
-    #[arg(long, default_value_t = 1e-2)]
+    /// cells the views barely see from taking wild values. 0.001 shrinks a cell of average
+    /// visibility by about 0.1% (0.01, the default before the renderer's noise fell, cost a
+    /// visible 1% of brightness on coarse grids).
+    #[arg(long, default_value_t = 1e-3)]
     ridge: f64,
     /// Transport rounds (sequential Monte Carlo), sharing --spp: rounds after the first sample
     /// cells by the current estimate. Default 4 for nnls (which fits their mean transport,
@@ -361,7 +362,7 @@ struct SweepArgs {
     #[arg(long, default_value_t = 0.0)]
     smooth: f64,
     /// Ridge weight (as for estimate).
-    #[arg(long, default_value_t = 1e-2)]
+    #[arg(long, default_value_t = 1e-3)]
     ridge: f64,
     /// Time budget per channel solve, seconds.
     #[arg(long, default_value_t = 60.0)]

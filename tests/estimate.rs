@@ -323,12 +323,14 @@ fn gradient_and_nnls_reach_the_same_optimum() {
 #[test]
 fn rings_auto_rejects_grids_too_coarse_for_the_data() {
     // A sky that a 3-ring grid represents exactly. Measured (256 transport spp in 2 rounds,
-    // ridge 0.01, candidates re-rendered at 256 spp): held-out relMAE 2.30% at 3 rings, 2.18%
-    // at 9, 2.77% at 15, all near the noise floor. The 9-ring map wins by its re-render's
-    // noise: its finer cells importance-sample the sky better than 3 rings' huge ones, and at
-    // this level that noise is most of the error. (It is part of what a user gets, so it is a
-    // fair part of the choice.) What must hold: the true resolution is close to the best,
-    // and the rule's choice is within one standard error of it.
+    // ridge 0.001, candidates re-rendered at 512 spp): held-out relMAE 1.38% at 3 rings,
+    // 1.33% at 9, 2.19% at 15, all near the noise floor; the rule takes 9. Nine rings fit
+    // the sky about as well, and their finer cells importance-sample it better in the
+    // re-render: at this level rendering noise is much of the error. (It is part of what a
+    // user gets, so it is a fair part of the choice.) With ridge 0.01 the 3-ring fit was
+    // 1% too dark, which the noise used to hide: 1.81% against 1.27%. What must hold: the
+    // true resolution is close to the best, and the rule's choice is within one standard
+    // error of it.
     let truth = three_ring_sky();
     let sc = scene(vec![]);
     let sky = Lights::env(truth);
@@ -337,7 +339,7 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
     let cams: Vec<&Camera> = sc.cameras.iter().collect();
     let template = FitSettings {
         rounds: 2,
-        ..fit_settings(1, 256, Solver::Nnls, 1e-2)
+        ..fit_settings(1, 256, Solver::Nnls, 1e-3)
     };
     let s = estimate::select::select_rings(
         &r,
@@ -398,7 +400,7 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
     assert!(s.rings >= 9, "{s:#?}");
     let c3 = &s.candidates[0];
     assert!(c3.excess_over_best > 3.0 * c3.standard_error, "{c3:?}");
-    // Measured: 11.1% at 3 rings against 7.6% at 9 and 7.4% at 15.
+    // Measured: 11.0% at 3 rings against 7.6% at 9 and 7.3% at 15.
     assert!(
         c3.validation_rel_mae > 1.1 * s.candidates[1].validation_rel_mae,
         "{s:#?}"

@@ -101,7 +101,7 @@ impl Validation {
 
 impl FitSettings {
     /// Settings for `spp` transport samples per pixel in all, split over `rounds`, with the
-    /// transport's own seed (the references' + 1); no smoothing, ridge 0.01, 60 s per solve.
+    /// transport's own seed (the references' + 1); no smoothing, ridge 0.001, 60 s per solve.
     pub fn new(render: &RenderSettings, rings: u32, solver: Solver, spp: u32, rounds: u32) -> Self {
         let rounds = rounds.max(1);
         FitSettings {
@@ -113,7 +113,7 @@ impl FitSettings {
             },
             solver,
             smooth: 0.0,
-            ridge: 1e-2,
+            ridge: 1e-3,
             rounds,
             time_limit: Duration::from_secs(60),
             holdout: false,

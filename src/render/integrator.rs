@@ -29,9 +29,9 @@ pub(super) struct PathSampler {
     pub light_rng: Rng,
     pub index: u32,
     pub pixel_offset: Vec2,
-    /// Per pixel: the permutation keys and digital shifts of the first light sample's two
-    /// Sobol pairs ([`PathSampler::first_light`]).
-    pub light_keys: [u32; 6],
+    /// Per pixel: the permutation keys and digital shifts of the first vertex's three Sobol
+    /// pairs ([`PathSampler::first_light`], [`PathSampler::first_bsdf`]).
+    pub keys: [u32; 9],
     /// Samples per pixel (the permutations' range).
     pub spp: u32,
 }
@@ -42,7 +42,7 @@ impl PathSampler {
     pub fn new(
         pixel_key: u64,
         pixel_offset: Vec2,
-        light_keys: [u32; 6],
+        keys: [u32; 9],
         index: u32,
         spp: u32,
         max_bounces: u32,
@@ -53,7 +53,7 @@ impl PathSampler {
             rng,
             index,
             pixel_offset,
-            light_keys,
+            keys,
             spp,
         }
     }
@@ -71,10 +71,18 @@ impl PathSampler {
     /// pixel's estimate stays unbiased.
     #[inline]
     pub fn first_light(&self) -> (Vec2, Vec2) {
-        let k = self.light_keys;
+        let k = self.keys;
         let pick = sobol2(permute(self.index, self.spp, k[0]), [k[1], k[2]]);
         let dir = sobol2(permute(self.index, self.spp, k[3]), [k[4], k[5]]);
         (pick, dir)
+    }
+
+    /// The first vertex's BSDF sample: a third padded Sobol pair (see
+    /// [`PathSampler::first_light`]).
+    #[inline]
+    pub fn first_bsdf(&self) -> Vec2 {
+        let k = self.keys;
+        sobol2(permute(self.index, self.spp, k[6]), [k[7], k[8]])
     }
 }
 
@@ -154,7 +162,7 @@ impl Tracer<'_> {
         acc: &A,
         px: &mut A::Pixel,
     ) -> bool {
-        let t_first = self.walk(origin, dir, &mut s.rng, false, verts);
+        let t_first = self.walk(origin, dir, s.first_bsdf(), &mut s.rng, false, verts);
         let first = s.first_light();
         self.light(
             origin,
@@ -177,6 +185,7 @@ impl Tracer<'_> {
         &self,
         origin: Vec3,
         dir: Vec3,
+        first_bsdf: Vec2,
         rng: &mut Rng,
         trace_last: bool,
         out: &mut Vec<Vertex>,
@@ -207,7 +216,12 @@ impl Tracer<'_> {
                 wi: Vec3::ZERO,
                 t_next: f32::NAN,
             };
-            let wi = cosine_hemisphere(sp.ns, rng.next_2d());
+            let u = if out.is_empty() {
+                first_bsdf
+            } else {
+                rng.next_2d()
+            };
+            let wi = cosine_hemisphere(sp.ns, u);
             let pdf = wi.dot(sp.ns) * INV_PI;
             throughput *= sp.albedo; // f · cos / pdf for a Lambertian
             let ends = wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 || throughput == Vec3::ZERO;

@@ -264,8 +264,14 @@ impl<'a> Renderer<'a> {
                     for x in x0..x1 {
                         let index = y * w + x;
                         for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, settings) {
-                            let t =
-                                tracer.walk(camera.origin_world, dir, &mut s.rng, true, &mut verts);
+                            let t = tracer.walk(
+                                camera.origin_world,
+                                dir,
+                                s.first_bsdf(),
+                                &mut s.rng,
+                                true,
+                                &mut verts,
+                            );
                             tile.samples.push((t, verts.len() as u8));
                             tile.vertices.extend_from_slice(&verts);
                         }
@@ -441,10 +447,10 @@ fn camera_samples<'a>(
     let pixel_key = mix64(key ^ index as u64);
     let mut keys = Rng::new(pixel_key);
     let pixel_offset = keys.next_2d();
-    let light_keys = [(); 6].map(|_| keys.next_u32());
+    let sobol_keys = [(); 9].map(|_| keys.next_u32());
     let (spp, max_bounces) = (settings.spp, settings.max_bounces);
     (0..spp).map(move |i| {
-        let s = PathSampler::new(pixel_key, pixel_offset, light_keys, i, spp, max_bounces);
+        let s = PathSampler::new(pixel_key, pixel_offset, sobol_keys, i, spp, max_bounces);
         let j = s.pixel_jitter();
         (ray_dir(x as f32 + j.x, y as f32 + j.y), s)
     })
