@@ -1195,7 +1195,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         Some(dir) => pipeline::load_references(dir, &views, w, h)?,
         None => {
             let pb = bar("references", 1);
-            let refs = pipeline::render_views(&renderer, &views, &settings, &|k| pb.inc(k));
+            let refs = renderer.render_views(&views, &settings, &|k| pb.inc(k));
             pb.finish_and_clear();
             let dir = a.out.join("reference");
             std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;

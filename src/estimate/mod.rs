@@ -167,14 +167,6 @@ pub fn neighbours(grid: &RingGrid) -> Vec<(u32, u32)> {
     pairs.into_iter().collect()
 }
 
-/// TᵀT of channel `ch` over `rows`: dense row-major `n × n`, f64.
-fn gram(tr: &Transport, ch: usize, rows: &[usize]) -> Vec<f64> {
-    let n = tr.cells;
-    let t = faer::Mat::<f64>::from_fn(rows.len(), n, |i, j| tr.t[ch][rows[i] * n + j] as f64);
-    let gram = t.transpose() * &t;
-    (0..n * n).map(|k| gram[(k / n, k % n)]).collect()
-}
-
 /// Normal equations of one channel from its Gram matrix `g` (TᵀT): (TᵀT + ridge + smoothness,
 /// TᵀI, ‖I‖²), dense row-major f64.
 #[allow(clippy::too_many_arguments)]
@@ -249,7 +241,7 @@ fn solve_all(
         .map(|ch| {
             let g = match grams {
                 Some(g) => g[ch].clone(),
-                None => gram(tr, ch, &rows),
+                None => rounds::product(tr, tr, ch, &rows),
             };
             let (g, b, yy) = normal_equations(
                 tr,

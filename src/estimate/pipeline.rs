@@ -22,20 +22,6 @@ use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::sidecar::MAX_SPP;
 use crate::scene::{Camera, SphereLight};
 
-/// Renders radiance for each view (random stream = view index).
-pub fn render_views(
-    renderer: &Renderer,
-    views: &[&Camera],
-    settings: &RenderSettings,
-    progress: &(dyn Fn(u64) + Sync),
-) -> Vec<Image> {
-    views
-        .iter()
-        .enumerate()
-        .map(|(i, cam)| renderer.render_radiance(cam, i as u64, settings, progress))
-        .collect()
-}
-
 /// Reads `<dir>/<view>.exr` for each view, checking size and finiteness.
 pub fn load_references(
     dir: &Path,
@@ -134,7 +120,7 @@ pub fn noise_floor(
     settings: &RenderSettings,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Vec<Metrics>> {
-    let again = render_views(renderer, views, &noise_floor_settings(settings), progress);
+    let again = renderer.render_views(views, &noise_floor_settings(settings), progress);
     compare_views(&again, references, masks)
 }
 
@@ -233,7 +219,9 @@ pub fn run(
     let (mut renders, mut errors) = (Vec::new(), Vec::new());
     if options.evaluate {
         let lights = Lights::env(fit.envmap.clone());
-        renders = render_views(&truth_renderer.with_lights(&lights), views, &eval, progress);
+        renders = truth_renderer
+            .with_lights(&lights)
+            .render_views(views, &eval, progress);
         errors = compare_views(&renders, references, masks)?;
     }
     let rerender_seconds = t.elapsed().as_secs_f64();
@@ -252,7 +240,9 @@ pub fn run(
         o.transport.seed = render.seed.wrapping_add(31_337);
         let best = fit_reusing(renderer, views, references, masks, &o, None, progress);
         let lights = Lights::env(best.envmap.clone());
-        let imgs = render_views(&truth_renderer.with_lights(&lights), views, &eval, progress);
+        let imgs = truth_renderer
+            .with_lights(&lights)
+            .render_views(views, &eval, progress);
         limit = compare_views(&imgs, references, masks)?;
     }
     let oracle_seconds = t.elapsed().as_secs_f64();
@@ -518,8 +508,7 @@ fn outcome_of(
             spheres: lights.clone(),
             env: fit.background.clone(),
         };
-        renders = render_views(
-            &truth_renderer.with_lights(&l),
+        renders = truth_renderer.with_lights(&l).render_views(
             obs.cameras,
             &evaluation_settings(render),
             progress,

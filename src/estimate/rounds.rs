@@ -78,8 +78,8 @@ impl Rounds {
     }
 }
 
-/// `AᵀB` of channel `ch` over `rows`: dense row-major `n × n`, f64.
-fn product(a: &Transport, b: &Transport, ch: usize, rows: &[usize]) -> Vec<f64> {
+/// `AᵀB` of channel `ch` over `rows`: dense row-major `n × n`, f64 (`TᵀT` with A = B = T).
+pub(super) fn product(a: &Transport, b: &Transport, ch: usize, rows: &[usize]) -> Vec<f64> {
     let n = a.cells;
     let ta = faer::Mat::<f64>::from_fn(rows.len(), n, |i, j| a.t[ch][rows[i] * n + j] as f64);
     let tb = faer::Mat::<f64>::from_fn(rows.len(), n, |i, j| b.t[ch][rows[i] * n + j] as f64);

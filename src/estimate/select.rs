@@ -215,13 +215,10 @@ fn validate(
     template: &FitSettings,
 ) -> Validation {
     let lights = Lights::env(envmap.clone());
-    let r = renderer.with_lights(&lights);
-    let settings = validation_settings(template);
-    let images: Vec<Image> = views
-        .iter()
-        .enumerate()
-        .map(|(i, cam)| r.render_radiance(cam, i as u64, &settings, &|_| {}))
-        .collect();
+    let images =
+        renderer
+            .with_lights(&lights)
+            .render_views(views, &validation_settings(template), &|_| {});
     held_out(&images, references, masks)
 }
 

@@ -1025,7 +1025,7 @@ fn observe(
                 .collect(),
         ),
         None => {
-            let refs = pipeline::render_views(renderer, views, render, &|_| {});
+            let refs = renderer.render_views(views, render, &|_| {});
             let masks = pipeline::geometry_masks(renderer, views, &refs);
             let nf = pipeline::noise_floor(renderer, views, &refs, &masks, render, &|_| {})?;
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;

@@ -346,6 +346,20 @@ impl<'a> Renderer<'a> {
         assemble(w, h, done)
     }
 
+    /// Renders radiance for each view (random stream = view index).
+    pub fn render_views(
+        &self,
+        views: &[&Camera],
+        settings: &RenderSettings,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Vec<Image> {
+        views
+            .iter()
+            .enumerate()
+            .map(|(i, cam)| self.render_radiance(cam, i as u64, settings, progress))
+            .collect()
+    }
+
     /// Renders radiance; the coverage becomes the image's alpha.
     pub fn render_radiance(
         &self,
