@@ -1208,19 +1208,6 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let reference_seconds = t.elapsed().as_secs_f64();
     let masks = pipeline::geometry_masks(&renderer, &views, &references);
 
-    // ---- Noise floor: the reference lighting again, another seed ----
-    let t = Instant::now();
-    let mut noise_floor = Vec::new();
-    if !scene.lights.is_empty() && !a.fit_only {
-        let pb = bar("noise floor", 1);
-        noise_floor =
-            pipeline::noise_floor(&renderer, &views, &references, &masks, &settings, &|k| {
-                pb.inc(k)
-            })?;
-        pb.finish_and_clear();
-    }
-    let noise_seconds = t.elapsed().as_secs_f64();
-
     // ---- Resolution from the data ----
     let template = FitSettings {
         smooth: a.smooth,
@@ -1252,6 +1239,8 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let options = pipeline::EstimateOptions {
         fit: FitSettings { rings, ..template },
         evaluate: !a.fit_only,
+        // The reference lighting again from the re-render's paths (the seed the fit never saw).
+        noise_floor: true,
         oracle: a.oracle,
     };
     let pb = bar("estimate", options.passes(0));
@@ -1272,6 +1261,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     pb.finish_and_clear();
     let fit = &outcome.fit;
     let (errors, limit) = (&outcome.errors, &outcome.limit);
+    let noise_floor = &outcome.noise_floor;
     for (ch, c) in fit.channels.iter().enumerate() {
         if !c.converged {
             eprintln!(
@@ -1439,7 +1429,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "rounds": rounds,
         "settings": settings,
         "rel_mae": mean(errors),
-        "noise_floor_rel_mae": mean(&noise_floor),
+        "noise_floor_rel_mae": mean(noise_floor),
         "representation_limit_rel_mae": mean(limit),
         "views": per_view,
         "channels": fit.channels,
@@ -1453,7 +1443,9 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "sphere_candidates": if choose_k { sphere_models.iter().map(spheres_report).collect::<Vec<_>>() } else { vec![] },
         "timings": {
             "references_seconds": reference_seconds,
-            "noise_floor_seconds": noise_seconds,
+            // The noise floor's render shares the re-render's camera paths: its cost is in
+            // rerender_seconds.
+            "noise_floor_seconds": 0.0,
             "transport_seconds": fit.transport_seconds,
             "solve_seconds": fit.solve_seconds,
             "rings_selection_seconds": selection.as_ref().map(|s| s.seconds),

@@ -571,6 +571,7 @@ fn select_model(
             ..fit_settings(5, 256, Solver::Nnls, 0.01)
         },
         evaluate: true,
+        noise_floor: false,
         oracle: false,
     };
     let env = pipeline::run(
@@ -736,6 +737,28 @@ fn paths_walked_once_and_lit_again_render_what_a_fresh_render_does() {
             );
             assert_eq!(fresh.coverage, again.coverage);
         }
+    }
+    // Several light sets lit from one walk (the evaluation's re-render and noise floor):
+    // each image is that light set's own render.
+    let sets: Vec<&Lights> = lit.iter().collect();
+    let under = base.render_radiance_under(cam, 3, &walked, &sets, &|_| {});
+    assert_eq!(under.len(), lit.len());
+    assert!(
+        base.render_radiance_under(cam, 3, &walked, &[], &|_| {})
+            .is_empty()
+    );
+    for (i, (lights, img)) in lit.iter().zip(&under).enumerate() {
+        let fresh = base
+            .with_lights(lights)
+            .render_radiance(cam, 3, &walked, &|_| {});
+        let (mut worst, mut total) = (0.0f32, 0.0f32);
+        for (a, b) in fresh.rgb.iter().zip(&img.rgb) {
+            worst = worst.max((*a - *b).abs().max_element());
+            total += a.element_sum();
+        }
+        let mean = total / (3 * fresh.rgb.len()) as f32;
+        assert!(worst <= 1e-4 * mean, "lights {i}: {worst} (mean {mean})");
+        assert_eq!(fresh.alpha, img.alpha);
     }
 }
 

@@ -95,15 +95,8 @@ pub fn compare_views(
         .collect()
 }
 
-/// Settings of the noise floor's second render of the reference lighting.
-pub fn noise_floor_settings(settings: &RenderSettings) -> RenderSettings {
-    RenderSettings {
-        seed: settings.seed.wrapping_add(7919),
-        ..*settings
-    }
-}
-
-/// Settings of the re-render of an estimate: a seed the fit never saw.
+/// Settings of the re-render of an estimate and of the noise floor's second render of the
+/// reference lighting: a seed the fit never saw.
 pub fn evaluation_settings(settings: &RenderSettings) -> RenderSettings {
     RenderSettings {
         seed: settings.seed.wrapping_add(104_729),
@@ -120,7 +113,7 @@ pub fn noise_floor(
     settings: &RenderSettings,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Vec<Metrics>> {
-    let again = renderer.render_views(views, &noise_floor_settings(settings), progress);
+    let again = renderer.render_views(views, &evaluation_settings(settings), progress);
     compare_views(&again, references, masks)
 }
 
@@ -130,6 +123,9 @@ pub struct EstimateOptions {
     pub fit: FitSettings,
     /// Re-render the estimate and measure its error.
     pub evaluate: bool,
+    /// With `evaluate`, also measure the noise floor: the truth renderer's own lights lit
+    /// from the re-render's camera paths (one walk for both).
+    pub noise_floor: bool,
     /// Also fit with 8× the samples (NNLS) and measure that: the representation limit.
     pub oracle: bool,
 }
@@ -139,7 +135,8 @@ impl EstimateOptions {
     pub fn passes(&self, rounds_done: u32) -> u64 {
         let all = self.fit.rounds.max(1) as u64;
         let rounds = all.saturating_sub(rounds_done as u64);
-        rounds + self.evaluate as u64 + if self.oracle { 8 * all + 1 } else { 0 }
+        let lightings = self.evaluate as u64 * (1 + self.noise_floor as u64) + self.oracle as u64;
+        rounds + lightings + if self.oracle { 8 * all } else { 0 }
     }
 }
 
@@ -149,10 +146,15 @@ pub struct Outcome {
     /// The estimate re-rendered, per view (empty without `evaluate`).
     pub renders: Vec<Image>,
     pub errors: Vec<Metrics>,
+    /// Error of the truth's second render, per view (empty without `noise_floor`).
+    pub noise_floor: Vec<Metrics>,
     /// Error of the best envmap of this resolution, per view (empty without `oracle`).
     pub limit: Vec<Metrics>,
     pub recovery: Vec<LightRecovery>,
+    /// The evaluation render: every image lit from its one walk (estimate, noise floor,
+    /// representation limit).
     pub rerender_seconds: f64,
+    /// The representation limit's fit.
     pub oracle_seconds: f64,
 }
 
@@ -215,20 +217,7 @@ pub fn run(
     }
 
     let t = Instant::now();
-    let eval = evaluation_settings(render);
-    let (mut renders, mut errors) = (Vec::new(), Vec::new());
-    if options.evaluate {
-        let lights = Lights::env(fit.envmap.clone());
-        renders = truth_renderer
-            .with_lights(&lights)
-            .render_views(views, &eval, progress);
-        errors = compare_views(&renders, references, masks)?;
-    }
-    let rerender_seconds = t.elapsed().as_secs_f64();
-
-    let t = Instant::now();
-    let mut limit = Vec::new();
-    if options.oracle {
+    let best = options.oracle.then(|| {
         let mut o = options.fit;
         o.solver = Solver::Nnls;
         o.transport.spp = options
@@ -238,20 +227,46 @@ pub fn run(
             .saturating_mul(8)
             .clamp(1, MAX_SPP);
         o.transport.seed = render.seed.wrapping_add(31_337);
-        let best = fit_reusing(renderer, views, references, masks, &o, None, progress);
-        let lights = Lights::env(best.envmap.clone());
-        let imgs = truth_renderer
-            .with_lights(&lights)
-            .render_views(views, &eval, progress);
-        limit = compare_views(&imgs, references, masks)?;
-    }
+        Lights::env(fit_reusing(renderer, views, references, masks, &o, None, progress).envmap)
+    });
     let oracle_seconds = t.elapsed().as_secs_f64();
+
+    // One walk of camera paths, lit by each: the estimate, the truth, the best envmap.
+    let t = Instant::now();
+    let estimate = Lights::env(fit.envmap.clone());
+    let with_truth = options.noise_floor && !truth_renderer.lights.is_empty();
+    let mut sets: Vec<&Lights> = Vec::new();
+    if options.evaluate {
+        sets.push(&estimate);
+        if with_truth {
+            sets.push(truth_renderer.lights);
+        }
+    }
+    sets.extend(&best);
+    let mut images = truth_renderer
+        .render_views_under(views, &evaluation_settings(render), &sets, progress)
+        .into_iter();
+    let (mut renders, mut errors, mut noise_floor) = (Vec::new(), Vec::new(), Vec::new());
+    if options.evaluate {
+        renders = images.next().expect("a set per image");
+        errors = compare_views(&renders, references, masks)?;
+        if with_truth {
+            let again = images.next().expect("a set per image");
+            noise_floor = compare_views(&again, references, masks)?;
+        }
+    }
+    let limit = match images.next() {
+        Some(imgs) => compare_views(&imgs, references, masks)?,
+        None => Vec::new(),
+    };
+    let rerender_seconds = t.elapsed().as_secs_f64();
 
     let recovery = recovery::recover(&fit.envmap, truth, center);
     Ok(Outcome {
         fit,
         renders,
         errors,
+        noise_floor,
         limit,
         recovery,
         rerender_seconds,

@@ -691,6 +691,7 @@ pub fn run(
         let options = EstimateOptions {
             fit,
             evaluate: true,
+            noise_floor: false,
             oracle: false,
         };
         let outcome = pipeline::run(

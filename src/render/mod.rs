@@ -254,31 +254,7 @@ impl<'a> Renderer<'a> {
         let ray_dir = camera.ray_dirs();
         let tiles = tiles(w, h)
             .par_iter()
-            .map(|&(x0, y0, x1, y1)| {
-                let mut tile = TilePaths {
-                    samples: Vec::with_capacity(((x1 - x0) * (y1 - y0) * settings.spp) as usize),
-                    vertices: Vec::new(),
-                };
-                let mut verts = Vec::with_capacity(settings.max_bounces as usize);
-                for y in y0..y1 {
-                    for x in x0..x1 {
-                        let index = y * w + x;
-                        for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, settings) {
-                            let t = tracer.walk(
-                                camera.origin_world,
-                                dir,
-                                s.first_bsdf(),
-                                &mut s.rng,
-                                true,
-                                &mut verts,
-                            );
-                            tile.samples.push((t, verts.len() as u8));
-                            tile.vertices.extend_from_slice(&verts);
-                        }
-                    }
-                }
-                tile
-            })
+            .map(|&tile| walk_tile(&tracer, camera, key, &ray_dir, tile))
             .collect();
         Paths {
             width: w,
@@ -312,38 +288,90 @@ impl<'a> Renderer<'a> {
         let done: Vec<Vec<(u32, A::Pixel, f32)>> = tiles(w, h)
             .par_iter()
             .zip(&paths.tiles)
-            .map(|(&(x0, y0, x1, y1), tile)| {
-                let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
-                let (mut sample, mut vertex) = (0, 0);
-                for y in y0..y1 {
-                    for x in x0..x1 {
-                        let index = y * w + x;
-                        let mut px = acc.new_pixel();
-                        let mut hits = 0u32;
-                        for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, &settings) {
-                            let (t_first, n) = tile.samples[sample];
-                            let verts = &tile.vertices[vertex..vertex + n as usize];
-                            (sample, vertex) = (sample + 1, vertex + n as usize);
-                            let o = camera.origin_world;
-                            hits += tracer.light(
-                                o,
-                                dir,
-                                t_first,
-                                verts,
-                                s.first_light(),
-                                &mut s.light_rng,
-                                acc,
-                                &mut px,
-                            ) as u32;
-                        }
-                        acc.finish(&mut px, settings.spp);
-                        out.push((index, px, hits as f32 / settings.spp as f32));
-                    }
-                }
-                out
-            })
+            .map(|(&tile, walked)| light_tile(&tracer, camera, key, &ray_dir, tile, walked, acc))
             .collect();
         assemble(w, h, done)
+    }
+
+    /// Radiance images of `camera` under each of `lights` (this renderer's geometry; its own
+    /// lights play no part), from one set of camera paths: each tile's paths are walked once
+    /// and lit by every light set in turn, so k images cost one walk and k lightings. Each
+    /// image is an unbiased render with `settings`' seed and `stream`; their noise is
+    /// correlated, since they share paths.
+    pub fn render_radiance_under(
+        &self,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+        lights: &[&Lights],
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Vec<Image> {
+        if lights.is_empty() {
+            return Vec::new();
+        }
+        let (w, h) = (camera.width, camera.height);
+        let tracers: Vec<Tracer> = lights
+            .iter()
+            .map(|l| Tracer {
+                lights: l,
+                ..self.tracer(settings)
+            })
+            .collect();
+        let key = render_key(settings, stream);
+        let ray_dir = camera.ray_dirs();
+        let done: Vec<Vec<Vec<(u32, Vec3, f32)>>> = tiles(w, h)
+            .par_iter()
+            .map(|&tile| {
+                let walked = walk_tile(&self.tracer(settings), camera, key, &ray_dir, tile);
+                let lit: Vec<_> = tracers
+                    .iter()
+                    .map(|t| {
+                        let acc = RadianceAccumulator(t.lights);
+                        light_tile(t, camera, key, &ray_dir, tile, &walked, &acc)
+                    })
+                    .collect();
+                progress(lit.iter().map(|l| l.len() as u64).sum());
+                lit
+            })
+            .collect();
+        // Regroup [tile][light] as [light][tile].
+        let mut per_light: Vec<Vec<_>> = lights.iter().map(|_| Vec::new()).collect();
+        for tile in done {
+            for (slot, lit) in per_light.iter_mut().zip(tile) {
+                slot.push(lit);
+            }
+        }
+        per_light
+            .into_iter()
+            .map(|done| {
+                let frame = assemble(w, h, done);
+                Image {
+                    width: w,
+                    height: h,
+                    rgb: frame.pixels,
+                    alpha: Some(frame.coverage),
+                }
+            })
+            .collect()
+    }
+
+    /// [`Renderer::render_radiance_under`] for each view (random stream = view index): per
+    /// light set, one image per view.
+    pub fn render_views_under(
+        &self,
+        views: &[&Camera],
+        settings: &RenderSettings,
+        lights: &[&Lights],
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Vec<Vec<Image>> {
+        let mut per_light: Vec<Vec<Image>> = lights.iter().map(|_| Vec::new()).collect();
+        for (i, cam) in views.iter().enumerate() {
+            let images = self.render_radiance_under(cam, i as u64, settings, lights, progress);
+            for (slot, img) in per_light.iter_mut().zip(images) {
+                slot.push(img);
+            }
+        }
+        per_light
     }
 
     /// Renders radiance for each view (random stream = view index).
@@ -441,6 +469,82 @@ impl Paths {
 struct TilePaths {
     samples: Vec<(f32, u8)>,
     vertices: Vec<Vertex>,
+}
+
+/// Walks the camera paths of one tile (`x0, y0, x1, y1`), keeping their vertices; the last
+/// segment's geometry is traced too, as the paths are lit more than once.
+fn walk_tile(
+    tracer: &Tracer,
+    camera: &Camera,
+    key: u64,
+    ray_dir: &impl Fn(f32, f32) -> Vec3,
+    (x0, y0, x1, y1): (u32, u32, u32, u32),
+) -> TilePaths {
+    let settings = tracer.settings;
+    let mut tile = TilePaths {
+        samples: Vec::with_capacity(((x1 - x0) * (y1 - y0) * settings.spp) as usize),
+        vertices: Vec::new(),
+    };
+    let mut verts = Vec::with_capacity(settings.max_bounces as usize);
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let index = y * camera.width + x;
+            for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
+                let t = tracer.walk(
+                    camera.origin_world,
+                    dir,
+                    s.first_bsdf(),
+                    &mut s.rng,
+                    true,
+                    &mut verts,
+                );
+                tile.samples.push((t, verts.len() as u8));
+                tile.vertices.extend_from_slice(&verts);
+            }
+        }
+    }
+    tile
+}
+
+/// Lights one tile's walked paths with the tracer's lights: per pixel (index, estimate,
+/// coverage).
+fn light_tile<A: Accumulator>(
+    tracer: &Tracer,
+    camera: &Camera,
+    key: u64,
+    ray_dir: &impl Fn(f32, f32) -> Vec3,
+    (x0, y0, x1, y1): (u32, u32, u32, u32),
+    walked: &TilePaths,
+    acc: &A,
+) -> Vec<(u32, A::Pixel, f32)> {
+    let settings = tracer.settings;
+    let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
+    let (mut sample, mut vertex) = (0, 0);
+    for y in y0..y1 {
+        for x in x0..x1 {
+            let index = y * camera.width + x;
+            let mut px = acc.new_pixel();
+            let mut hits = 0u32;
+            for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
+                let (t_first, n) = walked.samples[sample];
+                let verts = &walked.vertices[vertex..vertex + n as usize];
+                (sample, vertex) = (sample + 1, vertex + n as usize);
+                hits += tracer.light(
+                    camera.origin_world,
+                    dir,
+                    t_first,
+                    verts,
+                    s.first_light(),
+                    &mut s.light_rng,
+                    acc,
+                    &mut px,
+                ) as u32;
+            }
+            acc.finish(&mut px, settings.spp);
+            out.push((index, px, hits as f32 / settings.spp as f32));
+        }
+    }
+    out
 }
 
 /// The key every random stream of a render derives from.
