@@ -24,15 +24,56 @@ that background load hits all alike; medians are reported.
 samples/s = W * H * spp * views / seconds.
 Prints a summary and writes one JSON object (to --json OUT if given).
 
+--equal-noise runs a different benchmark instead (the samples/s one above is
+then skipped): speed at equal noise. Samples/s alone is unfair to lightprobe,
+whose stratified first bounce (padded Sobol) has ~7x less variance per sample
+than Mitsuba's `independent` sampler, so here Mitsuba gets each of its
+samplers (--samplers; default independent, stratified, multijitter, ldsampler,
+orthogonal) and the best one counts. In one run, interleaved as above:
+  * every view is rendered at each spp of --spp-list (default 64,128,256,512)
+    with seeds 1..K (K = max(2, --repeat)) by lightprobe and by Mitsuba with
+    each sampler. Mitsuba rounds some counts (ldsampler to a power of 4,
+    orthogonal to a prime squared, stratified to a square, multijitter to a
+    product of near-equal factors): the spp it really used is recorded and
+    used, a count it already measured is skipped, a sampler it rejects is
+    skipped; all are reported;
+  * noise = the relative MSE of one render: per-pixel variance across the K
+    seeds (unbiased; for K = 2 that is (a - b)^2 / 2) summed over RGB and
+    the pixels of every view inside lightprobe's geometry mask (alpha > 0 at
+    the largest spp), divided by the sum of the squared per-pixel mean. Same
+    metric for both tools. (relMAE between seeds 1 and 2 is also reported.)
+  * time = the render time of all views, median over the K seeds
+    (lightprobe: render.json timings.render_seconds; Mitsuba: after one
+    untimed warm-up render per view and configuration, as above);
+  * per configuration, log-log fit noise = C * spp^-a and linear fit
+    time = t0 + k * spp; for the noise target (default: lightprobe's measured
+    noise at --target-spp, default 512 or the largest spp listed) the spp
+    needed, spp* = (C / target)^(1/a), and the time t0 + k * spp*
+    ("extrapolated" when spp* lies outside the spp measured); as a
+    cross-check, also the time from piecewise log-log interpolation of the
+    measured (time, noise) points, which follows curves that bend (Mitsuba's
+    stratified and ldsampler gain less than a power law at high spp here);
+  * Mitsuba time / lightprobe time per sampler, and the headline: the best
+    (fastest) sampler's ratio, "equal-noise speed ratio (>1 = lightprobe
+    faster)".
+Writes a chart of noise vs render time (log-log; points measured, lines
+fitted, dashed where extrapolated) to --out (default out/bench) as
+equal_noise.png; the figures go under "equal_noise" in the JSON.
+
 Usage: .venv/bin/python scripts/bench.py [--repeat 3] [--json OUT] [--scene S.ron]
        [--spp N] [--threads N] [--no-envmap] [--envmap-rings 21]
+       .venv/bin/python scripts/bench.py --equal-noise [--spp-list 64,128,256,512]
+       [--samplers independent,stratified,...] [--target-spp 512] [--out out/bench]
+       [--repeat 3] [--json OUT] [--scene S.ron] [--threads N]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -43,6 +84,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import check_mitsuba as cm  # noqa: E402
 import mitsuba_scene as ms  # noqa: E402
 import ring_grid as rg  # noqa: E402
 
@@ -80,6 +122,330 @@ def run_lightprobe(bin_: Path, scene: Path, out: Path, spp: int, threads: int | 
     return {"wall": wall, "render": rj["timings"]["render_seconds"], "json": rj}
 
 
+# --------------------------------------------------------------------------
+# --equal-noise
+# --------------------------------------------------------------------------
+
+MITSUBA_SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler", "orthogonal")
+
+
+def int_list(text: str) -> list[int]:
+    return sorted({int(x) for x in text.split(",") if x.strip()})
+
+
+def noise_of(renders: list[dict], masks: dict) -> dict:
+    """renders: one {view: (H, W, 3) RGB} per seed. Relative MSE of one render
+    (per-pixel unbiased variance across seeds / squared mean, summed over RGB,
+    masked pixels and views) and relMAE between the first two seeds."""
+    var_sum = mean_sq = mae_num = mae_den = 0.0
+    for v, mask in masks.items():
+        x = np.stack([r[v][mask] for r in renders]).astype(np.float64)   # (K, N, 3)
+        var_sum += x.var(axis=0, ddof=1).sum()
+        mean_sq += (x.mean(axis=0) ** 2).sum()
+        mae_num += np.abs(x[1] - x[0]).sum()
+        mae_den += np.abs(x[0]).sum()
+    return {"rel_mse": float(var_sum / mean_sq), "rel_mae_pair": float(mae_num / mae_den)}
+
+
+def fit_config(spp: list, noise: list, secs: list) -> dict | None:
+    """noise = C * spp^-a (least squares in log-log) and time = t0 + k * spp
+    (least squares; t0 >= 0, else a line through the origin, since a negative
+    overhead is only noise). None with fewer than two spp."""
+    if len(spp) < 2:
+        return None
+    s, n, t = (np.asarray(x, dtype=np.float64) for x in (spp, noise, secs))
+    slope, icpt = np.polyfit(np.log(s), np.log(n), 1)
+    k, t0 = np.polyfit(s, t, 1)
+    if t0 < 0:
+        k, t0 = float((s * t).sum() / (s * s).sum()), 0.0
+    # how well a power law describes the noise (some samplers' curves bend)
+    resid = np.log(n) - (icpt + slope * np.log(s))
+    return {"a": float(-slope), "C": float(np.exp(icpt)), "t0": float(t0), "k": float(k),
+            "noise_rms_log_residual": float(np.sqrt((resid ** 2).mean()))}
+
+
+def local_target_seconds(noise: list, secs: list, target: float) -> float:
+    """Cross-check of the fits: time at the target by piecewise-linear
+    interpolation of log time vs log noise between the measured points (the
+    two nearest points' line beyond them). It follows a bending curve that a
+    single power law averages out."""
+    order = np.argsort(noise)
+    ln, lt = np.log(np.asarray(noise)[order]), np.log(np.asarray(secs)[order])
+    i = int(np.clip(np.searchsorted(ln, np.log(target)), 1, len(ln) - 1))
+    f = (np.log(target) - ln[i - 1]) / (ln[i] - ln[i - 1])
+    return float(np.exp(lt[i - 1] + f * (lt[i] - lt[i - 1])))
+
+
+def at_target(fit: dict, target: float, spp: list) -> dict:
+    """spp and time a configuration needs for the target noise, along its fits.
+    extrapolation: how far spp* lies outside the measured spp, as a factor
+    (1 = inside). Up to 5% beyond counts as inside: the fits' own error is of
+    that order (lightprobe's fit puts its own target spp a few % off)."""
+    need = (fit["C"] / target) ** (1.0 / fit["a"])
+    factor = max(min(spp) / need, need / max(spp), 1.0)
+    return {"spp": need, "seconds": fit["t0"] + fit["k"] * need,
+            "extrapolated": bool(factor > 1.05), "extrapolation_factor": factor}
+
+
+def equal_noise_chart(path: Path, configs: dict, target: float, target_label: str) -> None:
+    """Noise vs render time, log-log: measured points, fitted curves (solid over
+    the measured spp, dashed out to the target), target line and crossings."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    for i, (name, c) in enumerate(configs.items()):
+        if not c["spp"]:
+            continue
+        col = "black" if name == "lightprobe" else f"C{i}"
+        ax.plot(c["seconds"], c["rel_mse"], "o", color=col, label=name)
+        f, t = c.get("fit"), c.get("target")
+        if not f:
+            continue
+        lo, hi = min(c["spp"]), max(c["spp"])
+        s = np.geomspace(lo, hi, 50)
+        ax.plot(f["t0"] + f["k"] * s, f["C"] * s ** -f["a"], "-", color=col, lw=1)
+        if t["extrapolated"]:
+            s = np.geomspace(min(lo, t["spp"]), max(hi, t["spp"]), 50)
+            ax.plot(f["t0"] + f["k"] * s, f["C"] * s ** -f["a"], "--", color=col, lw=1)
+        ax.plot([t["seconds"]], [target], "x", color=col, ms=9)
+    ax.axhline(target, color="grey", lw=0.8, ls=":", label=f"target ({target_label})")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("render time, all views (s)")
+    ax.set_ylabel("relative MSE of one render")
+    ax.set_title("Equal noise: lightprobe vs Mitsuba 3 samplers (x = time at the target)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run_equal_noise(args, variant: str) -> int:
+    import drjit as dr
+    import mitsuba as mi
+    # Mitsuba warns on every rounded sample count; we report those ourselves
+    mi.set_log_level(mi.LogLevel.Error)
+    info = ms.lightprobe_info(args.scene, args.bin)
+    st = info["settings"]
+    cams = {c["name"]: c for c in info["cameras"]}
+    views = list(cams)
+    w, h = st["width"], st["height"]
+    spp_list = int_list(args.spp_list)
+    samplers = [x.strip() for x in args.samplers.split(",") if x.strip()]
+    n_seeds = max(2, args.repeat)          # two renders at least: noise needs a pair
+    seeds = list(range(1, n_seeds + 1))
+    target_spp = args.target_spp or (512 if 512 in spp_list else max(spp_list))
+    if target_spp not in spp_list:
+        print(f"--target-spp {target_spp} is not in --spp-list {spp_list}", file=sys.stderr)
+        return 2
+    print(f"equal-noise benchmark: scene {args.scene}, views {views}, {w}x{h}, max_bounces "
+          f"{st['max_bounces']}; spp {spp_list}; seeds {seeds}; {os.cpu_count()} CPUs, load "
+          f"average {os.getloadavg()[0]:.2f}")
+    load_before = os.getloadavg()
+
+    meshes = ms.load_meshes(ms.sidecar_gltf(args.scene))
+    S = ms.build_scene(args.scene, args.bin, info=info, meshes=meshes)
+    # Mitsuba sensors per (sampler, requested spp); keep the spp it really uses
+    sensors, notes = {}, []
+    for smp in samplers:
+        seen = {}
+        for n in spp_list:
+            try:
+                sens = {v: mi.load_dict(ms.sensor_dict(cams[v], n, sampler=smp)) for v in views}
+            except Exception as e:  # noqa: BLE001 - Mitsuba raises RuntimeError subclasses
+                notes.append(f"Mitsuba {smp}: rejected at {n} spp ({str(e).splitlines()[0]}); "
+                             "skipped")
+                continue
+            actual = sens[views[0]].sampler().sample_count()
+            if actual in seen:
+                notes.append(f"Mitsuba {smp}: {n} spp -> {actual}, already measured "
+                             f"(from {seen[actual]}); skipped")
+                continue
+            if actual != n:
+                notes.append(f"Mitsuba {smp}: {n} spp rounded to {actual}")
+            seen[actual] = n
+            sensors[(smp, n)] = (actual, sens)
+    for line in notes:
+        print("  " + line)
+
+    def mi_render(sensor, seed):
+        img = mi.render(S.scene, sensor=sensor, seed=seed)
+        return np.array(img, dtype=np.float32)[..., :3]   # np.array forces evaluation
+
+    lp_img = {n: [] for n in spp_list}            # spp -> per seed {view: RGB}
+    lp_sec = {n: [] for n in spp_list}
+    lp_alpha = {}
+    mi_img = {key: [] for key in sensors}
+    mi_sec = {key: [] for key in sensors}
+    mi_first = {}
+    t_start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench_noise_") as tmp:
+        # seeds outermost and tools alternating inside, so that background load
+        # hits every configuration alike
+        for seed in seeds:
+            for n in spp_list:
+                out = Path(tmp) / f"lp_{n}_{seed}"
+                res = run_lightprobe(args.bin, args.scene, out, n, args.threads,
+                                     ["--seed", seed])
+                lp_sec[n].append(res["render"])
+                lp_threads = res["json"].get("threads")
+                imgs = {v: cm.read_exr(out / f"{v}.exr") for v in views}
+                lp_img[n].append({v: a[..., :3] for v, a in imgs.items()})
+                if n == max(spp_list) and seed == seeds[0]:
+                    lp_alpha = {v: a[..., 3] for v, a in imgs.items()}
+                shutil.rmtree(out)
+                for key, (actual, sens) in list(sensors.items()):
+                    if key[1] != n:
+                        continue
+                    try:
+                        if key not in mi_first:        # JIT warm-up, untimed
+                            t0 = time.perf_counter()
+                            for v in views:
+                                mi_render(sens[v], 0)
+                            mi_first[key] = time.perf_counter() - t0
+                        t0 = time.perf_counter()
+                        imgs = {v: mi_render(sens[v], seed) for v in views}
+                        mi_sec[key].append(time.perf_counter() - t0)
+                    except Exception as e:  # noqa: BLE001
+                        line = (f"Mitsuba {key[0]}: render failed at {actual} spp "
+                                f"({str(e).splitlines()[0]}); skipped")
+                        print("  " + line)
+                        notes.append(line)
+                        del sensors[key], mi_img[key], mi_sec[key]
+                        continue
+                    mi_img[key].append(imgs)
+            print(f"  seed {seed}/{n_seeds} done ({time.perf_counter() - t_start:.0f} s)",
+                  flush=True)
+    load_after = os.getloadavg()
+
+    masks = {v: a > 0 for v, a in lp_alpha.items()}
+    n_px = sum(int(m.sum()) for m in masks.values())
+    med = statistics.median
+    configs = {"lightprobe": {"spp": spp_list, "requested_spp": spp_list}}
+    configs.update({f"Mitsuba {smp}": {"spp": [], "requested_spp": []} for smp in samplers})
+    lp = configs["lightprobe"]
+    for n in spp_list:
+        nz = noise_of(lp_img[n], masks)
+        lp.setdefault("rel_mse", []).append(nz["rel_mse"])
+        lp.setdefault("rel_mae_pair", []).append(nz["rel_mae_pair"])
+        lp.setdefault("seconds", []).append(med(lp_sec[n]))
+        lp.setdefault("seconds_all", []).append(lp_sec[n])
+    for (smp, n), (actual, _) in sensors.items():
+        c = configs[f"Mitsuba {smp}"]
+        nz = noise_of(mi_img[(smp, n)], masks)
+        c["spp"].append(actual)
+        c["requested_spp"].append(n)
+        c.setdefault("rel_mse", []).append(nz["rel_mse"])
+        c.setdefault("rel_mae_pair", []).append(nz["rel_mae_pair"])
+        c.setdefault("seconds", []).append(med(mi_sec[(smp, n)]))
+        c.setdefault("seconds_all", []).append(mi_sec[(smp, n)])
+        c.setdefault("first_render_seconds", []).append(mi_first[(smp, n)])
+    # the target: lightprobe's measured noise at target_spp
+    target = lp["rel_mse"][spp_list.index(target_spp)]
+    for name, c in configs.items():
+        if not c["spp"]:
+            continue
+        c["samples_per_second"] = [w * h * len(views) * n / t
+                                   for n, t in zip(c["spp"], c["seconds"])]
+        c["fit"] = fit_config(c["spp"], c["rel_mse"], c["seconds"])
+        if c["fit"]:
+            c["target"] = at_target(c["fit"], target, c["spp"])
+            c["target"]["seconds_local"] = local_target_seconds(c["rel_mse"], c["seconds"],
+                                                                target)
+    lp_t = lp["target"]["seconds"]
+    ratios, ratios_local = {}, {}
+    for name, c in configs.items():
+        if name != "lightprobe" and c.get("target"):
+            c["target"]["ratio_mitsuba_over_lightprobe"] = c["target"]["seconds"] / lp_t
+            ratios[name] = c["target"]["seconds"] / lp_t
+            ratios_local[name] = c["target"]["seconds_local"] / lp["target"]["seconds_local"]
+            c["target"]["ratio_local"] = ratios_local[name]
+    best = min(ratios, key=ratios.get) if ratios else None
+    result = {
+        "scene": str(args.scene), "triangles": info["triangles"], "width": w, "height": h,
+        "views": views, "max_bounces": st["max_bounces"], "cpus": os.cpu_count(),
+        "loadavg_before": load_before, "loadavg_after": load_after,
+        "equal_noise": {
+            "metric": "relative MSE of one render: per-pixel variance across seeds "
+                      "(ddof 1) / squared per-pixel mean, summed over RGB and the masked "
+                      "pixels of all views (mask: lightprobe alpha > 0)",
+            "seeds": seeds, "spp_list": spp_list, "masked_pixels": {
+                v: int(m.sum()) for v, m in masks.items()},
+            "mitsuba": {"version": mi.__version__, "variant": variant,
+                        "threads": dr.thread_count(),
+                        "integrator": "path (MIS), max_depth = max_bounces + 1, no Russian "
+                                      "roulette"},
+            "lightprobe_threads": lp_threads,
+            "notes": notes,
+            "target": {"rel_mse": target, "from": f"lightprobe measured at {target_spp} spp"},
+            "configs": configs,
+            "ratio_mitsuba_over_lightprobe": ratios,
+            # the same from piecewise interpolation of the measured points
+            "ratio_mitsuba_over_lightprobe_local": ratios_local,
+            "best_mitsuba_sampler": best,
+            # the headline: Mitsuba's best sampler vs lightprobe at equal noise
+            "equal_noise_speed_ratio": ratios.get(best),
+            "wall_seconds": time.perf_counter() - t_start,
+        },
+    }
+
+    print(f"\nnoise = relative MSE of one render over {n_px} masked pixels ({n_seeds} seeds); "
+          f"time = median render time of all views (s)")
+    print(f"  {'configuration':22s} {'spp':>5s} {'rel MSE':>10s} {'relMAE':>8s} {'time':>7s} "
+          f"{'M smp/s':>8s}")
+    for name, c in configs.items():
+        for i, n in enumerate(c["spp"]):
+            req = "" if c["requested_spp"][i] == n else f" (asked {c['requested_spp'][i]})"
+            print(f"  {name if i == 0 else '':22s} {n:5d} {c['rel_mse'][i]:10.3e} "
+                  f"{c['rel_mae_pair'][i] * 100:7.2f}% {c['seconds'][i]:7.3f} "
+                  f"{c['samples_per_second'][i] / 1e6:8.2f}{req}")
+    print(f"\nfits (noise = C spp^-a, rms error of that fit; time = t0 + k spp) and the time "
+          f"to reach the target noise {target:.3e} (lightprobe at {target_spp} spp); (local) = "
+          f"ratio from piecewise log-log interpolation of the measured points instead:")
+    print(f"  {'configuration':22s} {'a':>5s} {'fit err':>7s} {'t0 s':>6s} {'ms/spp':>7s} "
+          f"{'spp needed':>11s} {'time s':>8s} {'Mitsuba/lp':>10s} {'(local)':>8s}")
+    for name, c in configs.items():
+        if not c.get("fit"):
+            if name != "lightprobe":
+                print(f"  {name:22s} (not fitted: fewer than two spp measured)")
+            continue
+        f, t = c["fit"], c["target"]
+        ratio = (f"{t['ratio_mitsuba_over_lightprobe']:10.2f} {t['ratio_local']:8.2f}"
+                 if name in ratios else " " * 19)
+        err = math.expm1(f["noise_rms_log_residual"]) * 100
+        print(f"  {name:22s} {f['a']:5.2f} {err:6.1f}% {f['t0']:6.3f} {f['k'] * 1e3:7.3f} "
+              f"{t['spp']:11.0f} {t['seconds']:8.3f} {ratio}"
+              + (f"  extrapolated (x{t['extrapolation_factor']:.2f} beyond the measured spp)"
+                 if t["extrapolated"] else ""))
+    if best:
+        print(f"\nequal-noise speed ratio (>1 = lightprobe faster): {ratios[best]:.2f} "
+              f"(Mitsuba's best sampler: {best.split(' ', 1)[1]}; by local interpolation "
+              f"{ratios_local[best]:.2f}; with `independent`: "
+              f"{ratios.get('Mitsuba independent', float('nan')):.2f})")
+    if load_before[0] > 0.5:
+        print(f"  note: 1-min load average was {load_before[0]:.2f} on {os.cpu_count()} CPUs "
+              f"before the run: other work may have slowed both tools")
+    chart = args.out / "equal_noise.png"
+    equal_noise_chart(chart, configs, target, f"lightprobe at {target_spp} spp")
+    result["equal_noise"]["chart"] = str(chart)
+    print(f"wrote {chart}")
+    text = json.dumps(result, indent=2)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text + "\n")
+        print(f"wrote {args.json}")
+    else:
+        print(text)
+    return 0
+
+
+# --------------------------------------------------------------------------
+# samples/s (default)
+# --------------------------------------------------------------------------
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", type=Path, default=ms.DEFAULT_SCENE)
@@ -92,6 +458,17 @@ def main() -> int:
     ap.add_argument("--no-envmap", dest="envmap", action="store_false",
                     help="skip the envmap-lit runs")
     ap.add_argument("--envmap-rings", type=int, default=21)
+    ap.add_argument("--equal-noise", action="store_true",
+                    help="run the equal-noise benchmark instead (see the docstring)")
+    ap.add_argument("--spp-list", default="64,128,256,512",
+                    help="--equal-noise: spp to measure (comma-separated)")
+    ap.add_argument("--samplers", default=",".join(MITSUBA_SAMPLERS),
+                    help="--equal-noise: Mitsuba sampler types (comma-separated)")
+    ap.add_argument("--target-spp", type=int, default=None,
+                    help="--equal-noise: target = lightprobe's noise at this spp (one of "
+                         "--spp-list; default 512 if listed, else the largest)")
+    ap.add_argument("--out", type=Path, default=ms.REPO / "out" / "bench",
+                    help="--equal-noise: directory of the chart")
     args = ap.parse_args()
 
     if not ms.install_llvm19():
@@ -102,6 +479,8 @@ def main() -> int:
     import mitsuba as mi
     if args.threads:
         dr.set_thread_count(args.threads)
+    if args.equal_noise:
+        return run_equal_noise(args, variant)
 
     info = ms.lightprobe_info(args.scene, args.bin)
     st = info["settings"]

@@ -28,7 +28,9 @@ Renderer model reproduced here (see lightprobe's docs):
     Normals are transformed by the inverse transpose of the node's matrix.
   * Cameras come from `lightprobe info` (origin, forward, up, yfov): Mitsuba
     `perspective`, fov_axis 'y', to_world = look_at(origin, origin+forward,
-    up); pinhole; `box` reconstruction filter; `independent` sampler.
+    up); pinhole; `box` reconstruction filter; `independent` sampler
+    (sensor_dict/build_scene(sampler=...) picks another, e.g. for
+    scripts/bench.py --equal-noise).
   * Sphere lights: `sphere` shapes with an `area` emitter of the given RGB
     radiance and a black BSDF (a light only emits, it reflects nothing),
     hidden from the camera via the path integrator's hide_emitters, plus a
@@ -343,7 +345,11 @@ def light_dicts(lights: list[dict], perturb: str | None = None) -> dict:
     return out
 
 
-def sensor_dict(cam: dict, spp: int, perturb: str | None = None) -> dict:
+def sensor_dict(cam: dict, spp: int, perturb: str | None = None,
+                sampler: str = "independent") -> dict:
+    """Mitsuba `perspective` sensor for a lightprobe camera. `sampler` is the
+    Mitsuba sampler type; some round spp (ldsampler to a power of 4,
+    orthogonal to a prime squared, ...): read sensor.sampler().sample_count()."""
     import mitsuba as mi
     o = np.asarray(cam["origin"], dtype=np.float64)
     f = np.asarray(cam["forward"], dtype=np.float64)
@@ -359,7 +365,7 @@ def sensor_dict(cam: dict, spp: int, perturb: str | None = None) -> dict:
         "near_clip": 1e-3,
         "far_clip": 1e4,
         "to_world": to_world,
-        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "sampler": {"type": sampler, "sample_count": int(spp)},
         "film": {"type": "hdrfilm", "width": int(cam["width"]), "height": int(cam["height"]),
                  "rfilter": {"type": "box"}, "pixel_format": "rgba",
                  "component_format": "float32", "sample_border": False},
@@ -440,12 +446,12 @@ def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BI
                 spp: int | None = None, max_depth: int | None = None,
                 perturb: str | None = None, info: dict | None = None,
                 meshes: list | None = None, envmap=None,
-                sphere_lights: bool = True) -> MitsubaScene:
+                sphere_lights: bool = True, sampler: str = "independent") -> MitsubaScene:
     """Mitsuba scene + one sensor per view of a lightprobe sidecar. Call
     set_variant() first. max_depth defaults to the sidecar's max_bounces + 1.
     envmap: lat-long EXR path or (H, W, 3) array for an `envmap` emitter
     (None: no environment light). sphere_lights=False leaves the sidecar's
-    sphere lights out."""
+    sphere lights out. sampler: the sensors' Mitsuba sampler type."""
     import mitsuba as mi
     if perturb is not None and perturb not in PERTURBATIONS:
         raise ValueError(f"unknown perturbation {perturb!r}")
@@ -463,7 +469,8 @@ def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BI
     if envmap is not None:
         d["envmap"] = envmap_dict(envmap)
     scene = mi.load_dict(d)
-    sensors = {c["name"]: mi.load_dict(sensor_dict(c, spp, perturb)) for c in info["cameras"]}
+    sensors = {c["name"]: mi.load_dict(sensor_dict(c, spp, perturb, sampler))
+               for c in info["cameras"]}
     return MitsubaScene(scene, sensors, spp, max_depth, info, meshes, mi.variant())
 
 

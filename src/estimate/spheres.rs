@@ -394,85 +394,105 @@ pub fn refine(
     // Forward-difference steps: 0.3° of direction, 2% of distance, 3% of angular radius —
     // large enough that a step moves many samples' shadows, not a few.
     let steps = [0.005, 0.005, 0.02, 0.03];
-    while iterations < settings.max_iterations {
-        iterations += 1;
-        let (r0, _, _) = eval(&base, &zero, &settings.jacobian);
-        let mut jac: Vec<Vec<f64>> = Vec::with_capacity(m);
-        for j in first..n {
-            let h = steps[j % 4];
-            let mut q = zero.clone();
-            q[j] = h;
-            let (rj, _, _) = eval(&base, &q, &settings.jacobian);
-            jac.push(rj.iter().zip(&r0).map(|(a, b)| (a - b) / h).collect());
-        }
-        let mut g = vec![0.0; m];
-        for i in 0..m {
-            g[i] = jac[i].iter().zip(&r).map(|(x, y)| x * y).sum();
-            for j in 0..m {
-                normal[i * m + j] = jac[i].iter().zip(&jac[j]).map(|(x, y)| x * y).sum();
+    // Levenberg–Marquardt, then the direct search on sizes; while that search still gains,
+    // LM again from there (positions and radiances shift with the sizes), at most twice.
+    let mut budget = settings.max_iterations;
+    for pass in 0..3 {
+        while iterations < budget {
+            iterations += 1;
+            let (r0, _, _) = eval(&base, &zero, &settings.jacobian);
+            let mut jac: Vec<Vec<f64>> = Vec::with_capacity(m);
+            for j in first..n {
+                let h = steps[j % 4];
+                let mut q = zero.clone();
+                q[j] = h;
+                let (rj, _, _) = eval(&base, &q, &settings.jacobian);
+                jac.push(rj.iter().zip(&r0).map(|(a, b)| (a - b) / h).collect());
             }
-        }
-        let mut improved = false;
-        for _ in 0..5 {
-            let mut damped = normal.clone();
+            let mut g = vec![0.0; m];
             for i in 0..m {
-                damped[i * m + i] += mu * normal[i * m + i].max(1e-12);
+                g[i] = jac[i].iter().zip(&r).map(|(x, y)| x * y).sum();
+                for j in 0..m {
+                    normal[i * m + j] = jac[i].iter().zip(&jac[j]).map(|(x, y)| x * y).sum();
+                }
             }
-            let Some(free_step) = solve_dense(damped, g.iter().map(|v| -v).collect()) else {
-                mu *= 10.0;
-                continue;
-            };
-            let mut step = zero.clone();
-            step[first..].copy_from_slice(&free_step);
-            // A trust region in plain terms: at most 10° and a factor 1.5 per step.
-            for (j, s) in step.iter_mut().enumerate() {
-                let cap = if j % 4 < 2 { 0.17 } else { 0.4 };
-                *s = s.clamp(-cap, cap);
+            let mut improved = false;
+            for _ in 0..5 {
+                let mut damped = normal.clone();
+                for i in 0..m {
+                    damped[i * m + i] += mu * normal[i * m + i].max(1e-12);
+                }
+                let Some(free_step) = solve_dense(damped, g.iter().map(|v| -v).collect()) else {
+                    mu *= 10.0;
+                    continue;
+                };
+                let mut step = zero.clone();
+                step[first..].copy_from_slice(&free_step);
+                // A trust region in plain terms: at most 10° and a factor 1.5 per step.
+                for (j, s) in step.iter_mut().enumerate() {
+                    let cap = if j % 4 < 2 { 0.17 } else { 0.4 };
+                    *s = s.clamp(-cap, cap);
+                }
+                let (rq, lq, relq) = eval(&base, &step, &settings.residual);
+                let fq = sse(&rq);
+                if fq < f {
+                    // Gains below 0.05% are below the noise: with 10³–10⁴ binned residuals that
+                    // is a step of about one standard deviation of the parameters.
+                    improved = (f - fq) > 5e-4 * f;
+                    base = base
+                        .iter()
+                        .zip(step.chunks_exact(4))
+                        .map(|(b, q)| b.moved(q, center).0)
+                        .collect();
+                    (r, radiance, rel, f) = (rq, lq, relq, fq);
+                    history.push(f);
+                    mu = (mu / 3.0).max(1e-9);
+                    break;
+                }
+                mu *= 4.0;
             }
-            let (rq, lq, relq) = eval(&base, &step, &settings.residual);
-            let fq = sse(&rq);
-            if fq < f {
-                // Gains below 0.05% are below the noise: with 10³–10⁴ binned residuals that
-                // is a step of about one standard deviation of the parameters.
-                improved = (f - fq) > 5e-4 * f;
-                base = base
-                    .iter()
-                    .zip(step.chunks_exact(4))
-                    .map(|(b, q)| b.moved(q, center).0)
-                    .collect();
-                (r, radiance, rel, f) = (rq, lq, relq, fq);
-                history.push(f);
-                mu = (mu / 3.0).max(1e-9);
+            if !improved {
                 break;
             }
-            mu *= 4.0;
         }
-        if !improved {
-            break;
-        }
-    }
-    // The apparent size is the slowest coordinate (a penumbra's width, traded against
-    // radiance): where the noisy Jacobian stalls, a direct search along it on the residual
-    // renders themselves still goes downhill. Halving steps from ×0.8/×1.25 in radius.
-    if settings.polish_radii {
-        for j in settings.fixed.min(base.len())..base.len() {
-            let mut h = 0.2;
-            for _ in 0..3 {
-                for sign in [-1.0, 1.0] {
-                    let mut q = zero.clone();
-                    q[4 * j + 3] = sign * h;
-                    let (rq, lq, relq) = eval(&base, &q, &settings.residual);
-                    let fq = sse(&rq);
-                    if fq < f {
-                        base[j] = base[j].moved(&q[4 * j..4 * j + 4], center).0;
-                        (r, radiance, rel, f) = (rq, lq, relq, fq);
-                        history.push(f);
+        // The apparent size is the slowest coordinate (a penumbra's width, traded against
+        // radiance): where the noisy Jacobian stalls, a pattern search along it on the residual
+        // renders themselves still goes downhill. It starts at ×2 in sin α, since a light that
+        // starts far too small barely moves its penumbrae under the Jacobian's 3% step (s50: a
+        // 0.42 m light stalled at 0.07 m, and a third light grew beside it to widen them), and
+        // halves its step when neither direction gains, down to ×1.05.
+        let before_polish = f;
+        if settings.polish_radii {
+            for j in settings.fixed.min(base.len())..base.len() {
+                let (mut h, mut sign) = (std::f64::consts::LN_2, 1.0);
+                for _ in 0..12 {
+                    if h < 0.05 {
                         break;
                     }
+                    let mut moved = false;
+                    for s in [sign, -sign] {
+                        let mut q = zero.clone();
+                        q[4 * j + 3] = s * h;
+                        let (rq, lq, relq) = eval(&base, &q, &settings.residual);
+                        let fq = sse(&rq);
+                        if fq < f {
+                            base[j] = base[j].moved(&q[4 * j..4 * j + 4], center).0;
+                            (r, radiance, rel, f) = (rq, lq, relq, fq);
+                            history.push(f);
+                            (sign, moved) = (s, true);
+                            break;
+                        }
+                    }
+                    if !moved {
+                        h /= 2.0;
+                    }
                 }
-                h /= 2.0;
             }
         }
+        if !settings.polish_radii || pass == 2 || f >= before_polish * (1.0 - 5e-4) {
+            break;
+        }
+        budget = iterations + settings.max_iterations / 2;
     }
     // σ² (JᵀJ)⁻¹, column by column (all lights free only); the radiances (3 per light)
     // count as fitted parameters.
