@@ -243,12 +243,16 @@ fn a_known_envmap_is_recovered_at_the_noise_floor() {
 }
 
 #[test]
-fn a_small_distant_sphere_light_is_located_within_4_degrees() {
+fn a_small_distant_sphere_light_is_located_within_3_degrees() {
+    // 100 m away, 1.4° across. (At 10 m, 6× the table's size, the same light came out
+    // 3.7–4.1° off at 17–41 rings, whatever the samples: parallax, not the estimator. From
+    // the table's edges it lies up to 3° either side of its direction from the centre, and
+    // an envmap can only hold one direction.)
     let center = Vec3::new(0.0, 0.1, 0.0);
     let dir = Vec3::new(0.45, 0.8, 0.3).normalize();
     let light = SphereLight {
-        center: center + dir * 10.0,
-        radius: 0.25,
+        center: center + dir * 100.0,
+        radius: 2.5,
         radiance: Vec3::splat(3000.0),
     };
     let sc = scene(vec![light]);
@@ -261,16 +265,18 @@ fn a_small_distant_sphere_light_is_located_within_4_degrees() {
         &cams,
         &refs,
         &masks,
-        &fit_settings(21, 2048, Solver::Nnls, 1e-2),
+        &FitSettings {
+            rounds: 4,
+            ..fit_settings(21, 512, Solver::Nnls, 1e-3)
+        },
         &|_| {},
     );
     let rec = recovery::recover(&fit.envmap, &sc.lights, center);
     assert_eq!(rec.len(), 1);
-    // Measured: 3.7° and power ×0.84 at 2048 transport spp (the cell nearest the light is the
-    // brightest, 2.9° off). At 256 spp the transport is too noisy for 522 cells (12.8°, ×0.50);
-    // the issue's goal of 3° is not met yet: see the issue note.
-    assert!(rec[0].angle_error_degrees < 4.0, "{:?}", rec[0]);
-    assert!((0.8..1.2).contains(&rec[0].power_ratio), "{:?}", rec[0]);
+    // Measured (21 rings, 4 rounds of 512 spp): 0.53°, power ×1.013; 17 and 31 rings: 0.43°,
+    // 0.40°; 4 rounds of 128 spp: 0.65°.
+    assert!(rec[0].angle_error_degrees < 3.0, "{:?}", rec[0]);
+    assert!((0.9..1.1).contains(&rec[0].power_ratio), "{:?}", rec[0]);
 }
 
 #[test]
