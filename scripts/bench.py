@@ -126,6 +126,17 @@ def run_lightprobe(bin_: Path, scene: Path, out: Path, spp: int, threads: int | 
 # --equal-noise
 # --------------------------------------------------------------------------
 
+def write_result(result: dict, path: Path | None) -> None:
+    """The run's JSON object: to `path` if given, else to stdout."""
+    text = json.dumps(result, indent=2)
+    if path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text + "\n")
+        print(f"wrote {path}")
+    else:
+        print(text)
+
+
 MITSUBA_SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler", "orthogonal")
 
 
@@ -432,13 +443,7 @@ def run_equal_noise(args, variant: str) -> int:
     equal_noise_chart(chart, configs, target, f"lightprobe at {target_spp} spp")
     result["equal_noise"]["chart"] = str(chart)
     print(f"wrote {chart}")
-    text = json.dumps(result, indent=2)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n")
-        print(f"wrote {args.json}")
-    else:
-        print(text)
+    write_result(result, args.json)
     return 0
 
 
@@ -646,13 +651,7 @@ def main() -> int:
         print(f"  note: 1-min load average was {load_before[0]:.2f} on {os.cpu_count()} CPUs "
               f"before the run: other work may have slowed both tools (the ratio, from "
               f"interleaved runs, is more robust than the absolute numbers)")
-    text = json.dumps(result, indent=2)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text + "\n")
-        print(f"wrote {args.json}")
-    else:
-        print(text)
+    write_result(result, args.json)
     return 0
 
 

@@ -506,14 +506,38 @@ fn per_light_transports_sample_every_light() {
     assert!(every < 0.5 * key_only, "{every} vs {key_only}");
 }
 
-#[test]
-fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
-    let truth = NEAR_LIGHT;
-    let sc = scene(vec![truth]);
+/// Levenberg–Marquardt from `start` (4×4 bins, 64-spp residuals, 16-spp Jacobians) on
+/// 256-spp references of [`NEAR_LIGHT`] alone, about the table's centre.
+fn refine_near_light(
+    start: SphereLight,
+    max_iterations: usize,
+    polish_radii: bool,
+) -> estimate::spheres::Refined {
+    let sc = scene(vec![NEAR_LIGHT]);
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
     let (refs, masks) = render_all(&r, &sc, 256, 1);
     let cams: Vec<&Camera> = sc.cameras.iter().collect();
+    let obs = binned(&cams, &masks, &refs);
+    estimate::spheres::refine(
+        &r,
+        &obs,
+        &[start],
+        Vec3::new(0.0, 0.1, 0.0),
+        &estimate::spheres::RefineSettings {
+            residual: settings(64, 5),
+            jacobian: settings(16, 6),
+            max_iterations,
+            fixed: 0,
+            polish_radii,
+            radiance_spp: 0,
+        },
+    )
+}
+
+#[test]
+fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
+    let truth = NEAR_LIGHT;
     let center = Vec3::new(0.0, 0.1, 0.0);
     // Start 25% too far along the true direction, 15 cm sideways, radius ×1.6.
     let start = SphereLight {
@@ -521,21 +545,7 @@ fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
         radius: 0.24,
         radiance: Vec3::ONE,
     };
-    let obs = binned(&cams, &masks, &refs);
-    let out = estimate::spheres::refine(
-        &r,
-        &obs,
-        &[start],
-        center,
-        &estimate::spheres::RefineSettings {
-            residual: settings(64, 5),
-            jacobian: settings(16, 6),
-            max_iterations: 10,
-            fixed: 0,
-            polish_radii: false,
-            radiance_spp: 0,
-        },
-    );
+    let out = refine_near_light(start, 10, false);
     let got = out.lights[0];
     let dist = (truth.center - center).length();
     let off = got.center.distance(truth.center);
@@ -561,35 +571,15 @@ fn a_light_started_far_too_small_grows_to_its_size() {
     // light grew beside it to widen them. The direct search on the apparent size must get
     // there from the true centre.
     let truth = NEAR_LIGHT;
-    let sc = scene(vec![truth]);
-    let lights = Lights::new(sc.lights.clone());
-    let r = Renderer::new(&sc, &lights);
-    let (refs, masks) = render_all(&r, &sc, 256, 1);
-    let cams: Vec<&Camera> = sc.cameras.iter().collect();
-    let center = Vec3::new(0.0, 0.1, 0.0);
     let start = SphereLight {
         radius: truth.radius / 6.0,
         radiance: Vec3::ONE,
         ..truth
     };
-    let obs = binned(&cams, &masks, &refs);
-    let refine = |polish_radii| {
-        estimate::spheres::refine(
-            &r,
-            &obs,
-            &[start],
-            center,
-            &estimate::spheres::RefineSettings {
-                residual: settings(64, 5),
-                jacobian: settings(16, 6),
-                max_iterations: 2,
-                fixed: 0,
-                polish_radii,
-                radiance_spp: 0,
-            },
-        )
-    };
-    let (without, with) = (refine(false), refine(true));
+    let (without, with) = (
+        refine_near_light(start, 2, false),
+        refine_near_light(start, 2, true),
+    );
     let ratio = |o: &estimate::spheres::Refined| o.lights[0].radius / truth.radius;
     eprintln!(
         "radius ×{:.3} without the search ({} renders), ×{:.3} with it ({} renders)",
