@@ -69,11 +69,31 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
 
 /// Writes a linear f32 EXR (RGB, plus A when the image has alpha), losslessly compressed.
 pub fn write_exr(path: &Path, img: &Image) -> Result<()> {
-    write_exr_with(path, img, x::LayerAttributes::default())
+    write_exr_encoded(
+        path,
+        img,
+        x::LayerAttributes::default(),
+        x::Encoding::SMALL_LOSSLESS,
+    )
 }
 
-/// Writes a linear f32 EXR with the given layer attributes (e.g. the lat-long environment tag).
-pub fn write_exr_with(path: &Path, img: &Image, attributes: x::LayerAttributes) -> Result<()> {
+/// Writes a lat-long environment map, tagged as one, as a linear f32 EXR. (ZIP: 0.2 MB for a
+/// 4096 × 2048 ring envmap; RLE was barely faster and 60× bigger.)
+pub fn write_latlong_exr(path: &Path, img: &Image) -> Result<()> {
+    let attributes = x::LayerAttributes {
+        environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
+        ..Default::default()
+    };
+    write_exr_encoded(path, img, attributes, x::Encoding::SMALL_LOSSLESS)
+}
+
+/// Writes a linear f32 EXR with the given layer attributes and encoding.
+fn write_exr_encoded(
+    path: &Path,
+    img: &Image,
+    attributes: x::LayerAttributes,
+    encoding: x::Encoding,
+) -> Result<()> {
     let (w, h) = (img.width as usize, img.height as usize);
     if img.rgb.len() != w * h || img.alpha.as_ref().is_some_and(|a| a.len() != w * h) {
         return Err(Error::Invalid(format!(
@@ -88,8 +108,7 @@ pub fn write_exr_with(path: &Path, img: &Image, attributes: x::LayerAttributes) 
                     let c = img.rgb[at(p)];
                     (c.x, c.y, c.z, alpha[at(p)])
                 });
-                let layer =
-                    x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
+                let layer = x::Layer::new((w, h), attributes, encoding, channels);
                 x::Image::from_layer(layer).write().to_file(tmp)
             }
             None => {
@@ -97,8 +116,7 @@ pub fn write_exr_with(path: &Path, img: &Image, attributes: x::LayerAttributes) 
                     let c = img.rgb[at(p)];
                     (c.x, c.y, c.z)
                 });
-                let layer =
-                    x::Layer::new((w, h), attributes, x::Encoding::SMALL_LOSSLESS, channels);
+                let layer = x::Layer::new((w, h), attributes, encoding, channels);
                 x::Image::from_layer(layer).write().to_file(tmp)
             }
         };

@@ -781,11 +781,7 @@ fn export_envmap(a: ExportArgs) -> anyhow::Result<()> {
     }
     let env = Envmap::load(&a.envmap)?;
     let img = latlong::export(&env, target, filter, a.width);
-    let attributes = exr::meta::header::LayerAttributes {
-        environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
-        ..Default::default()
-    };
-    imageio::write_exr_with(&a.out, &img, attributes)?;
+    imageio::write_latlong_exr(&a.out, &img)?;
     println!(
         "{}: {}×{} lat-long ({:?}, {:?} filter) of {} rings / {} cells",
         a.out.display(),
@@ -1005,14 +1001,9 @@ fn write_renders(
 /// Writes `NAME.ron` and its lat-long `NAME.exr` (Mitsuba's convention) into `dir`.
 fn write_envmap(dir: &Path, name: &str, env: &lightprobe::envmap::Envmap) -> anyhow::Result<()> {
     env.save(&dir.join(format!("{name}.ron")))?;
-    let attributes = exr::meta::header::LayerAttributes {
-        environment_map: Some(exr::meta::attribute::EnvironmentMap::LatitudeLongitude),
-        ..Default::default()
-    };
-    imageio::write_exr_with(
+    imageio::write_latlong_exr(
         &dir.join(format!("{name}.exr")),
         &latlong::export(env, Target::Mitsuba, Filter::Box, 4096),
-        attributes,
     )?;
     Ok(())
 }
