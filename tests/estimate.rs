@@ -935,12 +935,16 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
         assert!(fitted.iter().all(|f| f.light.radiance.is_finite()));
     }
 
-    // Measured: 60 m found at 59.9 m, 0.07° off, a 25% change costs 34.5 σ; 3 km: found at
-    // 525 m, 0.07° off, 0.0 σ.
     // Far lights. At 60 m the table still sees 1.9° of parallax and a 1.9° penumbra: the
-    // distance is measured (not assumed infinite). At 3 km only direction and power show:
+    // distance is measured (not assumed infinite). At 30 km only direction and power show:
     // reported as such, with its uncertainty, and no NaN however far the search wanders.
-    for (distance, identified) in [(60.0f32, true), (3000.0, false)] {
+    // (This scene's references are quiet, relMAE 0.08% per binned pixel: the parallax of
+    // irradiance across the table still shows at a few km. A fit at 2.2 km of a light at 3 km
+    // measured a 25% move at 2.8σ, and a far light that shows at 2σ or more is "identified";
+    // the signal falls as 1/distance², so the test's far light, 3 km until then, is at 30 km.)
+    // Measured: 60 m found at 59.2 m, 0.05° off, a 25% change costs 57.9σ; 30 km: found at
+    // 5.7 km (still moving outward), 0.06° off, 0.0σ.
+    for (distance, identified) in [(60.0f32, true), (30000.0, false)] {
         let far = SphereLight {
             center: center + Vec3::new(0.5, 1.0, 0.3).normalize() * distance,
             radius: distance * 0.033,

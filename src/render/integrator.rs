@@ -20,21 +20,30 @@ use crate::accel::{Accel, Hit};
 use crate::scene::Scene;
 
 /// The random numbers of one camera sample. The pixel jitter comes from a per-pixel-rotated
-/// R2 sequence (stratified across the pixel's samples); the walk's BSDF samples (two numbers
-/// per vertex) from a PCG stream, and the light samples from the same stream further on. (Drawing further dimensions from the same R2
-/// sequence would tie them to the pixel position: each pixel's estimate would then converge to
-/// a shifted, wrong integral.)
+/// R2 sequence (stratified across the pixel's samples); the light and BSDF samples of the
+/// first [`STRATIFIED`] vertices from padded Sobol pairs; later vertices' BSDF samples from a
+/// PCG stream, and their light samples from the same stream further on. (Drawing further
+/// dimensions from the same R2 sequence would tie them to the pixel position: each pixel's
+/// estimate would then converge to a shifted, wrong integral.)
 pub(super) struct PathSampler {
     pub rng: Rng,
     pub light_rng: Rng,
     pub index: u32,
     pub pixel_offset: Vec2,
-    /// Per pixel: the permutation keys and digital shifts of the first vertex's three Sobol
-    /// pairs ([`PathSampler::first_light`], [`PathSampler::first_bsdf`]).
-    pub keys: [u32; 9],
+    /// Per pixel: the permutation keys and digital shifts of the Sobol pairs of the first
+    /// [`STRATIFIED`] vertices, three pairs each ([`PathSampler::light_sample`],
+    /// [`PathSampler::bsdf_sample`]).
+    pub keys: [u32; KEYS],
     /// Samples per pixel (the permutations' range).
     pub spp: u32,
 }
+
+/// Vertices whose light and BSDF samples are stratified over a pixel's samples; later ones
+/// draw from the PCG streams.
+pub(super) const STRATIFIED: usize = 2;
+/// Keys per pixel: per stratified vertex three Sobol pairs, each a permutation key and two
+/// digital shifts.
+pub(super) const KEYS: usize = 9 * STRATIFIED;
 
 impl PathSampler {
     /// The sampler of camera sample `index` of the pixel keyed `pixel_key`.
@@ -42,7 +51,7 @@ impl PathSampler {
     pub fn new(
         pixel_key: u64,
         pixel_offset: Vec2,
-        keys: [u32; 9],
+        keys: [u32; KEYS],
         index: u32,
         spp: u32,
         max_bounces: u32,
@@ -63,26 +72,36 @@ impl PathSampler {
         r2(self.index, self.pixel_offset)
     }
 
-    /// The first vertex's light sample: (light and cell pick, direction), two padded Sobol
-    /// pairs, so a pixel's first-bounce light samples are stratified over its samples (the
-    /// light sample at the first vertex is most of a diffuse image's noise). Each pair has its
-    /// own per-pixel permutation of the sample index and digital shift: the pairs are
-    /// independent of each other and of the pixel jitter, and every point is uniform, so each
-    /// pixel's estimate stays unbiased.
+    /// Sobol pair `pair` (0..3) of vertex `vertex` (< [`STRATIFIED`]), padded: its own
+    /// per-pixel permutation of the sample index and digital shift, so pairs are independent
+    /// of each other and of the pixel jitter, and every point is uniform (each pixel's
+    /// estimate stays unbiased).
     #[inline]
-    pub fn first_light(&self) -> (Vec2, Vec2) {
-        let k = self.keys;
-        let pick = sobol2(permute(self.index, self.spp, k[0]), [k[1], k[2]]);
-        let dir = sobol2(permute(self.index, self.spp, k[3]), [k[4], k[5]]);
-        (pick, dir)
+    fn pair(&self, vertex: usize, pair: usize) -> Vec2 {
+        let k = &self.keys[9 * vertex + 3 * pair..];
+        sobol2(permute(self.index, self.spp, k[0]), [k[1], k[2]])
     }
 
-    /// The first vertex's BSDF sample: a third padded Sobol pair (see
-    /// [`PathSampler::first_light`]).
+    /// Vertex `k`'s light sample: (light and cell pick, direction), stratified over the
+    /// pixel's samples for the first [`STRATIFIED`] vertices (the light samples of the first
+    /// bounces are most of a diffuse image's noise), from the light stream after them.
     #[inline]
-    pub fn first_bsdf(&self) -> Vec2 {
-        let k = self.keys;
-        sobol2(permute(self.index, self.spp, k[6]), [k[7], k[8]])
+    pub fn light_sample(&mut self, k: usize) -> (Vec2, Vec2) {
+        if k < STRATIFIED {
+            (self.pair(k, 0), self.pair(k, 1))
+        } else {
+            (self.light_rng.next_2d(), self.light_rng.next_2d())
+        }
+    }
+
+    /// Vertex `k`'s BSDF sample, stratified like [`PathSampler::light_sample`].
+    #[inline]
+    pub fn bsdf_sample(&mut self, k: usize) -> Vec2 {
+        if k < STRATIFIED {
+            self.pair(k, 2)
+        } else {
+            self.rng.next_2d()
+        }
     }
 }
 
@@ -162,22 +181,12 @@ impl Tracer<'_> {
         acc: &A,
         px: &mut A::Pixel,
     ) -> bool {
-        let t_first = self.walk(origin, dir, s.first_bsdf(), &mut s.rng, false, verts);
-        let first = s.first_light();
-        self.light(
-            origin,
-            dir,
-            t_first,
-            verts,
-            first,
-            &mut s.light_rng,
-            acc,
-            px,
-        )
+        let t_first = self.walk(origin, dir, s, false, verts);
+        self.light(origin, dir, t_first, verts, s, acc, px)
     }
 
     /// The scattering vertices of a camera path from `origin` along unit `dir` (at most
-    /// `max_bounces`), into `out`, BSDF directions drawn from `rng`. With `trace_last` the
+    /// `max_bounces`), into `out`, BSDF directions from `s`. With `trace_last` the
     /// last segment's geometry is found too (worth it for a path lit many times). Returns the
     /// distance to the first surface (∞ if the camera ray sees none).
     #[inline(always)]
@@ -185,8 +194,7 @@ impl Tracer<'_> {
         &self,
         origin: Vec3,
         dir: Vec3,
-        first_bsdf: Vec2,
-        rng: &mut Rng,
+        s: &mut PathSampler,
         trace_last: bool,
         out: &mut Vec<Vertex>,
     ) -> f32 {
@@ -216,11 +224,7 @@ impl Tracer<'_> {
                 wi: Vec3::ZERO,
                 t_next: f32::NAN,
             };
-            let u = if out.is_empty() {
-                first_bsdf
-            } else {
-                rng.next_2d()
-            };
+            let u = s.bsdf_sample(out.len());
             let wi = cosine_hemisphere(sp.ns, u);
             let pdf = wi.dot(sp.ns) * INV_PI;
             throughput *= sp.albedo; // f · cos / pdf for a Lambertian
@@ -239,7 +243,7 @@ impl Tracer<'_> {
     }
 
     /// Lights a walked path (`t_first`, `verts` from [`Tracer::walk`] of the camera ray
-    /// `origin`, `dir`), light samples drawn from `rng`: next-event estimation at each vertex
+    /// `origin`, `dir`), light samples from `s`: next-event estimation at each vertex
     /// and the emitters its segments reach, handed to `acc`. An emitter in front of a vertex
     /// ends the path there. Returns whether the camera ray saw scene geometry before any
     /// emitter.
@@ -250,8 +254,7 @@ impl Tracer<'_> {
         dir: Vec3,
         t_first: f32,
         verts: &[Vertex],
-        first: (Vec2, Vec2),
-        rng: &mut Rng,
+        s: &mut PathSampler,
         acc: &A,
         px: &mut A::Pixel,
     ) -> bool {
@@ -282,24 +285,20 @@ impl Tracer<'_> {
         for (k, v) in verts.iter().enumerate() {
             // ---- Emitter sampling ----
             if use_light && st.every_light {
+                // At a stratified vertex every light gets the stratified sample (each
+                // light's estimate is stratified; their correlation biases nothing).
+                let shared = (k < STRATIFIED).then(|| s.light_sample(k));
                 for i in 0..lights.len() {
-                    // At the first vertex every light gets the stratified sample (each
-                    // light's estimate is stratified; their correlation biases nothing).
-                    let (u_cell, u) = if k == 0 {
-                        (first.0.y, first.1)
-                    } else {
-                        (rng.next_f32(), rng.next_2d())
+                    let (u_cell, u) = match shared {
+                        Some((pick, dir)) => (pick.y, dir),
+                        None => (s.light_rng.next_f32(), s.light_rng.next_2d()),
                     };
                     if let Some(ls) = lights.sample_light(i, v.p, u_cell, u) {
                         self.shadow_ray(v, &ls, mis, acc, px);
                     }
                 }
             } else if use_light {
-                let (u_light, u) = if k == 0 {
-                    first
-                } else {
-                    (rng.next_2d(), rng.next_2d())
-                };
+                let (u_light, u) = s.light_sample(k);
                 if let Some(ls) = lights.sample(v.p, u_light, u) {
                     self.shadow_ray(v, &ls, mis, acc, px);
                 }

@@ -490,14 +490,7 @@ fn walk_tile(
         for x in x0..x1 {
             let index = y * camera.width + x;
             for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
-                let t = tracer.walk(
-                    camera.origin_world,
-                    dir,
-                    s.first_bsdf(),
-                    &mut s.rng,
-                    true,
-                    &mut verts,
-                );
+                let t = tracer.walk(camera.origin_world, dir, &mut s, true, &mut verts);
                 tile.samples.push((t, verts.len() as u8));
                 tile.vertices.extend_from_slice(&verts);
             }
@@ -534,8 +527,7 @@ fn light_tile<A: Accumulator>(
                     dir,
                     t_first,
                     verts,
-                    s.first_light(),
-                    &mut s.light_rng,
+                    &mut s,
                     acc,
                     &mut px,
                 ) as u32;
@@ -565,7 +557,7 @@ fn camera_samples<'a>(
     let pixel_key = mix64(key ^ index as u64);
     let mut keys = Rng::new(pixel_key);
     let pixel_offset = keys.next_2d();
-    let sobol_keys = [(); 9].map(|_| keys.next_u32());
+    let sobol_keys = [(); integrator::KEYS].map(|_| keys.next_u32());
     let (spp, max_bounces) = (settings.spp, settings.max_bounces);
     (0..spp).map(move |i| {
         let s = PathSampler::new(pixel_key, pixel_offset, sobol_keys, i, spp, max_bounces);
