@@ -127,6 +127,18 @@ pub struct Frame<P> {
     pub coverage: Vec<f32>,
 }
 
+impl Frame<Vec3> {
+    /// A radiance frame as an image; the coverage becomes its alpha.
+    pub fn into_image(self) -> Image {
+        Image {
+            width: self.width,
+            height: self.height,
+            rgb: self.pixels,
+            alpha: Some(self.coverage),
+        }
+    }
+}
+
 /// Geometry buffers at pixel centres, for checking against other tools.
 pub struct Aovs {
     /// Distance from the camera to the first hit, metres (0 where the ray sees no geometry).
@@ -334,24 +346,9 @@ impl<'a> Renderer<'a> {
                 lit
             })
             .collect();
-        // Regroup [tile][light] as [light][tile].
-        let mut per_light: Vec<Vec<_>> = lights.iter().map(|_| Vec::new()).collect();
-        for tile in done {
-            for (slot, lit) in per_light.iter_mut().zip(tile) {
-                slot.push(lit);
-            }
-        }
-        per_light
+        transpose(done, lights.len())
             .into_iter()
-            .map(|done| {
-                let frame = assemble(w, h, done);
-                Image {
-                    width: w,
-                    height: h,
-                    rgb: frame.pixels,
-                    alpha: Some(frame.coverage),
-                }
-            })
+            .map(|done| assemble(w, h, done).into_image())
             .collect()
     }
 
@@ -364,14 +361,12 @@ impl<'a> Renderer<'a> {
         lights: &[&Lights],
         progress: &(dyn Fn(u64) + Sync),
     ) -> Vec<Vec<Image>> {
-        let mut per_light: Vec<Vec<Image>> = lights.iter().map(|_| Vec::new()).collect();
-        for (i, cam) in views.iter().enumerate() {
-            let images = self.render_radiance_under(cam, i as u64, settings, lights, progress);
-            for (slot, img) in per_light.iter_mut().zip(images) {
-                slot.push(img);
-            }
-        }
-        per_light
+        let per_view = views
+            .iter()
+            .enumerate()
+            .map(|(i, cam)| self.render_radiance_under(cam, i as u64, settings, lights, progress))
+            .collect();
+        transpose(per_view, lights.len())
     }
 
     /// Renders radiance for each view (random stream = view index).
@@ -403,12 +398,7 @@ impl<'a> Renderer<'a> {
             &RadianceAccumulator(self.lights),
             progress,
         );
-        Image {
-            width: frame.width,
-            height: frame.height,
-            rgb: frame.pixels,
-            alpha: Some(frame.coverage),
-        }
+        frame.into_image()
     }
 
     /// Depth, normal and albedo at pixel centres (one ray per pixel, no randomness).
@@ -585,6 +575,17 @@ fn assemble<P>(w: u32, h: u32, done: Vec<Vec<(u32, P, f32)>>) -> Frame<P> {
         pixels,
         coverage,
     }
+}
+
+/// Rows of `n` items as `n` columns: `[a][b]` → `[b][a]`.
+fn transpose<T>(rows: Vec<Vec<T>>, n: usize) -> Vec<Vec<T>> {
+    let mut columns: Vec<Vec<T>> = (0..n).map(|_| Vec::with_capacity(rows.len())).collect();
+    for row in rows {
+        for (column, item) in columns.iter_mut().zip(row) {
+            column.push(item);
+        }
+    }
+    columns
 }
 
 /// Fixed tiles (x0, y0, x1, y1) covering a w × h image, row by row.
