@@ -100,6 +100,45 @@ impl RayData {
     }
 }
 
+/// The leaves that rays from one origin within a thin pyramid can hit (e.g. the camera rays
+/// of one pixel), nearest box first: [`Accel::intersect_bundle`] tests a ray against these
+/// alone, with no traversal, and a pyramid that meets no geometry costs its rays nothing.
+#[derive(Debug, Default, Clone)]
+pub struct Bundle {
+    /// The rays' common origin, world space (metres).
+    origin: Vec3,
+    /// Per leaf: the distance from `origin` to its box (no ray meets the leaf sooner) and its
+    /// packet, by increasing distance.
+    leaves: Vec<(f32, u32)>,
+    /// False when the pyramid met too many leaves for a flat list to pay off (rays then fall
+    /// back to the full traversal).
+    usable: bool,
+}
+
+impl Bundle {
+    /// The rays' common origin, world space (metres).
+    pub fn origin(&self) -> Vec3 {
+        self.origin
+    }
+
+    /// Leaves the pyramid meets.
+    pub fn len(&self) -> usize {
+        self.leaves.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.leaves.is_empty()
+    }
+
+    /// Whether rays use the list ([`Accel::intersect_bundle`]) or fall back to traversal.
+    pub fn usable(&self) -> bool {
+        self.usable
+    }
+}
+
+/// A bundle of more leaves than this is not worth a flat list (a ray may test them all).
+const BUNDLE_MAX: usize = 64;
+
 /// A BVH over triangles, ready for ray queries from many threads.
 pub struct Accel {
     nodes: Vec<Node>,
@@ -262,6 +301,112 @@ impl Accel {
         }
     }
 
+    /// Fills `out` with the leaves the pyramid with apex `origin` spanned by the four edge
+    /// directions `corners` (in order around it, each unit length, the pyramid narrower than a
+    /// half-space) can reach. Conservative: a ray from `origin` inside the pyramid crosses no
+    /// triangle outside the list.
+    pub fn bundle(&self, origin: Vec3, corners: [Vec3; 4], out: &mut Bundle) {
+        out.origin = origin;
+        out.leaves.clear();
+        out.usable = true;
+        if self.nodes.is_empty() {
+            return;
+        }
+        // Inward normals of the four side planes, all through the apex.
+        let centre = corners.iter().copied().sum::<Vec3>();
+        let planes = [0, 1, 2, 3].map(|i| {
+            let n = corners[i].cross(corners[(i + 1) % 4]);
+            if n.dot(centre) < 0.0 { -n } else { n }
+        });
+        let o = origin.to_array();
+        let mut stack = [0u32; STACK];
+        let mut top = 1;
+        stack[0] = 0;
+        while top > 0 {
+            if top - 1 + WIDTH > STACK {
+                out.usable = false;
+                out.leaves.clear();
+                return;
+            }
+            top -= 1;
+            let node = &self.nodes[stack[top] as usize];
+            let b = &node.bounds;
+            let mut mask = node.lanes as u8;
+            for n in &planes {
+                // Per child box, the corner farthest along n (relative to the apex): the box
+                // lies wholly outside when even it is behind the plane. The margin covers the
+                // rounding of the corner directions and of this sum.
+                let (mut far, mut scale) = ([0.0f32; WIDTH], [0.0f32; WIDTH]);
+                for (a, n) in n.to_array().into_iter().enumerate() {
+                    let rows = b[2 * a].iter().zip(&b[2 * a + 1]);
+                    for ((f, sc), (lo, hi)) in far.iter_mut().zip(&mut scale).zip(rows) {
+                        let (lo, hi) = (n * (lo - o[a]), n * (hi - o[a]));
+                        *f += lo.max(hi);
+                        *sc += lo.abs().max(hi.abs());
+                    }
+                }
+                for (i, (f, sc)) in far.iter().zip(&scale).enumerate() {
+                    if *f < -1e-4 * sc {
+                        mask &= !(1 << i);
+                    }
+                }
+            }
+            let mut mask = mask as u32;
+            while mask != 0 {
+                let lane = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                let child = node.child[lane];
+                if child & LEAF == 0 {
+                    stack[top] = child;
+                    top += 1;
+                    continue;
+                }
+                if out.leaves.len() == BUNDLE_MAX {
+                    out.usable = false;
+                    out.leaves.clear();
+                    return;
+                }
+                // Distance from the apex to the box: a lower bound on where any ray enters it.
+                let gap = Vec3::from([0, 1, 2].map(|a| {
+                    (b[2 * a][lane] - o[a]).max(0.0) + (o[a] - b[2 * a + 1][lane]).max(0.0)
+                }));
+                out.leaves
+                    .push((gap.length() * (1.0 - 1e-5), child & !LEAF));
+            }
+        }
+        out.leaves.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+    }
+
+    /// The closest hit with `t` in (0, `t_max`] of a ray from the bundle's origin along unit
+    /// `dir`, which must lie inside the bundle's pyramid: [`Accel::intersect`], answered from
+    /// the bundle's leaves.
+    #[inline]
+    pub fn intersect_bundle(&self, bundle: &Bundle, dir: Vec3, t_max: f32) -> Option<Hit> {
+        if !bundle.usable {
+            return self.intersect(bundle.origin, dir, t_max);
+        }
+        let mut t_max = t_max;
+        let mut best = None;
+        for &(near, packet) in &bundle.leaves {
+            if near > t_max {
+                break;
+            }
+            let packet = packet as usize;
+            if let Some((lane, t, b1, b2)) =
+                hit_packet(&self.packets[packet], bundle.origin, dir, t_max)
+            {
+                t_max = t;
+                best = Some(((packet * WIDTH + lane) as u32, b1, b2));
+            }
+        }
+        best.map(|(slot, b1, b2)| Hit {
+            t: t_max,
+            triangle: self.order[slot as usize],
+            b1,
+            b2,
+        })
+    }
+
     /// Closest-hit traversal with a stack of (child reference, entry distance).
     #[inline(always)]
     fn closest(&self, ray: &RayData, mut t_max: f32, stack: &mut [(u32, f32)]) -> Option<Hit> {
@@ -276,7 +421,9 @@ impl Accel {
             }
             if child & LEAF != 0 {
                 let packet = (child & !LEAF) as usize;
-                if let Some((lane, t, b1, b2)) = hit_packet(&self.packets[packet], ray, t_max) {
+                if let Some((lane, t, b1, b2)) =
+                    hit_packet(&self.packets[packet], ray.origin, ray.dir, t_max)
+                {
                     t_max = t;
                     best = Some(((packet * WIDTH + lane) as u32, b1, b2));
                 }
@@ -319,7 +466,14 @@ impl Accel {
             top -= 1;
             let child = stack[top];
             if child & LEAF != 0 {
-                if hit_packet(&self.packets[(child & !LEAF) as usize], ray, t_max).is_some() {
+                if hit_packet(
+                    &self.packets[(child & !LEAF) as usize],
+                    ray.origin,
+                    ray.dir,
+                    t_max,
+                )
+                .is_some()
+                {
                     return true;
                 }
                 continue;
@@ -382,9 +536,9 @@ fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
 /// Möller–Trumbore on every lane of a leaf: the closest crossing with `t` in (0, `t_max`] as
 /// `(lane, t, b1, b2)`.
 #[inline(always)]
-fn hit_packet(k: &Packet, ray: &RayData, t_max: f32) -> Option<(usize, f32, f32, f32)> {
-    let [dx, dy, dz] = ray.dir.to_array();
-    let [ox, oy, oz] = ray.origin.to_array();
+fn hit_packet(k: &Packet, origin: Vec3, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32, f32)> {
+    let [dx, dy, dz] = dir.to_array();
+    let [ox, oy, oz] = origin.to_array();
     let (mut t, mut b1, mut b2) = ([f32::INFINITY; WIDTH], [0.0; WIDTH], [0.0; WIDTH]);
     for i in 0..WIDTH {
         let (e1x, e1y, e1z) = (k.e1[0][i], k.e1[1][i], k.e1[2][i]);
@@ -505,6 +659,91 @@ mod tests {
             }
         }
         assert!(hits > 200, "too few hits to mean anything: {hits}");
+    }
+
+    #[test]
+    fn bundles_answer_as_traversal_does() {
+        // Rays through pixel-like pyramids (image-plane corners, jitter in [0, 1]² including
+        // the edges) into a soup of triangles: the bundle's leaves give the traversal's hit.
+        let mut s = 11u64;
+        let mut tris = Vec::new();
+        for _ in 0..3000 {
+            let c = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 4.0 - 2.0;
+            let r = |s: &mut u64| Vec3::new(lcg(s), lcg(s), lcg(s)) * 0.3 - 0.15;
+            tris.push([c + r(&mut s), c + r(&mut s), c + r(&mut s)]);
+        }
+        // A finely tessellated bumpy floor (cells smaller than a pyramid's footprint), so
+        // rays along a pyramid's edges hit triangles whose boxes barely reach into it.
+        let n = 120;
+        let height: Vec<f32> = (0..(n + 1) * (n + 1)).map(|_| lcg(&mut s) * 0.01).collect();
+        let at = |i: usize, j: usize| {
+            Vec3::new(
+                i as f32 / n as f32 * 4.0 - 2.0,
+                -2.5 + height[i * (n + 1) + j],
+                j as f32 / n as f32 * 4.0 - 2.0,
+            )
+        };
+        for i in 0..n {
+            for j in 0..n {
+                tris.push([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
+                tris.push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
+            }
+        }
+        let accel = Accel::build(&tris);
+        let mut bundle = Bundle::default();
+        let (mut hits, mut used, mut fell_back, mut empty) = (0, 0, 0, 0);
+        for k in 0..600 {
+            let o = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 8.0 - 4.0;
+            // Every other pyramid looks at the floor.
+            let target = if k % 2 == 0 {
+                Vec3::new(lcg(&mut s) * 3.0 - 1.5, -2.5, lcg(&mut s) * 3.0 - 1.5)
+            } else if k % 4 == 1 {
+                Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) - 0.5
+            } else {
+                // Up and away: often nothing there at all.
+                o + Vec3::new(lcg(&mut s) - 0.5, 1.0, lcg(&mut s) - 0.5)
+            };
+            let ahead = (target - o).normalize();
+            let right = ahead.any_orthonormal_vector();
+            let up = ahead.cross(right);
+            // Mostly pixel-sized pyramids, some wide enough to meet too many leaves.
+            let size = if k % 10 == 1 { 0.5 } else { 0.01 };
+            let plane = |u: f32, v: f32| ahead + (right * u + up * v) * size;
+            let corners = [
+                plane(0.0, 0.0),
+                plane(1.0, 0.0),
+                plane(1.0, 1.0),
+                plane(0.0, 1.0),
+            ]
+            .map(Vec3::normalize);
+            accel.bundle(o, corners, &mut bundle);
+            match (bundle.usable(), bundle.is_empty()) {
+                (false, _) => fell_back += 1,
+                (true, true) => empty += 1,
+                (true, false) => used += 1,
+            }
+            for j in 0..40 {
+                let (u, v) = match j {
+                    0 => (0.0, 0.0),
+                    1 => (1.0, 1.0),
+                    2 => (1.0, 0.0),
+                    _ => (lcg(&mut s), lcg(&mut s)),
+                };
+                let d = plane(u, v).normalize();
+                let want = accel.intersect(o, d, f32::INFINITY);
+                let got = accel.intersect_bundle(&bundle, d, f32::INFINITY);
+                assert_eq!(got.is_some(), want.is_some(), "o={o} d={d}");
+                if let (Some(g), Some(w)) = (got, want) {
+                    hits += 1;
+                    assert_eq!(g.t, w.t, "o={o} d={d}");
+                }
+            }
+        }
+        assert!(hits > 2000, "too few hits to mean anything: {hits}");
+        assert!(
+            used > 100 && fell_back > 10 && empty > 50,
+            "{used} {fell_back} {empty}"
+        );
     }
 
     #[test]

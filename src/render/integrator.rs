@@ -16,7 +16,7 @@ use glam::{Vec2, Vec3};
 use super::lights::{LightSample, Lights};
 use super::sampling::{INV_PI, Rng, cosine_hemisphere, permute, power_heuristic, r2, sobol2};
 use super::{Accumulator, RenderSettings, Strategy};
-use crate::accel::{Accel, Hit};
+use crate::accel::{Accel, Bundle, Hit};
 use crate::scene::Scene;
 
 /// The random numbers of one camera sample. The pixel jitter comes from a per-pixel-rotated
@@ -169,43 +169,47 @@ pub(super) struct Tracer<'a> {
 }
 
 impl Tracer<'_> {
-    /// Traces one camera path from `origin` along unit `dir` and hands every emitter it
+    /// Traces one camera path from `pixel`'s origin along unit `dir` (inside the pixel's
+    /// bundle, [`super::pixel_bundle`]) and hands every emitter it
     /// reaches to `acc`; `verts` is scratch space. Returns whether the camera ray saw scene
     /// geometry (for the coverage mask).
     pub fn trace<A: Accumulator>(
         &self,
-        origin: Vec3,
+        pixel: &Bundle,
         dir: Vec3,
         s: &mut PathSampler,
         verts: &mut Vec<Vertex>,
         acc: &A,
         px: &mut A::Pixel,
     ) -> bool {
-        let t_first = self.walk(origin, dir, s, false, verts);
-        self.light(origin, dir, t_first, verts, s, acc, px)
+        let t_first = self.walk(pixel, dir, s, false, verts);
+        self.light(pixel.origin(), dir, t_first, verts, s, acc, px)
     }
 
-    /// The scattering vertices of a camera path from `origin` along unit `dir` (at most
-    /// `max_bounces`), into `out`, BSDF directions from `s`. With `trace_last` the
-    /// last segment's geometry is found too (worth it for a path lit many times). Returns the
-    /// distance to the first surface (∞ if the camera ray sees none).
+    /// The scattering vertices of a camera path from `pixel`'s origin along unit `dir` (inside
+    /// the pixel's bundle) (at most `max_bounces`), into `out`, BSDF directions from `s`. With
+    /// `trace_last` the last segment's geometry is found too (worth it for a path lit many
+    /// times). Returns the distance to the first surface (∞ if the camera ray sees none).
     #[inline(always)]
     pub fn walk(
         &self,
-        origin: Vec3,
+        pixel: &Bundle,
         dir: Vec3,
         s: &mut PathSampler,
         trace_last: bool,
         out: &mut Vec<Vertex>,
     ) -> f32 {
         out.clear();
-        let (mut o, mut d) = (origin, dir);
+        let (mut o, mut d) = (pixel.origin(), dir);
         let mut t_first = f32::INFINITY;
         let mut throughput = Vec3::ONE;
-        // One closest-hit query per segment, camera ray first (a single call site: the
-        // compiler lays the loop out as tightly as the one-pass tracer's).
+        // One closest-hit query per segment; the camera ray's from the pixel's leaves.
         loop {
-            let hit = self.accel.intersect(o, d, f32::INFINITY);
+            let hit = if out.is_empty() {
+                self.accel.intersect_bundle(pixel, d, f32::INFINITY)
+            } else {
+                self.accel.intersect(o, d, f32::INFINITY)
+            };
             let t = hit.map_or(f32::INFINITY, |h| h.t);
             match out.last_mut() {
                 Some(v) => v.t_next = t,

@@ -24,7 +24,7 @@ use serde::Serialize;
 
 pub use lights::{Emitter, LightSample, Lights};
 
-use crate::accel::Accel;
+use crate::accel::{Accel, Bundle};
 use crate::imageio::Image;
 use crate::scene::{Camera, Scene, SceneSettings};
 use integrator::{PathSampler, Tracer, Vertex};
@@ -234,14 +234,16 @@ impl<'a> Renderer<'a> {
             .map(|&(x0, y0, x1, y1)| {
                 let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
                 let mut verts = Vec::with_capacity(settings.max_bounces as usize);
+                let mut pixel = Bundle::default();
                 for y in y0..y1 {
                     for x in x0..x1 {
                         let index = y * w + x;
                         let mut px = acc.new_pixel();
                         let mut hits = 0u32;
+                        pixel_bundle(&self.accel, camera, &ray_dir, x, y, &mut pixel);
                         for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, settings) {
-                            let o = camera.origin_world;
-                            hits += tracer.trace(o, dir, &mut s, &mut verts, acc, &mut px) as u32;
+                            let p = &pixel;
+                            hits += tracer.trace(p, dir, &mut s, &mut verts, acc, &mut px) as u32;
                         }
                         acc.finish(&mut px, settings.spp);
                         out.push((index, px, hits as f32 / settings.spp as f32));
@@ -476,11 +478,13 @@ fn walk_tile(
         vertices: Vec::new(),
     };
     let mut verts = Vec::with_capacity(settings.max_bounces as usize);
+    let mut pixel = Bundle::default();
     for y in y0..y1 {
         for x in x0..x1 {
             let index = y * camera.width + x;
+            pixel_bundle(tracer.accel, camera, ray_dir, x, y, &mut pixel);
             for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
-                let t = tracer.walk(camera.origin_world, dir, &mut s, true, &mut verts);
+                let t = tracer.walk(&pixel, dir, &mut s, true, &mut verts);
                 tile.samples.push((t, verts.len() as u8));
                 tile.vertices.extend_from_slice(&verts);
             }
@@ -532,6 +536,26 @@ fn light_tile<A: Accumulator>(
 /// The key every random stream of a render derives from.
 fn render_key(settings: &RenderSettings, stream: u64) -> u64 {
     mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)))
+}
+
+/// The leaves of `accel` the camera rays of pixel (`x`, `y`) can reach, into `out`: the
+/// pyramid through the pixel's corners (its samples' jitter lies in [0, 1)²).
+fn pixel_bundle(
+    accel: &Accel,
+    camera: &Camera,
+    ray_dir: &impl Fn(f32, f32) -> Vec3,
+    x: u32,
+    y: u32,
+    out: &mut Bundle,
+) {
+    let (x, y) = (x as f32, y as f32);
+    let corners = [
+        ray_dir(x, y),
+        ray_dir(x + 1.0, y),
+        ray_dir(x + 1.0, y + 1.0),
+        ray_dir(x, y + 1.0),
+    ];
+    accel.bundle(camera.origin_world, corners, out);
 }
 
 /// The camera samples of pixel (`x`, `y`) (`index` = y · width + x): each one's ray direction
