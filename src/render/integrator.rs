@@ -303,7 +303,7 @@ impl Tracer<'_> {
                 }
             } else if use_light {
                 let (u_light, u) = s.light_sample(k);
-                if let Some(ls) = lights.sample(v.p, u_light, u) {
+                if let Some(ls) = lights.sample(v.p, v.ns, u_light, u) {
                     self.shadow_ray(v, &ls, mis, acc, px);
                 }
             }
@@ -336,7 +336,7 @@ impl Tracer<'_> {
                     let light_pdf = if st.every_light {
                         lights.pdf_light(e, v.p)
                     } else {
-                        lights.pdf(e, v.p)
+                        lights.pdf(e, v.p, v.ns)
                     };
                     power_heuristic(v.wi.dot(v.ns) * INV_PI, light_pdf)
                 } else {

@@ -8,7 +8,7 @@
 
 use glam::{Vec2, Vec3};
 
-use super::sampling::uniform_cone;
+use super::sampling::{ONE_MINUS_EPS, uniform_cone};
 use crate::envmap::Envmap;
 use crate::scene::SphereLight;
 
@@ -81,56 +81,64 @@ impl Lights {
         }
     }
 
-    /// How likely each light is to be picked from `p`: in proportion to how strongly it
-    /// lights `p` — luminance × the solid angle a sphere subtends there, and the envmap's
-    /// Σ luminance × Ω — so a dim light beside a bright one costs the bright one few samples.
-    /// Uniform when every weight is zero, or beyond [`MAX_WEIGHTED`] lights. Index `len()`
-    /// holds the total.
+    /// How likely each light is to be picked at `p` with shading normal `n`: in proportion to
+    /// how strongly it can light `p` — luminance × the solid angle a sphere subtends there ×
+    /// the largest cosine to `n` over that cone (zero for a sphere wholly below the horizon,
+    /// which lights nothing there), and the envmap's Σ luminance × Ω — so a dim or
+    /// grazing light beside a bright one costs the bright one few samples. Uniform when every
+    /// weight is zero, or beyond [`MAX_WEIGHTED`] lights. Index `len()` holds the total.
     #[inline]
-    fn pick_weights(&self, p: Vec3) -> Option<[f32; MAX_WEIGHTED + 1]> {
-        let n = self.len();
-        if n > MAX_WEIGHTED {
+    fn pick_weights(&self, p: Vec3, n: Vec3) -> Option<[f32; MAX_WEIGHTED + 1]> {
+        let count = self.len();
+        if count > MAX_WEIGHTED {
             return None;
         }
         let mut w = [0.0f32; MAX_WEIGHTED + 1];
         for (i, s) in self.spheres.iter().enumerate() {
             w[i] = one_minus_cos_max(s, p).map_or(0.0, |o| {
-                crate::imageio::luminance(s.radiance).max(0.0) * std::f32::consts::TAU * o
+                crate::imageio::luminance(s.radiance).max(0.0)
+                    * std::f32::consts::TAU
+                    * o
+                    * max_cosine(s, p, n)
             });
         }
         if let Some(env) = &self.env {
-            w[n - 1] = env.luminance_integral().max(0.0);
+            w[count - 1] = env.luminance_integral().max(0.0);
         }
-        let total: f32 = w[..n].iter().sum();
+        let total: f32 = w[..count].iter().sum();
         (total > 0.0 && total.is_finite()).then(|| {
-            w[n] = total;
+            w[count] = total;
             w
         })
     }
 
-    /// The probability of picking light `i` from `p`.
+    /// The probability of picking light `i` at `p` with shading normal `n`.
     #[inline]
-    fn pick_pdf(&self, i: usize, p: Vec3) -> f32 {
-        match self.pick_weights(p) {
+    fn pick_pdf(&self, i: usize, p: Vec3, n: Vec3) -> f32 {
+        match self.pick_weights(p, n) {
             Some(w) => w[i] / w[self.len()],
             None => 1.0 / self.len() as f32,
         }
     }
 
-    /// Picks a light with `u_light.x` ([`Lights::pick_weights`]; an envmap cell with
-    /// `u_light.y`), then a direction to it with `u`.
+    /// Picks a light for the point `p` with shading normal `n` with `u_light.x`
+    /// ([`Lights::pick_weights`]), then a direction to it: to a sphere with where `u_light.x`
+    /// fell in its share (rescaled) and `u_light.y`; into the envmap, a cell with `u_light.y`
+    /// and a direction in it with `u`.
     #[inline]
-    pub fn sample(&self, p: Vec3, u_light: Vec2, u: Vec2) -> Option<LightSample> {
-        let n = self.len();
-        if n == 0 {
+    pub fn sample(&self, p: Vec3, n: Vec3, u_light: Vec2, u: Vec2) -> Option<LightSample> {
+        let count = self.len();
+        if count == 0 {
             return None;
         }
-        let (i, pick) = match self.pick_weights(p) {
+        // The pick and where `u_light.x` fell within the picked light's share, rescaled to
+        // [0, 1).
+        let (i, pick, within) = match self.pick_weights(p, n) {
             Some(w) => {
-                let target = u_light.x * w[n];
+                let target = u_light.x * w[count];
                 let mut acc = 0.0;
-                let mut i = n - 1;
-                for (k, &wk) in w[..n].iter().enumerate() {
+                let mut i = count - 1;
+                for (k, &wk) in w[..count].iter().enumerate() {
                     acc += wk;
                     if target < acc && wk > 0.0 {
                         i = k;
@@ -141,9 +149,21 @@ impl Lights {
                 while w[i] <= 0.0 && i > 0 {
                     i -= 1;
                 }
-                (i, w[i] / w[n])
+                let below: f32 = w[..i].iter().sum();
+                (i, w[i] / w[count], (target - below) / w[i])
             }
-            None => (((u_light.x * n as f32) as usize).min(n - 1), 1.0 / n as f32),
+            None => {
+                let x = u_light.x * count as f32;
+                let i = (x as usize).min(count - 1);
+                (i, 1.0 / count as f32, x - i as f32)
+            }
+        };
+        // A sphere's direction comes from the pick's own pair, so the samples that pick it
+        // keep that pair's stratification; the other pair's points would be a random subset.
+        let u = if i < self.spheres.len() {
+            Vec2::new(within.clamp(0.0, ONE_MINUS_EPS), u_light.y)
+        } else {
+            u
         };
         let ls = self.sample_light(i, p, u_light.y, u)?;
         Some(LightSample {
@@ -179,12 +199,12 @@ impl Lights {
     /// The pdf [`Lights::sample`] has for reaching `emitter` (in a direction that does reach
     /// it) from `p`.
     #[inline]
-    pub fn pdf(&self, emitter: Emitter, p: Vec3) -> f32 {
+    pub fn pdf(&self, emitter: Emitter, p: Vec3, n: Vec3) -> f32 {
         let i = match emitter {
             Emitter::Sphere(i) => i as usize,
             Emitter::EnvCell(_) => self.len() - 1,
         };
-        self.pdf_light(emitter, p) * self.pick_pdf(i, p)
+        self.pdf_light(emitter, p) * self.pick_pdf(i, p, n)
     }
 
     /// The pdf [`Lights::sample_light`] has for reaching `emitter` from `p`.
@@ -241,6 +261,24 @@ fn one_minus_cos_max(s: &SphereLight, p: Vec3) -> Option<f32> {
     let sin2 = r2 / d2;
     let cos_max = (1.0 - sin2).max(0.0).sqrt();
     Some(sin2 / (1.0 + cos_max))
+}
+
+/// The largest cosine between unit `n` and a direction from `p` to a point of `s`, clamped
+/// at zero (`p` outside `s`): cos(max(θ − α, 0)) for the centre's angle θ from `n` and the
+/// sphere's angular radius α.
+#[inline]
+fn max_cosine(s: &SphereLight, p: Vec3, n: Vec3) -> f32 {
+    let to_c = s.center - p;
+    let d2 = to_c.length_squared();
+    let inv_d = d2.sqrt().recip();
+    let cos_t = (n.dot(to_c) * inv_d).clamp(-1.0, 1.0);
+    let sin_a2 = (s.radius * s.radius / d2).min(1.0);
+    let cos_a = (1.0 - sin_a2).sqrt();
+    if cos_t >= cos_a {
+        return 1.0; // n points into the cone
+    }
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    (cos_t * cos_a + sin_t * sin_a2.sqrt()).max(0.0)
 }
 
 /// Samples the cone subtended by `s` from `p`: (direction, distance to the surface, pdf).
@@ -323,18 +361,84 @@ mod tests {
         let mut counts = [0usize; 3];
         for _ in 0..20_000 {
             let s = lights
-                .sample(p, rng.next_2d(), rng.next_2d())
+                .sample(p, Vec3::Y, rng.next_2d(), rng.next_2d())
                 .expect("a sample");
             let Emitter::Sphere(i) = s.emitter else {
                 panic!("no envmap here")
             };
             counts[i as usize] += 1;
-            let back = lights.pdf(s.emitter, p);
+            let back = lights.pdf(s.emitter, p, Vec3::Y);
             assert!((back - s.pdf).abs() <= 1e-4 * s.pdf, "{back} vs {}", s.pdf);
         }
         assert_eq!(counts[2], 0, "a black light is never picked: {counts:?}");
         let ratio = counts[0] as f64 / counts[1] as f64;
         assert!((ratio - 9.0).abs() < 0.6, "{counts:?}");
+    }
+
+    #[test]
+    fn a_light_below_the_horizon_is_never_picked_and_grazing_ones_seldom() {
+        // Three equal lights seen from a point with normal +Y: one overhead, one just above
+        // the horizon, one below it. The pick follows the largest cosine over each cone.
+        let p = Vec3::ZERO;
+        let at = |c: Vec3| SphereLight {
+            center: c,
+            radius: 0.2,
+            radiance: Vec3::ONE,
+        };
+        let lights = Lights::new(vec![
+            at(Vec3::new(0.0, 2.0, 0.0)),
+            at(Vec3::new(2.0, 0.5, 0.0)),
+            at(Vec3::new(0.0, -0.5, 2.0)),
+        ]);
+        let mut rng = Rng::new(5);
+        let mut counts = [0usize; 3];
+        for _ in 0..40_000 {
+            let s = lights
+                .sample(p, Vec3::Y, rng.next_2d(), rng.next_2d())
+                .expect("a sample");
+            let Emitter::Sphere(i) = s.emitter else {
+                panic!("no envmap here")
+            };
+            counts[i as usize] += 1;
+            assert!((lights.pdf(s.emitter, p, Vec3::Y) - s.pdf).abs() <= 1e-4 * s.pdf);
+        }
+        assert_eq!(counts[2], 0, "{counts:?}");
+        // The grazing light's best cosine is sin(14.0° + 5.6°) = 0.336 (the overhead one's
+        // is 1), times the ratio of their solid angles (0.94).
+        let d = Vec3::new(2.0, 0.5, 0.0).length();
+        let best = ((0.5 / d).asin() + (0.2 / d).asin()).sin();
+        let omc = |i: usize| one_minus_cos_max(&lights.spheres[i], p).unwrap();
+        let want = (best * omc(1) / omc(0)) as f64;
+        let ratio = counts[1] as f64 / counts[0] as f64;
+        assert!((ratio / want - 1.0).abs() < 0.05, "{counts:?} {want}");
+    }
+
+    #[test]
+    fn max_cosine_bounds_every_direction_to_the_sphere() {
+        let mut r = Rng::new(9);
+        for _ in 0..200 {
+            let s = SphereLight {
+                center: crate::render::sampling::uniform_sphere(r.next_2d()) * 2.0,
+                radius: 0.1 + r.next_f32(),
+                radiance: Vec3::ONE,
+            };
+            let p = Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 0.2;
+            let n = crate::render::sampling::uniform_sphere(r.next_2d());
+            let bound = max_cosine(&s, p, n);
+            let mut seen = 0.0f32;
+            for _ in 0..2000 {
+                let (wi, _, _) = sample_sphere(&s, p, r.next_2d()).unwrap();
+                seen = seen.max(wi.dot(n));
+            }
+            assert!(
+                seen <= bound + 1e-5,
+                "a direction beats the bound: {seen} > {bound}"
+            );
+            assert!(
+                bound - seen.max(0.0) < 0.02,
+                "loose bound: {bound} vs {seen}"
+            );
+        }
     }
 
     #[test]

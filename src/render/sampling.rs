@@ -84,7 +84,8 @@ pub fn r2(i: u32, offset: Vec2) -> Vec2 {
     Vec2::new((x as f32).min(ONE_MINUS_EPS), (y as f32).min(ONE_MINUS_EPS))
 }
 
-const ONE_MINUS_EPS: f32 = 1.0 - f32::EPSILON / 2.0;
+/// The largest `f32` below 1.
+pub const ONE_MINUS_EPS: f32 = 1.0 - f32::EPSILON / 2.0;
 
 /// Point `i` of the 2-D Sobol (0,2)-sequence (Kollig & Keller 2002: the van der Corput
 /// sequence and Sobol's second dimension), randomised by a digital shift (XOR with
