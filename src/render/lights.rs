@@ -95,11 +95,11 @@ impl Lights {
         }
         let mut w = [0.0f32; MAX_WEIGHTED + 1];
         for (i, s) in self.spheres.iter().enumerate() {
-            w[i] = one_minus_cos_max(s, p).map_or(0.0, |o| {
+            w[i] = Cone::of(s, p).map_or(0.0, |c| {
                 crate::imageio::luminance(s.radiance).max(0.0)
                     * std::f32::consts::TAU
-                    * o
-                    * max_cosine(s, p, n)
+                    * c.omc
+                    * c.max_cosine(n)
             });
         }
         if let Some(env) = &self.env {
@@ -250,55 +250,96 @@ impl Lights {
     }
 }
 
-/// `1 − cos θmax` of the cone a sphere subtends from `p`, or `None` from inside it.
-#[inline]
-fn one_minus_cos_max(s: &SphereLight, p: Vec3) -> Option<f32> {
-    let d2 = (s.center - p).length_squared();
-    let r2 = s.radius * s.radius;
-    if d2 <= r2 * 1.0001 {
-        return None;
+/// The cone a sphere light subtends from a point outside it, with what sampling, pdfs and
+/// pick weights need (computed once per point and light).
+#[derive(Debug, Clone, Copy)]
+struct Cone {
+    /// Unit direction from the point to the centre (world space).
+    axis: Vec3,
+    /// Distance to the centre, metres.
+    dist: f32,
+    /// `1 − cos α` of the half-angle α, kept as such for tiny cones; and sin α, cos α.
+    omc: f32,
+    sin_a: f32,
+    cos_a: f32,
+}
+
+impl Cone {
+    /// The cone of `s` from `p`, or `None` from inside it.
+    #[inline]
+    fn of(s: &SphereLight, p: Vec3) -> Option<Cone> {
+        let to_c = s.center - p;
+        let d2 = to_c.length_squared();
+        let r2 = s.radius * s.radius;
+        if d2 <= r2 * 1.0001 {
+            return None;
+        }
+        let dist = d2.sqrt();
+        let sin2 = r2 / d2;
+        let cos_a = (1.0 - sin2).max(0.0).sqrt();
+        Some(Cone {
+            axis: to_c / dist,
+            dist,
+            omc: sin2 / (1.0 + cos_a),
+            sin_a: s.radius / dist,
+            cos_a,
+        })
     }
-    let sin2 = r2 / d2;
-    let cos_max = (1.0 - sin2).max(0.0).sqrt();
-    Some(sin2 / (1.0 + cos_max))
+
+    /// The largest cosine between unit `n` and a direction in the cone, clamped at zero:
+    /// cos(max(θ − α, 0)) for the axis' angle θ from `n`.
+    #[inline]
+    fn max_cosine(&self, n: Vec3) -> f32 {
+        let cos_t = n.dot(self.axis).clamp(-1.0, 1.0);
+        if cos_t >= self.cos_a {
+            return 1.0; // n points into the cone
+        }
+        let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+        (cos_t * self.cos_a + sin_t * self.sin_a).max(0.0)
+    }
+
+    /// Pdf per unit solid angle of uniform cone sampling.
+    #[inline]
+    fn pdf(&self) -> f32 {
+        1.0 / (std::f32::consts::TAU * self.omc)
+    }
+
+    /// A uniform direction in the cone from `u`: (direction, distance to the surface of the
+    /// sphere of `radius`, pdf).
+    #[inline]
+    fn sample(&self, radius: f32, u: Vec2) -> (Vec3, f32, f32) {
+        let wi = uniform_cone(self.axis, self.omc, u);
+        // Distance to the near surface along wi (clamped for directions grazing the rim).
+        let (d, cos_t) = (self.dist, wi.dot(self.axis));
+        let perp2 = (d * d * (1.0 - cos_t * cos_t)).max(0.0);
+        let dist = d * cos_t - (radius * radius - perp2).max(0.0).sqrt();
+        (wi, dist.max(0.0), self.pdf())
+    }
+}
+
+/// `1 − cos θmax` of the cone a sphere subtends from `p`, or `None` from inside it.
+#[cfg(test)]
+fn one_minus_cos_max(s: &SphereLight, p: Vec3) -> Option<f32> {
+    Cone::of(s, p).map(|c| c.omc)
 }
 
 /// The largest cosine between unit `n` and a direction from `p` to a point of `s`, clamped
-/// at zero (`p` outside `s`): cos(max(θ − α, 0)) for the centre's angle θ from `n` and the
-/// sphere's angular radius α.
-#[inline]
+/// at zero (`p` outside `s`).
+#[cfg(test)]
 fn max_cosine(s: &SphereLight, p: Vec3, n: Vec3) -> f32 {
-    let to_c = s.center - p;
-    let d2 = to_c.length_squared();
-    let inv_d = d2.sqrt().recip();
-    let cos_t = (n.dot(to_c) * inv_d).clamp(-1.0, 1.0);
-    let sin_a2 = (s.radius * s.radius / d2).min(1.0);
-    let cos_a = (1.0 - sin_a2).sqrt();
-    if cos_t >= cos_a {
-        return 1.0; // n points into the cone
-    }
-    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
-    (cos_t * cos_a + sin_t * sin_a2.sqrt()).max(0.0)
+    Cone::of(s, p).map_or(0.0, |c| c.max_cosine(n))
 }
 
 /// Samples the cone subtended by `s` from `p`: (direction, distance to the surface, pdf).
 #[inline]
 pub fn sample_sphere(s: &SphereLight, p: Vec3, u: Vec2) -> Option<(Vec3, f32, f32)> {
-    let omc = one_minus_cos_max(s, p)?;
-    let to_c = s.center - p;
-    let d = to_c.length();
-    let wi = uniform_cone(to_c / d, omc, u);
-    // Distance to the near surface along wi (clamped for directions grazing the rim).
-    let cos_t = wi.dot(to_c) / d;
-    let perp2 = (d * d * (1.0 - cos_t * cos_t)).max(0.0);
-    let dist = d * cos_t - (s.radius * s.radius - perp2).max(0.0).sqrt();
-    Some((wi, dist.max(0.0), 1.0 / (std::f32::consts::TAU * omc)))
+    Cone::of(s, p).map(|c| c.sample(s.radius, u))
 }
 
 /// The cone-sampling pdf of any direction that hits `s` from `p` (0 from inside).
 #[inline]
 pub fn cone_pdf(s: &SphereLight, p: Vec3) -> f32 {
-    one_minus_cos_max(s, p).map_or(0.0, |omc| 1.0 / (std::f32::consts::TAU * omc))
+    Cone::of(s, p).map_or(0.0, |c| c.pdf())
 }
 
 /// The first crossing of a unit ray with the sphere's surface beyond `t_min`.
