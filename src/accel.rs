@@ -103,6 +103,7 @@ impl RayData {
 /// The leaves that rays from one origin within a thin pyramid can hit (e.g. the camera rays
 /// of one pixel), nearest box first: [`Accel::intersect_bundle`] tests a ray against these
 /// alone, with no traversal, and a pyramid that meets no geometry costs its rays nothing.
+/// `Bundle::default()` is scratch space for [`Accel::bundle`] to fill, not a bundle yet.
 #[derive(Debug, Default, Clone)]
 pub struct Bundle {
     /// The rays' common origin, world space (metres).
@@ -319,11 +320,15 @@ impl Accel {
         if self.nodes.is_empty() {
             return;
         }
-        // Inward normals of the four side planes, all through the apex.
-        let centre = corners.iter().copied().sum::<Vec3>();
+        // Unit inward normals of the four side planes, all through the apex. In f64: the
+        // corners of a small pixel are nearly parallel, and their f32 cross product would
+        // carry an error of ~1e-7 against a length of the pixel's angle (its direction, even
+        // its sign, unreliable for pixels of ~1e-4 rad).
+        let corners = corners.map(|c| c.as_dvec3());
+        let centre: glam::DVec3 = corners.iter().copied().sum();
         let planes = [0, 1, 2, 3].map(|i| {
-            let n = corners[i].cross(corners[(i + 1) % 4]);
-            if n.dot(centre) < 0.0 { -n } else { n }
+            let n = corners[i].cross(corners[(i + 1) % 4]).normalize_or_zero();
+            (if n.dot(centre) < 0.0 { -n } else { n }).as_vec3()
         });
         let o = origin.to_array();
         let mut stack = [0u32; STACK];
@@ -340,20 +345,23 @@ impl Accel {
             let b = &node.bounds;
             let mut mask = node.lanes as u8;
             for n in &planes {
-                // Per child box, the corner farthest along n (relative to the apex): the box
-                // lies wholly outside when even it is behind the plane. The margin covers the
-                // rounding of the corner directions and of this sum.
-                let (mut far, mut scale) = ([0.0f32; WIDTH], [0.0f32; WIDTH]);
+                // Per child box, the signed distance of its corner farthest along n: the box
+                // lies wholly outside when even that corner is behind the plane by more than
+                // MARGIN radians at its distance from the apex (`reach` bounds that distance).
+                // The margin covers the f32 rounding of the rays' and the corners' directions
+                // (a few 1e-7 rad) and of this sum.
+                const MARGIN: f32 = 1e-5;
+                let (mut far, mut reach) = ([0.0f32; WIDTH], [0.0f32; WIDTH]);
                 for (a, n) in n.to_array().into_iter().enumerate() {
                     let rows = b[2 * a].iter().zip(&b[2 * a + 1]);
-                    for ((f, sc), (lo, hi)) in far.iter_mut().zip(&mut scale).zip(rows) {
-                        let (lo, hi) = (n * (lo - o[a]), n * (hi - o[a]));
-                        *f += lo.max(hi);
-                        *sc += lo.abs().max(hi.abs());
+                    for ((f, r), (lo, hi)) in far.iter_mut().zip(&mut reach).zip(rows) {
+                        let (lo, hi) = (lo - o[a], hi - o[a]);
+                        *f += (n * lo).max(n * hi);
+                        *r += lo.abs().max(hi.abs());
                     }
                 }
-                for (i, (f, sc)) in far.iter().zip(&scale).enumerate() {
-                    if *f < -1e-4 * sc {
+                for (i, (f, r)) in far.iter().zip(&reach).enumerate() {
+                    if *f < -MARGIN * r {
                         mask &= !(1 << i);
                     }
                 }
@@ -696,13 +704,45 @@ mod tests {
                 tris.push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
             }
         }
+        // And a 2-cm patch of 0.13-mm cells above it, for the tiniest pyramids.
+        let (m, centre) = (150, Vec3::new(0.5, -2.4, 0.5));
+        let bumps: Vec<f32> = (0..(m + 1) * (m + 1)).map(|_| lcg(&mut s) * 3e-5).collect();
+        let at = |i: usize, j: usize| {
+            centre
+                + Vec3::new(
+                    (i as f32 / m as f32 - 0.5) * 0.02,
+                    bumps[i * (m + 1) + j],
+                    (j as f32 / m as f32 - 0.5) * 0.02,
+                )
+        };
+        for i in 0..m {
+            for j in 0..m {
+                tris.push([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
+                tris.push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
+            }
+        }
         let accel = Accel::build(&tris);
         let mut bundle = Bundle::default();
         let (mut hits, mut used, mut fell_back, mut empty) = (0, 0, 0, 0);
         for k in 0..600 {
-            let o = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 8.0 - 4.0;
-            // Every other pyramid looks at the floor.
-            let target = if k % 2 == 0 {
+            // Pixel-sized pyramids (0.01 rad: 128 rows; 1e-3, 1e-4, 3e-5: 1000 to 30 000
+            // rows, where f32 cross products of the corners lose the planes), some wide
+            // enough to meet too many leaves.
+            let size = match k % 10 {
+                1 => 0.5,
+                2 | 3 => 1e-4,
+                4 | 5 => 1e-3,
+                6 => 3e-5,
+                _ => 0.01,
+            };
+            let mut o = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 8.0 - 4.0;
+            // Every other pyramid looks at the floor, the tiniest at the patch.
+            let target = if size < 1e-3 {
+                let t = centre + Vec3::new(lcg(&mut s) - 0.5, 0.0, lcg(&mut s) - 0.5) * 0.02;
+                let up = Vec3::new(lcg(&mut s) - 0.5, 0.6 + lcg(&mut s), lcg(&mut s) - 0.5);
+                o = t + up.normalize() * (0.3 + 1.7 * lcg(&mut s));
+                t
+            } else if k % 2 == 0 {
                 Vec3::new(lcg(&mut s) * 3.0 - 1.5, -2.5, lcg(&mut s) * 3.0 - 1.5)
             } else if k % 4 == 1 {
                 Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) - 0.5
@@ -713,8 +753,6 @@ mod tests {
             let ahead = (target - o).normalize();
             let right = ahead.any_orthonormal_vector();
             let up = ahead.cross(right);
-            // Mostly pixel-sized pyramids, some wide enough to meet too many leaves.
-            let size = if k % 10 == 1 { 0.5 } else { 0.01 };
             let plane = |u: f32, v: f32| ahead + (right * u + up * v) * size;
             let corners = [
                 plane(0.0, 0.0),
@@ -734,15 +772,21 @@ mod tests {
                     0 => (0.0, 0.0),
                     1 => (1.0, 1.0),
                     2 => (1.0, 0.0),
+                    3 => (0.0, 1.0),
                     _ => (lcg(&mut s), lcg(&mut s)),
                 };
                 let d = plane(u, v).normalize();
-                let want = accel.intersect(o, d, f32::INFINITY);
-                let got = accel.intersect_bundle(&bundle, d, f32::INFINITY);
-                assert_eq!(got.is_some(), want.is_some(), "o={o} d={d}");
+                let t_max = if j % 4 == 1 {
+                    lcg(&mut s) * 8.0
+                } else {
+                    f32::INFINITY
+                };
+                let want = accel.intersect(o, d, t_max);
+                let got = accel.intersect_bundle(&bundle, d, t_max);
+                assert_eq!(got.is_some(), want.is_some(), "o={o} d={d} size {size}");
                 if let (Some(g), Some(w)) = (got, want) {
                     hits += 1;
-                    assert_eq!(g.t, w.t, "o={o} d={d}");
+                    assert_eq!((g.t, g.triangle), (w.t, w.triangle), "o={o} d={d}");
                 }
             }
         }

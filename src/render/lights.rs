@@ -160,7 +160,9 @@ impl Lights {
         };
         // A sphere's direction comes from the pick's own pair, so the samples that pick it
         // keep that pair's stratification; the other pair's points would be a random subset.
-        let u = if i < self.spheres.len() {
+        // Not for a light picked rarely: its share of the f32 `u_light.x` holds too few
+        // distinct values.
+        let u = if i < self.spheres.len() && pick >= 1.0 / 4096.0 {
             Vec2::new(within.clamp(0.0, ONE_MINUS_EPS), u_light.y)
         } else {
             u
@@ -452,6 +454,47 @@ mod tests {
         let want = (best * omc(1) / omc(0)) as f64;
         let ratio = counts[1] as f64 / counts[0] as f64;
         assert!((ratio / want - 1.0).abs() < 0.05, "{counts:?} {want}");
+    }
+
+    #[test]
+    fn each_picked_light_gets_uniform_directions_in_its_cone() {
+        // The direction reuses the pick's number rescaled to the light's share: for every
+        // light, 1 − cos θ from the cone's axis must stay uniform on [0, 1 − cos α] (mean 1/2,
+        // mean square 1/3 in units of 1 − cos α), whatever its share.
+        let p = Vec3::ZERO;
+        let at = |c: Vec3, l: f32| SphereLight {
+            center: c,
+            radius: 0.3,
+            radiance: Vec3::splat(l),
+        };
+        let lights = Lights::new(vec![
+            at(Vec3::new(0.0, 2.0, 0.0), 1.0),
+            at(Vec3::new(1.5, 1.5, 0.0), 5.0),
+            at(Vec3::new(-1.0, 0.4, 1.0), 2.0),
+        ]);
+        let mut rng = Rng::new(21);
+        let mut moments = [(0.0f64, 0.0f64, 0usize); 3];
+        for _ in 0..60_000 {
+            let ls = lights
+                .sample(p, Vec3::Y, rng.next_2d(), rng.next_2d())
+                .expect("a sample");
+            let Emitter::Sphere(i) = ls.emitter else {
+                panic!("no envmap here")
+            };
+            let cone = Cone::of(&lights.spheres[i as usize], p).unwrap();
+            let x = ((1.0 - ls.wi.dot(cone.axis) as f64) / cone.omc as f64).clamp(0.0, 1.0);
+            let m = &mut moments[i as usize];
+            *m = (m.0 + x, m.1 + x * x, m.2 + 1);
+        }
+        for (i, (s1, s2, n)) in moments.into_iter().enumerate() {
+            assert!(n > 5000, "light {i} picked {n} times");
+            let (mean, square) = (s1 / n as f64, s2 / n as f64);
+            assert!((mean - 0.5).abs() < 0.02, "light {i}: mean {mean}");
+            assert!(
+                (square - 1.0 / 3.0).abs() < 0.02,
+                "light {i}: mean square {square}"
+            );
+        }
     }
 
     #[test]
