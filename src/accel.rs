@@ -638,15 +638,32 @@ mod tests {
         best
     }
 
+    /// `n` random triangles in the 4-m cube about the origin, corners within `size` of a
+    /// random centre.
+    fn soup(s: &mut u64, n: usize, size: f32) -> Vec<[Vec3; 3]> {
+        (0..n)
+            .map(|_| {
+                let c = Vec3::new(lcg(s), lcg(s), lcg(s)) * 4.0 - 2.0;
+                let r = |s: &mut u64| (Vec3::new(lcg(s), lcg(s), lcg(s)) - 0.5) * size;
+                [c + r(s), c + r(s), c + r(s)]
+            })
+            .collect()
+    }
+
+    /// Two triangles per cell of an `n` × `n` grid of points `at(i, j)`, i, j in 0..=n.
+    fn grid(n: usize, at: impl Fn(usize, usize) -> Vec3, tris: &mut Vec<[Vec3; 3]>) {
+        for i in 0..n {
+            for j in 0..n {
+                tris.push([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
+                tris.push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
+            }
+        }
+    }
+
     #[test]
     fn agrees_with_brute_force() {
         let mut s = 7u64;
-        let mut tris = Vec::new();
-        for _ in 0..500 {
-            let c = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 4.0 - 2.0;
-            let r = |s: &mut u64| Vec3::new(lcg(s), lcg(s), lcg(s)) * 0.6 - 0.3;
-            tris.push([c + r(&mut s), c + r(&mut s), c + r(&mut s)]);
-        }
+        let mut tris = soup(&mut s, 500, 0.6);
         // Degenerate triangles must not break anything.
         tris.push([Vec3::ZERO, Vec3::ZERO, Vec3::ZERO]);
         tris.push([Vec3::ZERO, Vec3::X, Vec3::X * 2.0]);
@@ -681,12 +698,7 @@ mod tests {
         // Rays through pixel-like pyramids (image-plane corners, jitter in [0, 1]² including
         // the edges) into a soup of triangles: the bundle's leaves give the traversal's hit.
         let mut s = 11u64;
-        let mut tris = Vec::new();
-        for _ in 0..3000 {
-            let c = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 4.0 - 2.0;
-            let r = |s: &mut u64| Vec3::new(lcg(s), lcg(s), lcg(s)) * 0.3 - 0.15;
-            tris.push([c + r(&mut s), c + r(&mut s), c + r(&mut s)]);
-        }
+        let mut tris = soup(&mut s, 3000, 0.3);
         // A finely tessellated bumpy floor (cells smaller than a pyramid's footprint), so
         // rays along a pyramid's edges hit triangles whose boxes barely reach into it.
         let n = 120;
@@ -698,12 +710,7 @@ mod tests {
                 j as f32 / n as f32 * 4.0 - 2.0,
             )
         };
-        for i in 0..n {
-            for j in 0..n {
-                tris.push([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
-                tris.push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
-            }
-        }
+        grid(n, at, &mut tris);
         // And a 2-cm patch of 0.13-mm cells above it, for the tiniest pyramids.
         let (m, centre) = (150, Vec3::new(0.5, -2.4, 0.5));
         let bumps: Vec<f32> = (0..(m + 1) * (m + 1)).map(|_| lcg(&mut s) * 3e-5).collect();
@@ -715,12 +722,7 @@ mod tests {
                     (j as f32 / m as f32 - 0.5) * 0.02,
                 )
         };
-        for i in 0..m {
-            for j in 0..m {
-                tris.push([at(i, j), at(i + 1, j), at(i + 1, j + 1)]);
-                tris.push([at(i, j), at(i + 1, j + 1), at(i, j + 1)]);
-            }
-        }
+        grid(m, at, &mut tris);
         let accel = Accel::build(&tris);
         let mut bundle = Bundle::default();
         let (mut hits, mut used, mut fell_back, mut empty) = (0, 0, 0, 0);

@@ -379,11 +379,36 @@ mod tests {
         }
     }
 
+    /// `n` light samples at the origin with normal +Y, each checked against [`Lights::pdf`],
+    /// with the index of the sphere picked.
+    fn draws(lights: &Lights, n: usize, seed: u64) -> Vec<(usize, LightSample)> {
+        let mut rng = Rng::new(seed);
+        (0..n)
+            .map(|_| {
+                let s = lights
+                    .sample(Vec3::ZERO, Vec3::Y, rng.next_2d(), rng.next_2d())
+                    .expect("a sample");
+                let back = lights.pdf(s.emitter, Vec3::ZERO, Vec3::Y);
+                assert!((back - s.pdf).abs() <= 1e-4 * s.pdf, "{back} vs {}", s.pdf);
+                let Emitter::Sphere(i) = s.emitter else {
+                    panic!("no envmap here")
+                };
+                (i as usize, s)
+            })
+            .collect()
+    }
+
+    /// How often each of three lights was picked.
+    fn counts(draws: &[(usize, LightSample)]) -> [usize; 3] {
+        let mut counts = [0; 3];
+        draws.iter().for_each(|&(i, _)| counts[i] += 1);
+        counts
+    }
+
     #[test]
     fn lights_are_picked_by_how_strongly_they_light_the_point() {
         // Same size and distance, one 9× brighter in luminance: picked 9× as often, and the
-        // pdf a sample reports is the one `pdf` gives for it.
-        let p = Vec3::ZERO;
+        // pdf a sample reports is the one `pdf` gives for it (at the origin).
         let bright = SphereLight {
             center: Vec3::new(1.0, 2.0, 0.0),
             radius: 0.3,
@@ -400,19 +425,7 @@ mod tests {
             ..bright
         };
         let lights = Lights::new(vec![bright, dim, zero]);
-        let mut rng = Rng::new(34);
-        let mut counts = [0usize; 3];
-        for _ in 0..20_000 {
-            let s = lights
-                .sample(p, Vec3::Y, rng.next_2d(), rng.next_2d())
-                .expect("a sample");
-            let Emitter::Sphere(i) = s.emitter else {
-                panic!("no envmap here")
-            };
-            counts[i as usize] += 1;
-            let back = lights.pdf(s.emitter, p, Vec3::Y);
-            assert!((back - s.pdf).abs() <= 1e-4 * s.pdf, "{back} vs {}", s.pdf);
-        }
+        let counts = counts(&draws(&lights, 20_000, 34));
         assert_eq!(counts[2], 0, "a black light is never picked: {counts:?}");
         let ratio = counts[0] as f64 / counts[1] as f64;
         assert!((ratio - 9.0).abs() < 0.6, "{counts:?}");
@@ -433,18 +446,7 @@ mod tests {
             at(Vec3::new(2.0, 0.5, 0.0)),
             at(Vec3::new(0.0, -0.5, 2.0)),
         ]);
-        let mut rng = Rng::new(5);
-        let mut counts = [0usize; 3];
-        for _ in 0..40_000 {
-            let s = lights
-                .sample(p, Vec3::Y, rng.next_2d(), rng.next_2d())
-                .expect("a sample");
-            let Emitter::Sphere(i) = s.emitter else {
-                panic!("no envmap here")
-            };
-            counts[i as usize] += 1;
-            assert!((lights.pdf(s.emitter, p, Vec3::Y) - s.pdf).abs() <= 1e-4 * s.pdf);
-        }
+        let counts = counts(&draws(&lights, 40_000, 5));
         assert_eq!(counts[2], 0, "{counts:?}");
         // The grazing light's best cosine is sin(14.0° + 5.6°) = 0.336 (the overhead one's
         // is 1), times the ratio of their solid angles (0.94).
@@ -472,18 +474,11 @@ mod tests {
             at(Vec3::new(1.5, 1.5, 0.0), 5.0),
             at(Vec3::new(-1.0, 0.4, 1.0), 2.0),
         ]);
-        let mut rng = Rng::new(21);
         let mut moments = [(0.0f64, 0.0f64, 0usize); 3];
-        for _ in 0..60_000 {
-            let ls = lights
-                .sample(p, Vec3::Y, rng.next_2d(), rng.next_2d())
-                .expect("a sample");
-            let Emitter::Sphere(i) = ls.emitter else {
-                panic!("no envmap here")
-            };
-            let cone = Cone::of(&lights.spheres[i as usize], p).unwrap();
+        for (i, ls) in draws(&lights, 60_000, 21) {
+            let cone = Cone::of(&lights.spheres[i], p).unwrap();
             let x = ((1.0 - ls.wi.dot(cone.axis) as f64) / cone.omc as f64).clamp(0.0, 1.0);
-            let m = &mut moments[i as usize];
+            let m = &mut moments[i];
             *m = (m.0 + x, m.1 + x * x, m.2 + 1);
         }
         for (i, (s1, s2, n)) in moments.into_iter().enumerate() {
