@@ -418,3 +418,56 @@ fn envmap_strategies_agree() {
         )
     });
 }
+
+#[test]
+fn pixels_that_see_no_geometry_show_what_lies_behind() {
+    // The camera sees a sphere light against the void; the only geometry is a plane far
+    // below, out of view, so no pixel's camera rays can meet a triangle. Such pixels are
+    // skipped wholesale only when nothing can show in them.
+    let light = SphereLight {
+        center: Vec3::ZERO,
+        radius: 0.5,
+        radiance: Vec3::new(3.0, 2.0, 1.0),
+    };
+    let cam = Camera::look_at("cam", Vec3::new(0.0, 0.0, 3.0), Vec3::ZERO, 0.2, 8, 8);
+    let sc = scene(
+        plane(1.0, -10.0),
+        Vec3::splat(0.5),
+        cam.clone(),
+        vec![light],
+    );
+    let lights = Lights::new(sc.lights.clone());
+    let r = Renderer::new(&sc, &lights);
+    for hide in [true, false] {
+        let st = RenderSettings {
+            hide_emitters: hide,
+            ..settings(16, 2, Strategy::Mis)
+        };
+        let img = r.render_radiance(&cam, 0, &st, &|_| {});
+        let want = if hide { Vec3::ZERO } else { light.radiance };
+        for c in &img.rgb {
+            assert_eq!(*c, want, "hide_emitters {hide}");
+        }
+        assert!(img.alpha.as_ref().unwrap().iter().all(|&a| a == 0.0));
+    }
+    // Behind the void, an envmap: every pixel sees its radiance, unless emitters are hidden.
+    let void = Camera::look_at(
+        "void",
+        Vec3::new(0.0, 0.0, 3.0),
+        Vec3::new(0.0, 0.0, 6.0),
+        0.2,
+        8,
+        8,
+    );
+    for hide in [true, false] {
+        let st = RenderSettings {
+            hide_emitters: hide,
+            ..settings(16, 2, Strategy::Mis)
+        };
+        let img = render_env(&sc, Envmap::constant(9, Vec3::splat(1.5)), &void, st);
+        let want = if hide { Vec3::ZERO } else { Vec3::splat(1.5) };
+        for c in &img.rgb {
+            assert_eq!(*c, want, "hide_emitters {hide}");
+        }
+    }
+}

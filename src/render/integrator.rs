@@ -26,8 +26,12 @@ use crate::scene::Scene;
 /// dimensions from the same R2 sequence would tie them to the pixel position: each pixel's
 /// estimate would then converge to a shifted, wrong integral.)
 pub(super) struct PathSampler {
-    pub rng: Rng,
-    pub light_rng: Rng,
+    /// The PCG streams (BSDF, light), made when a vertex beyond [`STRATIFIED`] first needs
+    /// them: most paths never do, and seeding costs a few hashes per sample.
+    streams: Option<(Rng, Rng)>,
+    /// What seeds the streams.
+    stream_key: u64,
+    max_bounces: u32,
     pub index: u32,
     pub pixel_offset: Vec2,
     /// Per pixel: the permutation keys and digital shifts of the Sobol pairs of the first
@@ -56,15 +60,31 @@ impl PathSampler {
         spp: u32,
         max_bounces: u32,
     ) -> PathSampler {
-        let rng = Rng::new(pixel_key.wrapping_add(super::sampling::mix64(index as u64 + 1)));
         PathSampler {
-            light_rng: rng.ahead(2 * max_bounces),
-            rng,
+            streams: None,
+            stream_key: pixel_key.wrapping_add(super::sampling::mix64(index as u64 + 1)),
+            max_bounces,
             index,
             pixel_offset,
             keys,
             spp,
         }
+    }
+
+    /// The (BSDF, light) PCG streams.
+    #[inline]
+    fn streams(&mut self) -> &mut (Rng, Rng) {
+        let (key, max_bounces) = (self.stream_key, self.max_bounces);
+        self.streams.get_or_insert_with(|| {
+            let rng = Rng::new(key);
+            (rng.clone(), rng.ahead(2 * max_bounces))
+        })
+    }
+
+    /// The light stream (for vertices beyond [`STRATIFIED`]).
+    #[inline]
+    pub fn light_rng(&mut self) -> &mut Rng {
+        &mut self.streams().1
     }
 
     #[inline]
@@ -90,7 +110,8 @@ impl PathSampler {
         if k < STRATIFIED {
             (self.pair(k, 0), self.pair(k, 1))
         } else {
-            (self.light_rng.next_2d(), self.light_rng.next_2d())
+            let rng = self.light_rng();
+            (rng.next_2d(), rng.next_2d())
         }
     }
 
@@ -100,7 +121,7 @@ impl PathSampler {
         if k < STRATIFIED {
             self.pair(k, 2)
         } else {
-            self.rng.next_2d()
+            self.streams().0.next_2d()
         }
     }
 }
@@ -295,7 +316,10 @@ impl Tracer<'_> {
                 for i in 0..lights.len() {
                     let (u_cell, u) = match shared {
                         Some((pick, dir)) => (pick.y, dir),
-                        None => (s.light_rng.next_f32(), s.light_rng.next_2d()),
+                        None => {
+                            let rng = s.light_rng();
+                            (rng.next_f32(), rng.next_2d())
+                        }
                     };
                     if let Some(ls) = lights.sample_light(i, v.p, u_cell, u) {
                         self.shadow_ray(v, &ls, mis, acc, px);
@@ -388,6 +412,16 @@ impl Tracer<'_> {
             1.0
         };
         acc.add(px, ls.emitter, v.throughput_f * (cos_s * w / ls.pdf));
+    }
+
+    /// True when no camera ray inside `pixel`'s bundle can deliver anything: it meets no
+    /// geometry, nothing lies behind it (no envmap) and the emitters it may see directly are
+    /// hidden. Such a pixel's samples would each return at the camera ray, adding nothing.
+    pub fn sees_nothing(&self, pixel: &Bundle) -> bool {
+        pixel.usable()
+            && pixel.is_empty()
+            && self.lights.env.is_none()
+            && self.settings.hide_emitters
     }
 
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading

@@ -241,6 +241,12 @@ impl<'a> Renderer<'a> {
                         let mut px = acc.new_pixel();
                         let mut hits = 0u32;
                         pixel_bundle(&self.accel, camera, &ray_dir, x, y, &mut pixel);
+                        if tracer.sees_nothing(&pixel) {
+                            // No sample of this pixel can deliver anything.
+                            acc.finish(&mut px, settings.spp);
+                            out.push((index, px, 0.0));
+                            continue;
+                        }
                         for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, settings) {
                             let p = &pixel;
                             hits += tracer.trace(p, dir, &mut s, &mut verts, acc, &mut px) as u32;
