@@ -511,7 +511,10 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
     settings.hide_emitters = !a.show_emitters;
     if !a.views.is_empty() {
         let mut picked = Vec::new();
-        for v in &a.views {
+        for (i, v) in a.views.iter().enumerate() {
+            if a.views[..i].contains(v) {
+                bail!("--views: {v:?} is listed twice");
+            }
             let cam = scene.cameras.iter().find(|c| &c.name == v);
             picked.push(
                 cam.with_context(|| {
@@ -564,9 +567,12 @@ fn render_reference(a: RenderArgs) -> anyhow::Result<()> {
     );
     let mut views = Vec::new();
     let t_all = Instant::now();
-    for (i, cam) in scene.cameras.iter().enumerate() {
+    for cam in &scene.cameras {
         let t = Instant::now();
-        let img = renderer.render_radiance(cam, i as u64, &settings, &|n| bar.inc(n));
+        let img =
+            renderer.render_radiance(cam, lightprobe::render::view_stream(cam), &settings, &|n| {
+                bar.inc(n)
+            });
         let secs = t.elapsed().as_secs_f64();
         if img.rgb.iter().any(|c| !c.is_finite()) {
             bail!(

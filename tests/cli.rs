@@ -113,6 +113,38 @@ fn same_bytes_at_one_and_two_threads() {
 }
 
 #[test]
+fn a_view_renders_the_same_alone_or_with_others() {
+    // A view's random stream comes from its name, not its place in the list.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    let mut side = Vec::new();
+    for (dir, views) in [
+        ("all", None),
+        ("side", Some("cam_side")),
+        ("rev", Some("cam_side,cam_front")),
+    ] {
+        let out = tmp.path().join(dir);
+        let mut args = vec![
+            "render-reference",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--quiet",
+        ];
+        if let Some(v) = views {
+            args.extend(["--views", v]);
+        }
+        let o = run(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        side.push(std::fs::read(out.join("cam_side.exr")).unwrap());
+    }
+    assert!(
+        side[0] == side[1] && side[1] == side[2],
+        "cam_side differs with the selection"
+    );
+}
+
+#[test]
 fn compare_reports_metrics_and_heatmap() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = small_scene(tmp.path(), "");
@@ -660,6 +692,37 @@ fn cases() -> Vec<Case> {
             ]
             .to_vec(),
             "cam_front.exr: is 8×6, but the sidecar's image is 16×12",
+        ),
+        c(
+            "view listed twice in the sidecar",
+            vec![(
+                "scene.ron",
+                sidecar("  views: [\"cam_front\", \"cam_front\"],\n", LIGHT),
+            )],
+            &[
+                "render-reference",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--quiet",
+            ]
+            .to_vec(),
+            "scene.ron: view \"cam_front\" is listed twice",
+        ),
+        c(
+            "view listed twice in --views",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "render-reference",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--views",
+                "cam_side,cam_side",
+                "--quiet",
+            ]
+            .to_vec(),
+            "--views: \"cam_side\" is listed twice",
         ),
         c(
             "estimate reference with NaN",

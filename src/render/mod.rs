@@ -360,7 +360,7 @@ impl<'a> Renderer<'a> {
             .collect()
     }
 
-    /// [`Renderer::render_radiance_under`] for each view (random stream = view index): per
+    /// [`Renderer::render_radiance_under`] for each view (random stream [`view_stream`]): per
     /// light set, one image per view.
     pub fn render_views_under(
         &self,
@@ -371,13 +371,14 @@ impl<'a> Renderer<'a> {
     ) -> Vec<Vec<Image>> {
         let per_view = views
             .iter()
-            .enumerate()
-            .map(|(i, cam)| self.render_radiance_under(cam, i as u64, settings, lights, progress))
+            .map(|cam| {
+                self.render_radiance_under(cam, view_stream(cam), settings, lights, progress)
+            })
             .collect();
         transpose(per_view, lights.len())
     }
 
-    /// Renders radiance for each view (random stream = view index).
+    /// Renders radiance for each view (random stream [`view_stream`]).
     pub fn render_views(
         &self,
         views: &[&Camera],
@@ -386,8 +387,7 @@ impl<'a> Renderer<'a> {
     ) -> Vec<Image> {
         views
             .iter()
-            .enumerate()
-            .map(|(i, cam)| self.render_radiance(cam, i as u64, settings, progress))
+            .map(|cam| self.render_radiance(cam, view_stream(cam), settings, progress))
             .collect()
     }
 
@@ -540,6 +540,16 @@ fn light_tile<A: Accumulator>(
 }
 
 /// The key every random stream of a render derives from.
+/// The random stream of a view's renders, from its name alone: a view renders the same image
+/// whichever other views are selected, and in whatever order.
+pub fn view_stream(camera: &Camera) -> u64 {
+    // FNV-1a over the name's bytes, then mixed.
+    let fnv = camera.name.bytes().fold(0xCBF2_9CE4_8422_2325u64, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01B3)
+    });
+    mix64(fnv)
+}
+
 fn render_key(settings: &RenderSettings, stream: u64) -> u64 {
     mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)))
 }

@@ -309,7 +309,14 @@ impl Scene {
             loaded.cameras
         } else {
             let mut picked = Vec::new();
-            for v in &sidecar.views {
+            for (i, v) in sidecar.views.iter().enumerate() {
+                if sidecar.views[..i].contains(v) {
+                    // Its renders would overwrite each other's files and count twice in a fit.
+                    return Err(Error::file(
+                        sidecar_path,
+                        format!("view {v:?} is listed twice in `views`"),
+                    ));
+                }
                 let Some(c) = loaded.cameras.iter().find(|c| &c.name == v) else {
                     let names: Vec<_> = loaded.cameras.iter().map(|c| c.name.as_str()).collect();
                     return Err(Error::file(
