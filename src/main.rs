@@ -694,6 +694,12 @@ fn compare(a: CompareArgs) -> anyhow::Result<()> {
     } else {
         metrics::mask_of(&reference)
     };
+    if !mask.contains(&true) {
+        bail!(
+            "{}: its alpha (coverage) is zero everywhere, so no pixel is compared; pass --no-mask to compare every pixel",
+            a.reference.display()
+        );
+    }
     let m = metrics::compare(&image, &reference, &mask)?;
     let scale = match &a.heatmap {
         Some(p) => Some(metrics::write_heatmap(
@@ -1181,29 +1187,59 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     let settings = RenderSettings::from_scene(&scene.settings);
     let true_lights = Lights::new(scene.lights.clone());
     let renderer = Renderer::new(&scene, &true_lights);
-    let views: Vec<&lightprobe::scene::Camera> = scene.cameras.iter().collect();
-    let bar = |what: &str, passes: u64| {
-        progress_bar((w * h) as u64 * views.len() as u64 * passes, a.quiet, what)
-    };
+    let all_views: Vec<&lightprobe::scene::Camera> = scene.cameras.iter().collect();
 
     // ---- References ----
     let t = Instant::now();
     let references = match &a.reference {
-        Some(dir) => pipeline::load_references(dir, &views, w, h)?,
+        Some(dir) => pipeline::load_references(dir, &all_views, w, h)?,
         None => {
-            let pb = bar("references", 1);
-            let refs = renderer.render_views(&views, &settings, &|k| pb.inc(k));
+            let pb = progress_bar(
+                (w * h) as u64 * all_views.len() as u64,
+                a.quiet,
+                "references",
+            );
+            let refs = renderer.render_views(&all_views, &settings, &|k| pb.inc(k));
             pb.finish_and_clear();
-            let dir = a.out.join("reference");
-            std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;
-            for (img, cam) in refs.iter().zip(&views) {
-                imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
-            }
             refs
         }
     };
+    let masks = pipeline::geometry_masks(&renderer, &all_views, &references);
+    // A view that sees no scene geometry has no pixel to fit or to measure: leave it out.
+    let blind: Vec<&str> = all_views
+        .iter()
+        .zip(&masks)
+        .filter(|(_, m)| !m.contains(&true))
+        .map(|(c, _)| c.name.as_str())
+        .collect();
+    if blind.len() == all_views.len() {
+        bail!(
+            "{}: no view sees any scene geometry ({}): there is nothing to fit",
+            a.scene.display(),
+            blind.join(", ")
+        );
+    }
+    for name in &blind {
+        eprintln!(
+            "lightprobe: warning: view {name:?} sees no scene geometry; it is left out of the fit and of the errors"
+        );
+    }
+    if a.reference.is_none() {
+        let dir = a.out.join("reference");
+        std::fs::create_dir_all(&dir).map_err(|e| lightprobe::Error::io(&dir, e))?;
+        for (img, cam) in references.iter().zip(&all_views) {
+            imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
+        }
+    }
+    let seen = |i: &usize| !blind.contains(&all_views[*i].name.as_str());
+    let keep: Vec<usize> = (0..all_views.len()).filter(seen).collect();
+    let views: Vec<&lightprobe::scene::Camera> = keep.iter().map(|&i| all_views[i]).collect();
+    let references: Vec<Image> = keep.iter().map(|&i| references[i].clone()).collect();
+    let masks: Vec<Vec<bool>> = keep.iter().map(|&i| masks[i].clone()).collect();
     let reference_seconds = t.elapsed().as_secs_f64();
-    let masks = pipeline::geometry_masks(&renderer, &views, &references);
+    let bar = |what: &str, passes: u64| {
+        progress_bar((w * h) as u64 * views.len() as u64 * passes, a.quiet, what)
+    };
 
     // ---- Resolution from the data ----
     let template = FitSettings {
@@ -1429,6 +1465,7 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         "noise_floor_rel_mae": mean(noise_floor),
         "representation_limit_rel_mae": mean(limit),
         "views": per_view,
+        "views_without_geometry": blind,
         "channels": fit.channels,
         "light_recovery": recovery,
         "model": model_selection.as_ref().map_or(
@@ -1512,10 +1549,15 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         println!("{line}");
     }
     for (k, r) in recovery.iter().enumerate() {
-        println!(
-            "light {k}: direction off by {:.1}°, power ratio {:.2}",
-            r.angle_error_degrees, r.power_ratio
-        );
+        if r.cluster_cells > 0 {
+            println!(
+                "light {k}: direction off by {:.1}°, power ratio {:.2}",
+                r.angle_error_degrees, r.power_ratio
+            );
+        } else {
+            // Every bright cluster went to a brighter light: none is left for this one.
+            println!("light {k}: not recovered (no bright cluster left for it)");
+        }
     }
     println!(
         "fit {:.2} s (transport {:.2} s, solve {:.2} s); total {:.1} s; peak memory {:.0} MiB; {}",

@@ -272,6 +272,23 @@ fn tiny_exr(w: u32, h: u32, value: f32) -> Vec<u8> {
     std::fs::read(p).unwrap()
 }
 
+/// An RGB EXR of `w × h` pixels, all `value`, whose alpha (coverage) is zero everywhere.
+fn uncovered_exr(w: u32, h: u32, value: f32) -> Vec<u8> {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("x.exr");
+    let img = lightprobe::imageio::Image {
+        width: w,
+        height: h,
+        rgb: vec![glam::Vec3::splat(value); (w * h) as usize],
+        alpha: Some(vec![0.0; (w * h) as usize]),
+    };
+    lightprobe::imageio::write_exr(&p, &img).unwrap();
+    std::fs::read(p).unwrap()
+}
+
+/// A glTF with one triangle at y = 0 and one camera above it looking up, away from it.
+const SKY_GLTF: &str = r#"{"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0, 1]}], "nodes": [{"mesh": 0}, {"name": "up", "camera": 0, "translation": [0, 1, 0], "rotation": [0.70710678, 0, 0, 0.70710678]}], "cameras": [{"type": "perspective", "perspective": {"yfov": 0.5, "znear": 0.01}}], "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}], "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [-1, 0, -1], "max": [1, 0, 1]}], "bufferViews": [{"buffer": 0, "byteLength": 36}], "buffers": [{"byteLength": 36, "uri": "data:application/octet-stream;base64,AACAvwAAAAAAAIC/AACAPwAAAAAAAIC/AAAAAAAAAAAAAIA/"}]}"#;
+
 fn sidecar(extra_fields: &str, lights: &str) -> Vec<u8> {
     format!(
         "Scene(\n  gltf: {:?},\n  image: (width: 16, height: 12),\n  lights: [{lights}],\n  render: (spp: 2),\n{extra_fields})\n",
@@ -725,6 +742,27 @@ fn cases() -> Vec<Case> {
             "--views: \"cam_side\" is listed twice",
         ),
         c(
+            "estimate where no view sees geometry",
+            vec![
+                ("sky.gltf", SKY_GLTF.as_bytes().to_vec()),
+                (
+                    "scene.ron",
+                    format!("Scene(gltf: \"sky.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}], render: (spp: 2))").into_bytes(),
+                ),
+            ],
+            &["estimate", "{d}/scene.ron", "--out", "{d}/out", "--quiet"].to_vec(),
+            "scene.ron: no view sees any scene geometry (up)",
+        ),
+        c(
+            "compare against a reference that covers nothing",
+            vec![
+                ("a.exr", tiny_exr(4, 3, 0.5)),
+                ("b.exr", uncovered_exr(4, 3, 0.5)),
+            ],
+            &["compare", "{d}/a.exr", "{d}/b.exr"].to_vec(),
+            "b.exr: its alpha (coverage) is zero everywhere, so no pixel is compared; pass --no-mask",
+        ),
+        c(
             "estimate reference with NaN",
             vec![
                 ("scene.ron", sidecar("  views: [\"cam_front\"],\n", LIGHT)),
@@ -1047,6 +1085,53 @@ fn estimate_runs_end_to_end_and_reports() {
             .radiance(),
         env.radiance()
     );
+}
+
+#[test]
+fn estimate_leaves_out_a_view_that_sees_nothing() {
+    // SKY_GLTF plus a second camera above the triangle looking down at it.
+    let gltf = SKY_GLTF
+        .replace(
+            r#""scenes": [{"nodes": [0, 1]}]"#,
+            r#""scenes": [{"nodes": [0, 1, 2]}]"#,
+        )
+        .replace(
+            r#"{"mesh": 0}, "#,
+            r#"{"mesh": 0}, {"name": "down", "camera": 0, "translation": [0, 1, 0], "rotation": [-0.70710678, 0, 0, 0.70710678]}, "#,
+        );
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    std::fs::write(d.join("sky.gltf"), gltf).unwrap();
+    std::fs::write(
+        d.join("scene.ron"),
+        format!("Scene(gltf: \"sky.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}], render: (spp: 4))"),
+    )
+    .unwrap();
+    let out = d.join("out");
+    let o = run(&[
+        "estimate",
+        d.join("scene.ron").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--rings",
+        "3",
+        "--json",
+        "--quiet",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("view \"up\" sees no scene geometry"), "{err}");
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["views_without_geometry"], serde_json::json!(["up"]));
+    let views: Vec<&str> = report["views"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["view"].as_str().unwrap())
+        .collect();
+    assert_eq!(views, ["down"]);
+    assert!(report["rel_mae"].as_f64().unwrap().is_finite());
+    assert_eq!(files_in(&out.join("reference")), ["down.exr", "up.exr"]);
 }
 
 /// The committed corpus of broken glTF/GLB files (tests/bad/, written by
