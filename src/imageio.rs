@@ -47,6 +47,18 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Res
     let name = path
         .file_name()
         .ok_or_else(|| Error::file(path, "is not a file path"))?;
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty())
+        && !dir.is_dir()
+    {
+        // Otherwise the OS says "no such file", which reads like a missing input.
+        return Err(Error::file(
+            path,
+            format!(
+                "cannot be written: the folder {} does not exist",
+                dir.display()
+            ),
+        ));
+    }
     let tmp: PathBuf = path.with_file_name(format!(
         ".{}.{}.tmp",
         name.to_string_lossy(),

@@ -164,7 +164,7 @@ struct RenderArgs {
     #[arg(long, short)]
     out: PathBuf,
     /// Samples per pixel (default: the sidecar's).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=sidecar::MAX_SPP as i64))]
     spp: Option<u32>,
     /// Random seed (default: the sidecar's).
     #[arg(long)]
@@ -256,7 +256,7 @@ struct EstimateArgs {
     #[arg(long, value_enum, default_value_t = SolverArg::Nnls)]
     solver: SolverArg,
     /// Samples per pixel of the transport estimate, over all rounds (default: the sidecar's).
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=sidecar::MAX_SPP as i64))]
     spp: Option<u32>,
     /// Smoothness weight between neighbouring cells (relative; 0 = none).
     #[arg(long, default_value_t = 0.0)]
@@ -403,7 +403,10 @@ struct ImportArgs {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => return usage_error(e),
+    };
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -411,6 +414,34 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// A command-line error from clap as one line, like every other error (clap's own message
+/// adds a usage block), with clap's exit code 2. Help and version requests print as clap
+/// writes them.
+fn usage_error(e: clap::Error) -> ExitCode {
+    use clap::error::ErrorKind;
+    if matches!(
+        e.kind(),
+        ErrorKind::DisplayHelp
+            | ErrorKind::DisplayVersion
+            | ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand
+    ) {
+        e.exit();
+    }
+    // The message runs to the first blank line; tips and usage follow it.
+    let text = e.render().to_string();
+    let message: Vec<&str> = text
+        .lines()
+        .take_while(|l| !l.trim().is_empty())
+        .map(str::trim)
+        .collect();
+    let message = message.join(" ");
+    eprintln!(
+        "lightprobe: error: {} (see --help)",
+        message.trim_start_matches("error: ")
+    );
+    ExitCode::from(2)
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
@@ -461,6 +492,13 @@ fn run(cli: Cli) -> anyhow::Result<()> {
 
 /// Creates `dir` and proves it writable before any long work starts.
 fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
+    if dir.exists() && !dir.is_dir() {
+        return Err(lightprobe::Error::file(
+            dir,
+            "exists and is not a folder (--out names a folder)",
+        )
+        .into());
+    }
     std::fs::create_dir_all(dir).map_err(|e| lightprobe::Error::io(dir, e))?;
     let probe = dir.join(format!(".lightprobe-write-test.{}", std::process::id()));
     std::fs::write(&probe, b"")
@@ -817,6 +855,15 @@ fn import_envmap(a: ImportArgs) -> anyhow::Result<()> {
         );
     }
     let img = imageio::read_exr(&a.image)?;
+    if img.width != 2 * img.height {
+        // Any size is read as lat-long, but one that is not 2:1 is probably something else.
+        eprintln!(
+            "lightprobe: warning: {} is {}×{}, not 2:1 like a lat-long map; reading it as one anyway",
+            a.image.display(),
+            img.width,
+            img.height
+        );
+    }
     let env =
         latlong::import(&img, target, a.rings).map_err(|m| lightprobe::Error::file(&a.image, m))?;
     env.save(&a.out)?;
@@ -1123,7 +1170,12 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         .find(|r| !(1..=sidecar::MAX_RINGS).contains(*r))
     {
         bail!(
-            "--rings must be between 1 and {}, got {r}",
+            "{} must be between 1 and {}, got {r}",
+            if auto {
+                "--rings-candidates"
+            } else {
+                "--rings"
+            },
             sidecar::MAX_RINGS
         );
     }

@@ -439,7 +439,7 @@ fn cases() -> Vec<Case> {
                 ),
             ],
             &render,
-            "cut.glb:",
+            "cut.glb: not a valid glTF 2.0 file: truncated (the GLB declares",
         ),
         c(
             "gltf that is not json",
@@ -535,7 +535,7 @@ fn cases() -> Vec<Case> {
                 "0",
             ]
             .to_vec(),
-            "--spp",
+            "'--spp <SPP>': 0 is not in 1..=1048576",
         ),
         c(
             "compare missing image",
@@ -761,6 +761,57 @@ fn cases() -> Vec<Case> {
             ],
             &["compare", "{d}/a.exr", "{d}/b.exr"].to_vec(),
             "b.exr: its alpha (coverage) is zero everywhere, so no pixel is compared; pass --no-mask",
+        ),
+        c(
+            "negative image size",
+            vec![(
+                "scene.ron",
+                format!("Scene(gltf: {:?}, image: (width: -5, height: 3))", bundled_glb()).into_bytes(),
+            )],
+            &render,
+            "integer out of range for this field (negative, or too large)",
+        ),
+        c(
+            "--out names an existing file",
+            vec![("scene.ron", sidecar("", LIGHT)), ("taken", b"a file".to_vec())],
+            &["render-reference", "{d}/scene.ron", "--out", "{d}/taken", "--quiet"].to_vec(),
+            "taken: exists and is not a folder",
+        ),
+        c(
+            "--reference names a file",
+            vec![("scene.ron", sidecar("", LIGHT)), ("refs", b"a file".to_vec())],
+            &["estimate", "{d}/scene.ron", "--out", "{d}/out", "--reference", "{d}/refs", "--quiet"]
+                .to_vec(),
+            "refs: is not a folder",
+        ),
+        c(
+            "--rings-candidates out of range",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--rings",
+                "auto",
+                "--rings-candidates",
+                "0,3",
+                "--quiet",
+            ]
+            .to_vec(),
+            "--rings-candidates must be between 1 and",
+        ),
+        c(
+            "report of a missing folder",
+            vec![],
+            &["report", "{d}/nothing"].to_vec(),
+            "nothing: no such folder",
+        ),
+        c(
+            "import into a missing folder",
+            vec![("x.exr", tiny_exr(8, 4, 0.5))],
+            &["import-envmap", "{d}/x.exr", "--rings", "1", "--out", "{d}/none/e.ron"].to_vec(),
+            "e.ron: cannot be written: the folder",
         ),
         c(
             "estimate reference with NaN",
@@ -1143,7 +1194,7 @@ fn gltf_corpus_fails_cleanly() {
         ("glb_bad_magic.glb", "not a valid glTF"),
         ("glb_bad_chunk_length.glb", "not a valid glTF"),
         ("glb_json_not_json.glb", "not a valid glTF"),
-        ("glb_truncated.glb", "not a valid glTF"),
+        ("glb_truncated.glb", "not a valid glTF 2.0 file: truncated"),
         ("glb_length_underflow.glb", "declares a length of 5 bytes"),
         ("glb_version_1.glb", "GLB version 1"),
         (

@@ -29,6 +29,14 @@ pub fn load_references(
     width: u32,
     height: u32,
 ) -> Result<Vec<Image>> {
+    if !dir.is_dir() {
+        let what = if dir.exists() {
+            "is not a folder (--reference names a folder of <view>.exr)"
+        } else {
+            "no such folder"
+        };
+        return Err(Error::file(dir, what));
+    }
     views
         .iter()
         .map(|cam| {

@@ -326,6 +326,12 @@ fn chart(
 
 /// Reads the trials in `dir` and writes the charts, report.md and summary.json there.
 pub fn report(dir: &Path) -> Result<Summary> {
+    if !dir.is_dir() {
+        return Err(Error::file(
+            dir,
+            "no such folder (a `lightprobe sweep --out` folder)",
+        ));
+    }
     let records = read_records(dir)?;
     if records.is_empty() {
         return Err(Error::file(

@@ -25,7 +25,10 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
     let n = std::fs::File::open(path)
         .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
         .map_err(|e| Error::io(path, e))?;
-    check_glb_header(&head[..n], path)?;
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
+    check_glb_header(&head[..n], len, path)?;
     check_uris(path)?;
     let imported = contain(path, || gltf::import(path))?.map_err(|e| match e {
         gltf::Error::Io(io) => Error::io(path, io),
@@ -36,7 +39,7 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
 
 /// Loads glTF or GLB bytes that need no external files (`label` names them in errors).
 pub(super) fn load_slice(bytes: &[u8], label: &Path, width: u32, height: u32) -> Result<Loaded> {
-    check_glb_header(bytes, label)?;
+    check_glb_header(bytes, bytes.len() as u64, label)?;
     let imported = contain(label, || gltf::import_slice(bytes))?
         .map_err(|e| Error::file(label, format!("not a valid glTF 2.0 file: {e}")))?;
     contain(label, || build(label, imported, width, height))?
@@ -59,9 +62,10 @@ fn contain<T>(path: &Path, parse: impl FnOnce() -> T) -> Result<T> {
     })
 }
 
-/// Checks a GLB header before the gltf crate does arithmetic on it (gltf 1.4 subtracts 12
-/// from the declared length unchecked: found by fuzzing). Text glTF passes through.
-fn check_glb_header(head: &[u8], path: &Path) -> Result<()> {
+/// Checks a GLB header (the first bytes of a file of `len` bytes) before the gltf crate does
+/// arithmetic on it (gltf 1.4 subtracts 12 from the declared length unchecked: found by
+/// fuzzing). Text glTF passes through.
+fn check_glb_header(head: &[u8], len: u64, path: &Path) -> Result<()> {
     if !head.starts_with(b"glTF") {
         return Ok(());
     }
@@ -86,6 +90,15 @@ fn check_glb_header(head: &[u8], path: &Path) -> Result<()> {
             path,
             format!(
                 "not a valid glTF 2.0 file: GLB declares a length of {} bytes",
+                word(8)
+            ),
+        ));
+    }
+    if u64::from(word(8)) > len {
+        return Err(Error::file(
+            path,
+            format!(
+                "not a valid glTF 2.0 file: truncated (the GLB declares {} bytes, the file has {len})",
                 word(8)
             ),
         ));

@@ -222,7 +222,14 @@ impl Sidecar {
             .from_str::<Sidecar>(text)
             .map_err(|e| {
                 let p = e.span.start;
-                Error::file_at(path, p.line, p.col, e.code.to_string())
+                let message = match e.code {
+                    // ron names neither the field nor the range.
+                    ron::error::Error::IntegerOutOfBounds => {
+                        "integer out of range for this field (negative, or too large)".to_string()
+                    }
+                    code => code.to_string(),
+                };
+                Error::file_at(path, p.line, p.col, message)
             })
     }
 
