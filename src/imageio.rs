@@ -51,12 +51,14 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Res
         && !dir.is_dir()
     {
         // Otherwise the OS says "no such file", which reads like a missing input.
+        let what = if dir.exists() {
+            "is not a folder"
+        } else {
+            "does not exist"
+        };
         return Err(Error::file(
             path,
-            format!(
-                "cannot be written: the folder {} does not exist",
-                dir.display()
-            ),
+            format!("cannot be written: {} {what}", dir.display()),
         ));
     }
     let tmp: PathBuf = path.with_file_name(format!(

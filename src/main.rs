@@ -429,14 +429,19 @@ fn usage_error(e: clap::Error) -> ExitCode {
     ) {
         e.exit();
     }
-    // The message runs to the first blank line; tips and usage follow it.
+    // The message runs to the first blank line; then come tips (kept) and usage (dropped).
     let text = e.render().to_string();
     let message: Vec<&str> = text
         .lines()
         .take_while(|l| !l.trim().is_empty())
         .map(str::trim)
         .collect();
-    let message = message.join(" ");
+    let tips = text
+        .lines()
+        .map(str::trim)
+        .filter(|l| l.starts_with("tip:"));
+    let message = std::iter::once(message.join(" ")).chain(tips.map(str::to_string));
+    let message = message.collect::<Vec<_>>().join("; ");
     eprintln!(
         "lightprobe: error: {} (see --help)",
         message.trim_start_matches("error: ")
@@ -1258,22 +1263,31 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     };
     let masks = pipeline::geometry_masks(&renderer, &all_views, &references);
     // A view that sees no scene geometry has no pixel to fit or to measure: leave it out.
+    let seen: Vec<bool> = masks.iter().map(|m| m.contains(&true)).collect();
     let blind: Vec<&str> = all_views
         .iter()
-        .zip(&masks)
-        .filter(|(_, m)| !m.contains(&true))
+        .zip(&seen)
+        .filter(|(_, s)| !**s)
         .map(|(c, _)| c.name.as_str())
         .collect();
+    // A given reference's mask is its alpha: say so, rather than blame the geometry.
+    let why = match &a.reference {
+        Some(dir) => format!(
+            "its reference in {} has zero alpha (coverage) everywhere",
+            dir.display()
+        ),
+        None => "it sees no scene geometry".to_string(),
+    };
     if blind.len() == all_views.len() {
         bail!(
-            "{}: no view sees any scene geometry ({}): there is nothing to fit",
+            "{}: no view has a pixel to fit ({}: {why}): there is nothing to fit",
             a.scene.display(),
             blind.join(", ")
         );
     }
     for name in &blind {
         eprintln!(
-            "lightprobe: warning: view {name:?} sees no scene geometry; it is left out of the fit and of the errors"
+            "lightprobe: warning: view {name:?} is left out of the fit and of the errors: {why}"
         );
     }
     if a.reference.is_none() {
@@ -1283,11 +1297,23 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
             imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
         }
     }
-    let seen = |i: &usize| !blind.contains(&all_views[*i].name.as_str());
-    let keep: Vec<usize> = (0..all_views.len()).filter(seen).collect();
-    let views: Vec<&lightprobe::scene::Camera> = keep.iter().map(|&i| all_views[i]).collect();
-    let references: Vec<Image> = keep.iter().map(|&i| references[i].clone()).collect();
-    let masks: Vec<Vec<bool>> = keep.iter().map(|&i| masks[i].clone()).collect();
+    let keep = |i: &usize| seen[*i];
+    let views: Vec<&lightprobe::scene::Camera> = (0..all_views.len())
+        .filter(keep)
+        .map(|i| all_views[i])
+        .collect();
+    let references: Vec<Image> = references
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| seen[*i])
+        .map(|(_, r)| r)
+        .collect();
+    let masks: Vec<Vec<bool>> = masks
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| seen[*i])
+        .map(|(_, m)| m)
+        .collect();
     let reference_seconds = t.elapsed().as_secs_f64();
     let bar = |what: &str, passes: u64| {
         progress_bar((w * h) as u64 * views.len() as u64 * passes, a.quiet, what)

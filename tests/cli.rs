@@ -751,7 +751,25 @@ fn cases() -> Vec<Case> {
                 ),
             ],
             &["estimate", "{d}/scene.ron", "--out", "{d}/out", "--quiet"].to_vec(),
-            "scene.ron: no view sees any scene geometry (up)",
+            "scene.ron: no view has a pixel to fit (up: it sees no scene geometry)",
+        ),
+        c(
+            "two cameras of one name",
+            vec![
+                (
+                    "sky.gltf",
+                    SKY_GLTF
+                        .replace(r#"{"mesh": 0}, "#, r#"{"mesh": 0}, {"name": "up", "camera": 0}, "#)
+                        .replace(r#"[{"nodes": [0, 1]}]"#, r#"[{"nodes": [0, 1, 2]}]"#)
+                        .into_bytes(),
+                ),
+                (
+                    "scene.ron",
+                    format!("Scene(gltf: \"sky.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}])").into_bytes(),
+                ),
+            ],
+            &render,
+            "sky.gltf: has two camera nodes named \"up\"",
         ),
         c(
             "compare against a reference that covers nothing",
@@ -811,7 +829,7 @@ fn cases() -> Vec<Case> {
             "import into a missing folder",
             vec![("x.exr", tiny_exr(8, 4, 0.5))],
             &["import-envmap", "{d}/x.exr", "--rings", "1", "--out", "{d}/none/e.ron"].to_vec(),
-            "e.ron: cannot be written: the folder",
+            "/none does not exist",
         ),
         c(
             "estimate reference with NaN",
@@ -1171,7 +1189,12 @@ fn estimate_leaves_out_a_view_that_sees_nothing() {
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
-    assert!(err.contains("view \"up\" sees no scene geometry"), "{err}");
+    assert!(
+        err.contains(
+            "view \"up\" is left out of the fit and of the errors: it sees no scene geometry"
+        ),
+        "{err}"
+    );
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(report["views_without_geometry"], serde_json::json!(["up"]));
     let views: Vec<&str> = report["views"]
@@ -1183,6 +1206,65 @@ fn estimate_leaves_out_a_view_that_sees_nothing() {
     assert_eq!(views, ["down"]);
     assert!(report["rel_mae"].as_f64().unwrap().is_finite());
     assert_eq!(files_in(&out.join("reference")), ["down.exr", "up.exr"]);
+
+    // Given references: one whose alpha is zero everywhere is left out, and said to be so.
+    let refs = d.join("refs");
+    std::fs::create_dir(&refs).unwrap();
+    std::fs::copy(out.join("reference/down.exr"), refs.join("down.exr")).unwrap();
+    std::fs::write(refs.join("up.exr"), uncovered_exr(8, 6, 0.5)).unwrap();
+    let o = run(&[
+        "estimate",
+        d.join("scene.ron").to_str().unwrap(),
+        "--out",
+        d.join("out2").to_str().unwrap(),
+        "--reference",
+        refs.to_str().unwrap(),
+        "--rings",
+        "3",
+        "--quiet",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("\"up\" is left out of the fit and of the errors: its reference in"),
+        "{err}"
+    );
+    assert!(
+        err.contains("has zero alpha (coverage) everywhere"),
+        "{err}"
+    );
+}
+
+#[test]
+fn estimate_references_are_render_reference_images() {
+    // Both render each view with the sidecar's settings and the view's own stream.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    let (rr, es) = (tmp.path().join("rr"), tmp.path().join("es"));
+    let o = run(&[
+        "render-reference",
+        scene.to_str().unwrap(),
+        "--out",
+        rr.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--out",
+        es.to_str().unwrap(),
+        "--rings",
+        "3",
+        "--fit-only",
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for view in ["cam_front", "cam_side"] {
+        let a = lightprobe::imageio::read_exr(&rr.join(format!("{view}.exr"))).unwrap();
+        let b = lightprobe::imageio::read_exr(&es.join(format!("reference/{view}.exr"))).unwrap();
+        assert!(a.rgb == b.rgb && a.alpha == b.alpha, "{view} differs");
+    }
 }
 
 /// The committed corpus of broken glTF/GLB files (tests/bad/, written by

@@ -315,7 +315,8 @@ pub fn first_round_transport(
     )
 }
 
-/// Random streams of the transport renders (apart from the images' streams 0..views).
+/// Random streams of the transport renders (`1000 + view index`; the images' streams are
+/// [`crate::render::view_stream`], hashes of the views' names).
 const TRANSPORT_STREAMS: u64 = 1000;
 
 /// [`fit`], with the first round's transport given when it is already known (from

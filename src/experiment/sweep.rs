@@ -984,7 +984,9 @@ fn open_append(path: &Path) -> Result<std::fs::File> {
 
 /// What a scenario's references depend on: the scene (sidecar minus lights) and the lights.
 fn scenario_fingerprint(key: &str, lights: &[SphereLight]) -> String {
-    let text = format!("{key}|{lights:?}");
+    // `streams=name`: references are rendered with each view's stream from its name
+    // (`render::view_stream`, session 9); folders from before render with other noise.
+    let text = format!("{key}|{lights:?}|streams=name");
     let h = text
         .bytes()
         .fold(0x5CE9_A410u64, |h, b| mix64(h ^ b as u64));

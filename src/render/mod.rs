@@ -214,7 +214,7 @@ impl<'a> Renderer<'a> {
     }
 
     /// Renders `camera` with `acc`. `stream` separates the random streams of renders that
-    /// share a seed (e.g. the view index). `progress` is called with the pixels of each
+    /// share a seed (e.g. [`view_stream`]). `progress` is called with the pixels of each
     /// finished tile.
     pub fn render<A: Accumulator>(
         &self,
@@ -539,7 +539,6 @@ fn light_tile<A: Accumulator>(
     out
 }
 
-/// The key every random stream of a render derives from.
 /// The random stream of a view's renders, from its name alone: a view renders the same image
 /// whichever other views are selected, and in whatever order.
 pub fn view_stream(camera: &Camera) -> u64 {
@@ -550,6 +549,7 @@ pub fn view_stream(camera: &Camera) -> u64 {
     mix64(fnv)
 }
 
+/// The key every random stream of a render derives from.
 fn render_key(settings: &RenderSettings, stream: u64) -> u64 {
     mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)))
 }

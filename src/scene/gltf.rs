@@ -269,7 +269,12 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
                     ),
                 ));
             }
-            let name = node.name().or(cam.name()).unwrap_or("").to_string();
+            // An unnamed camera still needs a name: it names the view's files and its random
+            // stream.
+            let name = node
+                .name()
+                .or(cam.name())
+                .map_or_else(|| format!("camera{}", node.index()), str::to_string);
             out.cameras
                 .push(Camera::from_node(name, world, yfov, width, height));
         }

@@ -306,6 +306,18 @@ impl Scene {
                     "has no perspective camera to render from",
                 ));
             }
+            for (i, c) in loaded.cameras.iter().enumerate() {
+                if loaded.cameras[..i].iter().any(|d| d.name == c.name) {
+                    // Their files and random streams would collide.
+                    return Err(Error::file(
+                        &gltf_path,
+                        format!(
+                            "has two camera nodes named {:?}; rename one, or pick views by name in the sidecar's `views`",
+                            c.name
+                        ),
+                    ));
+                }
+            }
             loaded.cameras
         } else {
             let mut picked = Vec::new();
