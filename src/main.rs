@@ -1576,7 +1576,8 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     // at its limits.
     let not_converged = || {
         anyhow::anyhow!(
-            "the {:?} solver did not converge (report.json \"status\": \"not-converged\"); pass --allow-nonconvergence to exit 0 anyway",
+            "{}: the {:?} solver did not converge (\"status\": \"not-converged\"; the envmap is written); pass --allow-nonconvergence to exit 0 anyway",
+            a.out.join("report.json").display(),
             solver
         )
     };

@@ -515,7 +515,10 @@ fn a_solver_stopped_by_its_limits_says_so_and_exits_non_zero() {
         .unwrap();
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("did not converge"), "{err}");
+    assert!(
+        err.contains("report.json: the Gradient solver did not converge"),
+        "{err}"
+    );
     // The outputs are complete and say so.
     let rep: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(est.join("report.json")).unwrap()).unwrap();
