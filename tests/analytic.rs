@@ -423,7 +423,13 @@ fn envmap_strategies_agree() {
 fn pixels_that_see_no_geometry_show_what_lies_behind() {
     // The camera sees a sphere light against the void; the only geometry is a plane far
     // below, out of view, so no pixel's camera rays can meet a triangle. Such pixels are
-    // skipped wholesale only when nothing can show in them.
+    // skipped wholesale only when nothing can show in them: checked for a fresh render and
+    // for walked paths lit afterwards.
+    let renders = |r: &Renderer, cam: &Camera, st: &RenderSettings| {
+        let fresh = r.render_radiance(cam, 0, st, &|_| {});
+        let walked = r.render_radiance_under(cam, 0, st, &[r.lights], &|_| {});
+        [fresh, walked.into_iter().next().unwrap()]
+    };
     let light = SphereLight {
         center: Vec3::ZERO,
         radius: 0.5,
@@ -438,18 +444,6 @@ fn pixels_that_see_no_geometry_show_what_lies_behind() {
     );
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
-    for hide in [true, false] {
-        let st = RenderSettings {
-            hide_emitters: hide,
-            ..settings(16, 2, Strategy::Mis)
-        };
-        let img = r.render_radiance(&cam, 0, &st, &|_| {});
-        let want = if hide { Vec3::ZERO } else { light.radiance };
-        for c in &img.rgb {
-            assert_eq!(*c, want, "hide_emitters {hide}");
-        }
-        assert!(img.alpha.as_ref().unwrap().iter().all(|&a| a == 0.0));
-    }
     // Behind the void, an envmap: every pixel sees its radiance, unless emitters are hidden.
     let void = Camera::look_at(
         "void",
@@ -459,15 +453,27 @@ fn pixels_that_see_no_geometry_show_what_lies_behind() {
         8,
         8,
     );
+    let env = Lights::env(Envmap::constant(9, Vec3::splat(1.5)));
+    let r_env = r.with_lights(&env);
     for hide in [true, false] {
         let st = RenderSettings {
             hide_emitters: hide,
             ..settings(16, 2, Strategy::Mis)
         };
-        let img = render_env(&sc, Envmap::constant(9, Vec3::splat(1.5)), &void, st);
-        let want = if hide { Vec3::ZERO } else { Vec3::splat(1.5) };
-        for c in &img.rgb {
-            assert_eq!(*c, want, "hide_emitters {hide}");
+        for img in renders(&r, &cam, &st) {
+            let want = if hide { Vec3::ZERO } else { light.radiance };
+            assert!(
+                img.rgb.iter().all(|c| *c == want),
+                "light, hide_emitters {hide}"
+            );
+            assert!(img.alpha.as_ref().unwrap().iter().all(|&a| a == 0.0));
+        }
+        for img in renders(&r_env, &void, &st) {
+            let want = if hide { Vec3::ZERO } else { Vec3::splat(1.5) };
+            assert!(
+                img.rgb.iter().all(|c| *c == want),
+                "envmap, hide_emitters {hide}"
+            );
         }
     }
 }

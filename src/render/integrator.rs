@@ -415,13 +415,10 @@ impl Tracer<'_> {
     }
 
     /// True when no camera ray inside `pixel`'s bundle can deliver anything: it meets no
-    /// geometry, nothing lies behind it (no envmap) and the emitters it may see directly are
-    /// hidden. Such a pixel's samples would each return at the camera ray, adding nothing.
+    /// geometry, and what it may see directly (sphere lights, the envmap) is hidden. Such a
+    /// pixel's samples would each return at the camera ray, adding nothing.
     pub fn sees_nothing(&self, pixel: &Bundle) -> bool {
-        pixel.usable()
-            && pixel.is_empty()
-            && self.lights.env.is_none()
-            && self.settings.hide_emitters
+        pixel.usable() && pixel.is_empty() && self.settings.hide_emitters
     }
 
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading

@@ -489,6 +489,12 @@ fn walk_tile(
         for x in x0..x1 {
             let index = y * camera.width + x;
             pixel_bundle(tracer.accel, camera, ray_dir, x, y, &mut pixel);
+            if pixel.usable() && pixel.is_empty() {
+                // No camera ray of this pixel meets geometry: each walk would be this.
+                let n = tile.samples.len() + settings.spp as usize;
+                tile.samples.resize(n, (f32::INFINITY, 0));
+                continue;
+            }
             for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
                 let t = tracer.walk(&pixel, dir, &mut s, true, &mut verts);
                 tile.samples.push((t, verts.len() as u8));
@@ -518,6 +524,19 @@ fn light_tile<A: Accumulator>(
             let index = y * camera.width + x;
             let mut px = acc.new_pixel();
             let mut hits = 0u32;
+            let spp = settings.spp as usize;
+            if settings.hide_emitters
+                && walked.samples[sample..sample + spp]
+                    .iter()
+                    .all(|&(t, _)| t.is_infinite())
+            {
+                // Every camera ray escapes, and what it would see is hidden: nothing to add
+                // ([`Tracer::sees_nothing`] for walked paths).
+                sample += spp;
+                acc.finish(&mut px, settings.spp);
+                out.push((index, px, 0.0));
+                continue;
+            }
             for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
                 let (t_first, n) = walked.samples[sample];
                 let verts = &walked.vertices[vertex..vertex + n as usize];
