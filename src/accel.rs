@@ -135,6 +135,11 @@ impl Bundle {
     pub fn usable(&self) -> bool {
         self.usable
     }
+
+    /// True when no ray inside the pyramid can meet a triangle.
+    pub fn meets_nothing(&self) -> bool {
+        self.usable && self.leaves.is_empty()
+    }
 }
 
 /// A bundle of more leaves than this is not worth a flat list (a ray may test them all).

@@ -418,7 +418,7 @@ impl Tracer<'_> {
     /// geometry, and what it may see directly (sphere lights, the envmap) is hidden. Such a
     /// pixel's samples would each return at the camera ray, adding nothing.
     pub fn sees_nothing(&self, pixel: &Bundle) -> bool {
-        pixel.usable() && pixel.is_empty() && self.settings.hide_emitters
+        pixel.meets_nothing() && self.settings.hide_emitters
     }
 
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading

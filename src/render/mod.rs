@@ -489,7 +489,7 @@ fn walk_tile(
         for x in x0..x1 {
             let index = y * camera.width + x;
             pixel_bundle(tracer.accel, camera, ray_dir, x, y, &mut pixel);
-            if pixel.usable() && pixel.is_empty() {
+            if pixel.meets_nothing() {
                 // No camera ray of this pixel meets geometry: each walk would be this.
                 let n = tile.samples.len() + settings.spp as usize;
                 tile.samples.resize(n, (f32::INFINITY, 0));
