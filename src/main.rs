@@ -1263,13 +1263,6 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
     };
     let masks = pipeline::geometry_masks(&renderer, &all_views, &references);
     // A view that sees no scene geometry has no pixel to fit or to measure: leave it out.
-    let seen: Vec<bool> = masks.iter().map(|m| m.contains(&true)).collect();
-    let blind: Vec<&str> = all_views
-        .iter()
-        .zip(&seen)
-        .filter(|(_, s)| !**s)
-        .map(|(c, _)| c.name.as_str())
-        .collect();
     // A given reference's mask is its alpha: say so, rather than blame the geometry.
     let why = match &a.reference {
         Some(dir) => format!(
@@ -1278,16 +1271,12 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
         ),
         None => "it sees no scene geometry".to_string(),
     };
-    if blind.len() == all_views.len() {
+    if !masks.iter().any(|m| m.contains(&true)) {
+        let names: Vec<&str> = all_views.iter().map(|c| c.name.as_str()).collect();
         bail!(
             "{}: no view has a pixel to fit ({}: {why}): there is nothing to fit",
             a.scene.display(),
-            blind.join(", ")
-        );
-    }
-    for name in &blind {
-        eprintln!(
-            "lightprobe: warning: view {name:?} is left out of the fit and of the errors: {why}"
+            names.join(", ")
         );
     }
     if a.reference.is_none() {
@@ -1297,23 +1286,17 @@ fn estimate(a: EstimateArgs) -> anyhow::Result<()> {
             imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
         }
     }
-    let keep = |i: &usize| seen[*i];
-    let views: Vec<&lightprobe::scene::Camera> = (0..all_views.len())
-        .filter(keep)
-        .map(|i| all_views[i])
-        .collect();
-    let references: Vec<Image> = references
-        .into_iter()
-        .enumerate()
-        .filter(|(i, _)| seen[*i])
-        .map(|(_, r)| r)
-        .collect();
-    let masks: Vec<Vec<bool>> = masks
-        .into_iter()
-        .enumerate()
-        .filter(|(i, _)| seen[*i])
-        .map(|(_, m)| m)
-        .collect();
+    let pipeline::SeenViews {
+        views,
+        references,
+        masks,
+        blind,
+    } = pipeline::seen_views(&all_views, references, masks);
+    for name in &blind {
+        eprintln!(
+            "lightprobe: warning: view {name:?} is left out of the fit and of the errors: {why}"
+        );
+    }
     let reference_seconds = t.elapsed().as_secs_f64();
     let bar = |what: &str, passes: u64| {
         progress_bar((w * h) as u64 * views.len() as u64 * passes, a.quiet, what)

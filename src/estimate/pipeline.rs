@@ -89,6 +89,41 @@ pub fn geometry_masks(
         .collect()
 }
 
+/// The views with a pixel in their mask, with their references and masks, and the names of
+/// the others ([`seen_views`]).
+pub struct SeenViews<'a> {
+    pub views: Vec<&'a Camera>,
+    pub references: Vec<Image>,
+    pub masks: Vec<Vec<bool>>,
+    /// Views whose mask is empty: nothing to fit or to measure there.
+    pub blind: Vec<String>,
+}
+
+/// Splits the views (in order, with their references and masks) into those with at least one
+/// masked pixel and the rest.
+pub fn seen_views<'a>(
+    views: &[&'a Camera],
+    references: Vec<Image>,
+    masks: Vec<Vec<bool>>,
+) -> SeenViews<'a> {
+    let mut out = SeenViews {
+        views: Vec::new(),
+        references: Vec::new(),
+        masks: Vec::new(),
+        blind: Vec::new(),
+    };
+    for ((cam, r), m) in views.iter().zip(references).zip(masks) {
+        if m.contains(&true) {
+            out.views.push(*cam);
+            out.references.push(r);
+            out.masks.push(m);
+        } else {
+            out.blind.push(cam.name.clone());
+        }
+    }
+    out
+}
+
 /// Error of each image against its reference.
 pub fn compare_views(
     images: &[Image],
