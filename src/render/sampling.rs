@@ -1,7 +1,7 @@
 //! Random numbers and warps. Every stream is seeded from (seed, stream, pixel, sample), so an
 //! image is the same whatever the thread count or tile order.
 
-use std::f32::consts::{PI, TAU};
+use std::f32::consts::PI;
 
 use glam::{Vec2, Vec3};
 
@@ -195,6 +195,34 @@ pub fn permute(i: u32, n: u32, key: u32) -> u32 {
     (i.wrapping_add(key)) % n
 }
 
+/// (sin 2πu, cos 2πu) for `u` in [0, 1], within 2·10⁻⁷: the octant's centre from a table,
+/// then short Taylor series over ±π/8. A libm `sincosf` call per BSDF and light sample was
+/// 2.8% of a render.
+#[inline]
+pub fn sin_cos_2pi(u: f32) -> (f32, f32) {
+    // (sin, cos) of (k + ½)·π/4.
+    const S: f32 = 0.382_683_43;
+    const C: f32 = 0.923_879_5;
+    const OCTANTS: [(f32, f32); 8] = [
+        (S, C),
+        (C, S),
+        (C, -S),
+        (S, -C),
+        (-S, -C),
+        (-C, -S),
+        (-C, S),
+        (-S, C),
+    ];
+    let x = 8.0 * u;
+    let k = (x as usize).min(7);
+    let t = (x - k as f32 - 0.5) * std::f32::consts::FRAC_PI_4;
+    let t2 = t * t;
+    let sin_t = t * (1.0 - t2 * (1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 * (1.0 / 5040.0))));
+    let cos_t = 1.0 - t2 * (0.5 - t2 * (1.0 / 24.0 - t2 * (1.0 / 720.0)));
+    let (s, c) = OCTANTS[k];
+    (s * cos_t + c * sin_t, c * cos_t - s * sin_t)
+}
+
 /// An orthonormal basis (t, b, n) around unit `n` (Duff et al. 2017, branchless).
 #[inline]
 pub fn frame(n: Vec3) -> (Vec3, Vec3) {
@@ -218,9 +246,9 @@ pub fn to_world(n: Vec3, local: Vec3) -> Vec3 {
 #[inline]
 pub fn cosine_hemisphere(n: Vec3, u: Vec2) -> Vec3 {
     let r = u.x.sqrt();
-    let phi = TAU * u.y;
+    let (sin_phi, cos_phi) = sin_cos_2pi(u.y);
     let z = (1.0 - u.x).max(0.0).sqrt();
-    to_world(n, Vec3::new(r * phi.cos(), r * phi.sin(), z))
+    to_world(n, Vec3::new(r * cos_phi, r * sin_phi, z))
 }
 
 /// Uniform direction inside the cone about unit `axis` with `1 − cos θmax = one_minus_cos_max`
@@ -230,8 +258,8 @@ pub fn uniform_cone(axis: Vec3, one_minus_cos_max: f32, u: Vec2) -> Vec3 {
     let one_minus_cos = u.x * one_minus_cos_max;
     let cos_t = 1.0 - one_minus_cos;
     let sin_t = (one_minus_cos * (2.0 - one_minus_cos)).max(0.0).sqrt();
-    let phi = TAU * u.y;
-    to_world(axis, Vec3::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t))
+    let (sin_phi, cos_phi) = sin_cos_2pi(u.y);
+    to_world(axis, Vec3::new(sin_t * cos_phi, sin_t * sin_phi, cos_t))
 }
 
 /// Uniform direction on the unit sphere; pdf = 1 / 4π.
@@ -239,8 +267,8 @@ pub fn uniform_cone(axis: Vec3, one_minus_cos_max: f32, u: Vec2) -> Vec3 {
 pub fn uniform_sphere(u: Vec2) -> Vec3 {
     let z = 1.0 - 2.0 * u.x;
     let r = (1.0 - z * z).max(0.0).sqrt();
-    let phi = TAU * u.y;
-    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    let (sin_phi, cos_phi) = sin_cos_2pi(u.y);
+    Vec3::new(r * cos_phi, r * sin_phi, z)
 }
 
 /// The power heuristic (β = 2) weight of strategy `a` against `b`.
@@ -360,6 +388,20 @@ mod tests {
         }
         let mean = chi2_sum / pairs as f64;
         assert!((7.0..11.0).contains(&mean), "mean χ² {mean}");
+    }
+
+    #[test]
+    fn sin_cos_2pi_matches_the_library_everywhere() {
+        let mut worst = 0f64;
+        for i in 0..=1_000_000u32 {
+            let u = i as f32 / 1_000_000.0;
+            let (s, c) = sin_cos_2pi(u);
+            let (s64, c64) = (std::f64::consts::TAU * u as f64).sin_cos();
+            worst = worst
+                .max((s as f64 - s64).abs())
+                .max((c as f64 - c64).abs());
+        }
+        assert!(worst < 2e-7, "worst error {worst:e}");
     }
 
     #[test]
