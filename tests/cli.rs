@@ -260,30 +260,34 @@ fn luminance_only_exr() -> Vec<u8> {
 
 /// An RGB EXR of `w × h` pixels, all `value`.
 fn tiny_exr(w: u32, h: u32, value: f32) -> Vec<u8> {
+    exr_bytes(w, h, value, None)
+}
+
+/// An RGB EXR of `w × h` pixels, all `value`, whose alpha (coverage) is zero everywhere.
+fn uncovered_exr(w: u32, h: u32, value: f32) -> Vec<u8> {
+    exr_bytes(w, h, value, Some(0.0))
+}
+
+/// The bytes of a `w × h` EXR of one RGB `value`, with a constant alpha if given.
+fn exr_bytes(w: u32, h: u32, value: f32, alpha: Option<f32>) -> Vec<u8> {
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("x.exr");
+    let n = (w * h) as usize;
     let img = lightprobe::imageio::Image {
         width: w,
         height: h,
-        rgb: vec![glam::Vec3::splat(value); (w * h) as usize],
-        alpha: None,
+        rgb: vec![glam::Vec3::splat(value); n],
+        alpha: alpha.map(|a| vec![a; n]),
     };
     lightprobe::imageio::write_exr(&p, &img).unwrap();
     std::fs::read(p).unwrap()
 }
 
-/// An RGB EXR of `w × h` pixels, all `value`, whose alpha (coverage) is zero everywhere.
-fn uncovered_exr(w: u32, h: u32, value: f32) -> Vec<u8> {
-    let dir = tempfile::tempdir().unwrap();
-    let p = dir.path().join("x.exr");
-    let img = lightprobe::imageio::Image {
-        width: w,
-        height: h,
-        rgb: vec![glam::Vec3::splat(value); (w * h) as usize],
-        alpha: Some(vec![0.0; (w * h) as usize]),
-    };
-    lightprobe::imageio::write_exr(&p, &img).unwrap();
-    std::fs::read(p).unwrap()
+/// An 8×6 sidecar over `sky.gltf` (SKY_GLTF) lit by LIGHT, at `spp`.
+fn sky_sidecar(spp: u32) -> String {
+    format!(
+        "Scene(gltf: \"sky.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}], render: (spp: {spp}))"
+    )
 }
 
 /// A glTF with one triangle at y = 0 and one camera above it looking up, away from it.
@@ -745,10 +749,7 @@ fn cases() -> Vec<Case> {
             "estimate where no view sees geometry",
             vec![
                 ("sky.gltf", SKY_GLTF.as_bytes().to_vec()),
-                (
-                    "scene.ron",
-                    format!("Scene(gltf: \"sky.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}], render: (spp: 2))").into_bytes(),
-                ),
+                ("scene.ron", sky_sidecar(2).into_bytes()),
             ],
             &["estimate", "{d}/scene.ron", "--out", "{d}/out", "--quiet"].to_vec(),
             "scene.ron: no view has a pixel to fit (up: it sees no scene geometry)",
@@ -759,14 +760,14 @@ fn cases() -> Vec<Case> {
                 (
                     "sky.gltf",
                     SKY_GLTF
-                        .replace(r#"{"mesh": 0}, "#, r#"{"mesh": 0}, {"name": "up", "camera": 0}, "#)
+                        .replace(
+                            r#"{"mesh": 0}, "#,
+                            r#"{"mesh": 0}, {"name": "up", "camera": 0}, "#,
+                        )
                         .replace(r#"[{"nodes": [0, 1]}]"#, r#"[{"nodes": [0, 1, 2]}]"#)
                         .into_bytes(),
                 ),
-                (
-                    "scene.ron",
-                    format!("Scene(gltf: \"sky.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}])").into_bytes(),
-                ),
+                ("scene.ron", sky_sidecar(2).into_bytes()),
             ],
             &render,
             "sky.gltf: has two camera nodes named \"up\"",
@@ -784,22 +785,47 @@ fn cases() -> Vec<Case> {
             "negative image size",
             vec![(
                 "scene.ron",
-                format!("Scene(gltf: {:?}, image: (width: -5, height: 3))", bundled_glb()).into_bytes(),
+                format!(
+                    "Scene(gltf: {:?}, image: (width: -5, height: 3))",
+                    bundled_glb()
+                )
+                .into_bytes(),
             )],
             &render,
             "integer out of range for this field (negative, or too large)",
         ),
         c(
             "--out names an existing file",
-            vec![("scene.ron", sidecar("", LIGHT)), ("taken", b"a file".to_vec())],
-            &["render-reference", "{d}/scene.ron", "--out", "{d}/taken", "--quiet"].to_vec(),
+            vec![
+                ("scene.ron", sidecar("", LIGHT)),
+                ("taken", b"a file".to_vec()),
+            ],
+            &[
+                "render-reference",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/taken",
+                "--quiet",
+            ]
+            .to_vec(),
             "taken: exists and is not a folder",
         ),
         c(
             "--reference names a file",
-            vec![("scene.ron", sidecar("", LIGHT)), ("refs", b"a file".to_vec())],
-            &["estimate", "{d}/scene.ron", "--out", "{d}/out", "--reference", "{d}/refs", "--quiet"]
-                .to_vec(),
+            vec![
+                ("scene.ron", sidecar("", LIGHT)),
+                ("refs", b"a file".to_vec()),
+            ],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--reference",
+                "{d}/refs",
+                "--quiet",
+            ]
+            .to_vec(),
             "refs: is not a folder",
         ),
         c(
@@ -828,7 +854,15 @@ fn cases() -> Vec<Case> {
         c(
             "import into a missing folder",
             vec![("x.exr", tiny_exr(8, 4, 0.5))],
-            &["import-envmap", "{d}/x.exr", "--rings", "1", "--out", "{d}/none/e.ron"].to_vec(),
+            &[
+                "import-envmap",
+                "{d}/x.exr",
+                "--rings",
+                "1",
+                "--out",
+                "{d}/none/e.ron",
+            ]
+            .to_vec(),
             "/none does not exist",
         ),
         c(
@@ -1171,11 +1205,7 @@ fn estimate_leaves_out_a_view_that_sees_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     let d = tmp.path();
     std::fs::write(d.join("sky.gltf"), gltf).unwrap();
-    std::fs::write(
-        d.join("scene.ron"),
-        format!("Scene(gltf: \"sky.gltf\", image: (width: 8, height: 6), lights: [{LIGHT}], render: (spp: 4))"),
-    )
-    .unwrap();
+    std::fs::write(d.join("scene.ron"), sky_sidecar(4)).unwrap();
     let out = d.join("out");
     let o = run(&[
         "estimate",
