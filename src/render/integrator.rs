@@ -13,7 +13,7 @@
 
 use glam::{Vec2, Vec3};
 
-use super::lights::{LightSample, Lights};
+use super::lights::{LANES, LightQuery, LightSample, Lights};
 use super::sampling::{INV_PI, Rng, cosine_hemisphere, permute, power_heuristic, r2, sobol2};
 use super::{Accumulator, RenderSettings, Strategy};
 use crate::accel::{Accel, Bundle, Hit};
@@ -144,6 +144,16 @@ pub struct Vertex {
     t_next: f32,
 }
 
+/// A walked camera path, ready to be lit ([`Tracer::light`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Walked<'v> {
+    /// The camera ray's unit direction, world space.
+    pub dir: Vec3,
+    /// Distance to the first surface, metres (∞ if the camera ray sees none).
+    pub t_first: f32,
+    pub verts: &'v [Vertex],
+}
+
 /// Local geometry at a surface hit, with both normals facing the incoming ray.
 struct SurfacePoint {
     p: Vec3,
@@ -190,25 +200,39 @@ pub(super) struct Tracer<'a> {
 }
 
 impl Tracer<'_> {
-    /// Traces one camera path from `pixel`'s origin along unit `dir` (inside the pixel's
-    /// bundle, [`super::pixel_bundle`]) and hands every emitter it
-    /// reaches to `acc`; `verts` is scratch space. Returns whether the camera ray saw scene
-    /// geometry (for the coverage mask).
+    /// Traces camera paths from `pixel`'s origin, one per unit direction of `dirs` (inside
+    /// the pixel's bundle, [`super::pixel_bundle`]) with the sampler of the same index in `s`
+    /// (at most [`LANES`]), and hands every emitter they reach to `acc`; `verts` is scratch
+    /// space. Returns how many camera rays saw scene geometry (for the coverage mask).
     pub fn trace<A: Accumulator>(
         &self,
         pixel: &Bundle,
-        dir: Vec3,
-        s: &mut PathSampler,
+        dirs: &[Vec3],
+        s: &mut [PathSampler],
         verts: &mut Vec<Vertex>,
         acc: &A,
         px: &mut A::Pixel,
-    ) -> bool {
-        let t_first = self.walk(pixel, dir, s, false, verts);
-        self.light(pixel.origin(), dir, t_first, verts, s, acc, px)
+    ) -> u32 {
+        verts.clear();
+        let mut ranges = [(0.0f32, 0usize, 0usize); LANES];
+        for (l, (&dir, s)) in dirs.iter().zip(s.iter_mut()).enumerate() {
+            let start = verts.len();
+            let t_first = self.walk(pixel, dir, s, false, verts);
+            ranges[l] = (t_first, start, verts.len());
+        }
+        let paths: [Walked; LANES] = std::array::from_fn(|l| {
+            let (t_first, a, b) = ranges[l];
+            Walked {
+                dir: dirs.get(l).copied().unwrap_or(Vec3::Z),
+                t_first,
+                verts: &verts[a..b],
+            }
+        });
+        self.light(pixel.origin(), &paths[..dirs.len()], s, acc, px)
     }
 
     /// The scattering vertices of a camera path from `pixel`'s origin along unit `dir` (inside
-    /// the pixel's bundle) (at most `max_bounces`), into `out`, BSDF directions from `s`. With
+    /// the pixel's bundle) (at most `max_bounces`), appended to `out`, BSDF directions from `s`. With
     /// `trace_last` the last segment's geometry is found too (worth it for a path lit many
     /// times). Returns the distance to the first surface (∞ if the camera ray sees none).
     #[inline(always)]
@@ -220,24 +244,25 @@ impl Tracer<'_> {
         trace_last: bool,
         out: &mut Vec<Vertex>,
     ) -> f32 {
-        out.clear();
+        let start = out.len();
         let (mut o, mut d) = (pixel.origin(), dir);
         let mut t_first = f32::INFINITY;
         let mut throughput = Vec3::ONE;
         // One closest-hit query per segment; the camera ray's from the pixel's leaves.
         loop {
-            let hit = if out.is_empty() {
+            let depth = out.len() - start;
+            let hit = if depth == 0 {
                 self.accel.intersect_bundle(pixel, d, f32::INFINITY)
             } else {
                 self.accel.intersect(o, d, f32::INFINITY)
             };
             let t = hit.map_or(f32::INFINITY, |h| h.t);
             match out.last_mut() {
-                Some(v) => v.t_next = t,
-                None => t_first = t,
+                Some(v) if depth > 0 => v.t_next = t,
+                _ => t_first = t,
             }
             let Some(hit) = hit else { break };
-            if out.len() as u32 == self.settings.max_bounces {
+            if depth as u32 == self.settings.max_bounces {
                 break;
             }
             let sp = surface_point(self.scene, &hit, d);
@@ -249,7 +274,7 @@ impl Tracer<'_> {
                 wi: Vec3::ZERO,
                 t_next: f32::NAN,
             };
-            let u = s.bsdf_sample(out.len());
+            let u = s.bsdf_sample(depth);
             let wi = cosine_hemisphere(sp.ns, u);
             let pdf = wi.dot(sp.ns) * INV_PI;
             throughput *= sp.albedo; // f · cos / pdf for a Lambertian
@@ -258,7 +283,7 @@ impl Tracer<'_> {
                 v.wi = wi;
             }
             out.push(v);
-            let last = out.len() as u32 == self.settings.max_bounces;
+            let last = depth as u32 + 1 == self.settings.max_bounces;
             if ends || (last && !trace_last) {
                 break;
             }
@@ -267,22 +292,20 @@ impl Tracer<'_> {
         t_first
     }
 
-    /// Lights a walked path (`t_first`, `verts` from [`Tracer::walk`] of the camera ray
-    /// `origin`, `dir`), light samples from `s`: next-event estimation at each vertex
-    /// and the emitters its segments reach, handed to `acc`. An emitter in front of a vertex
-    /// ends the path there. Returns whether the camera ray saw scene geometry before any
-    /// emitter.
-    #[allow(clippy::too_many_arguments)]
+    /// Lights walked camera paths from `origin` (at most [`LANES`], each with the sampler of
+    /// the same index in `s`): next-event estimation at each vertex and the emitters its
+    /// segments reach, handed to `acc`. An emitter in front of a vertex ends the path there.
+    /// The paths advance together, a vertex at a time, so that the light samples of their
+    /// vertices at one depth are drawn together ([`Lights::sample_lanes`]). Returns how many
+    /// camera rays saw scene geometry before any emitter.
     pub fn light<A: Accumulator>(
         &self,
         origin: Vec3,
-        dir: Vec3,
-        t_first: f32,
-        verts: &[Vertex],
-        s: &mut PathSampler,
+        paths: &[Walked],
+        s: &mut [PathSampler],
         acc: &A,
         px: &mut A::Pixel,
-    ) -> bool {
+    ) -> u32 {
         let (lights, st) = (self.lights, self.settings);
         let (use_light, use_bsdf) = match st.strategy {
             Strategy::Mis => (true, true),
@@ -291,87 +314,125 @@ impl Tracer<'_> {
         };
         let mis = use_light && use_bsdf;
 
-        // ---- The camera ray: an emitter seen directly ----
-        let seen = match lights.intersect(origin, dir, 0.0, t_first) {
-            Some((_, e)) => Some(e),
-            None if t_first.is_infinite() => lights.escape(dir),
-            None => None,
-        };
-        if let Some(e) = seen {
-            if !st.hide_emitters {
-                acc.add(px, e, Vec3::ONE);
+        // ---- The camera rays: emitters seen directly ----
+        let mut alive = [false; LANES];
+        for (l, path) in paths.iter().enumerate() {
+            let seen = match lights.intersect(origin, path.dir, 0.0, path.t_first) {
+                Some((_, e)) => Some(e),
+                None if path.t_first.is_infinite() => lights.escape(path.dir),
+                None => None,
+            };
+            if let Some(e) = seen {
+                if !st.hide_emitters {
+                    acc.add(px, e, Vec3::ONE);
+                }
+                continue;
             }
-            return false;
+            alive[l] = path.t_first.is_finite();
         }
-        if t_first.is_infinite() {
-            return false;
-        }
+        let hits = alive.iter().filter(|&&a| a).count() as u32;
 
-        for (k, v) in verts.iter().enumerate() {
+        for k in 0..st.max_bounces as usize {
+            // The paths still going at vertex k.
+            let mut lanes = [0usize; LANES];
+            let mut n = 0;
+            for (l, path) in paths.iter().enumerate() {
+                if alive[l] && k < path.verts.len() {
+                    (lanes[n], n) = (l, n + 1);
+                }
+            }
+            let lanes = &lanes[..n];
+            if lanes.is_empty() {
+                break;
+            }
+
             // ---- Emitter sampling ----
             if use_light && st.every_light {
                 // At a stratified vertex every light gets the stratified sample (each
                 // light's estimate is stratified; their correlation biases nothing).
-                let shared = (k < STRATIFIED).then(|| s.light_sample(k));
+                let shared: [Option<(Vec2, Vec2)>; LANES] = std::array::from_fn(|j| {
+                    (j < n && k < STRATIFIED).then(|| s[lanes[j]].light_sample(k))
+                });
                 for i in 0..lights.len() {
-                    let (u_cell, u) = match shared {
-                        Some((pick, dir)) => (pick.y, dir),
-                        None => {
-                            let rng = s.light_rng();
-                            (rng.next_f32(), rng.next_2d())
+                    let mut q = LightQuery::default();
+                    for (j, &l) in lanes.iter().enumerate() {
+                        let (u_cell, u) = match shared[j] {
+                            Some((pick, dir)) => (pick.y, dir),
+                            None => {
+                                let rng = s[l].light_rng();
+                                (rng.next_f32(), rng.next_2d())
+                            }
+                        };
+                        let v = &paths[l].verts[k];
+                        q.push(v.p, v.ns, Vec2::new(0.0, u_cell), u);
+                    }
+                    let samples = lights.sample_lanes(&q, Some(i));
+                    for (j, &l) in lanes.iter().enumerate() {
+                        if let Some(ls) = &samples[j] {
+                            self.shadow_ray(&paths[l].verts[k], ls, mis, acc, px);
                         }
-                    };
-                    if let Some(ls) = lights.sample_light(i, v.p, u_cell, u) {
-                        self.shadow_ray(v, &ls, mis, acc, px);
                     }
                 }
             } else if use_light {
-                let (u_light, u) = s.light_sample(k);
-                if let Some(ls) = lights.sample(v.p, v.ns, u_light, u) {
-                    self.shadow_ray(v, &ls, mis, acc, px);
+                let mut q = LightQuery::default();
+                for &l in lanes {
+                    let (u_light, u) = s[l].light_sample(k);
+                    let v = &paths[l].verts[k];
+                    q.push(v.p, v.ns, u_light, u);
+                }
+                let samples = lights.sample_lanes(&q, None);
+                for (j, &l) in lanes.iter().enumerate() {
+                    if let Some(ls) = &samples[j] {
+                        self.shadow_ray(&paths[l].verts[k], ls, mis, acc, px);
+                    }
                 }
             }
 
-            // ---- BSDF sampling: the emitter the next segment reaches, if any ----
-            if v.wi == Vec3::ZERO {
-                break;
-            }
-            let o = offset(v.p, v.ng);
-            let light_hit = lights.intersect(o, v.wi, 0.0, f32::INFINITY);
-            let reached = if v.t_next.is_nan() {
-                // Not traced: one occlusion test toward the emitter it would reach (no ray
-                // at all toward none, or without `use_bsdf`).
-                let target = light_hit.or_else(|| lights.escape(v.wi).map(|e| (f32::INFINITY, e)));
-                target
-                    .filter(|&(t, _)| use_bsdf && !self.accel.occluded(o, v.wi, t))
-                    .map(|(_, e)| e)
-            } else {
-                match light_hit {
-                    Some((t, e)) if t < v.t_next => Some(e),
-                    _ if v.t_next.is_infinite() => lights.escape(v.wi),
-                    _ => None,
+            // ---- BSDF sampling: the emitter each next segment reaches, if any ----
+            for &l in lanes {
+                let v = &paths[l].verts[k];
+                if v.wi == Vec3::ZERO {
+                    alive[l] = false;
+                    continue;
                 }
-            };
-            let Some(e) = reached else {
-                continue;
-            };
-            if use_bsdf {
-                let w = if mis {
-                    let light_pdf = if st.every_light {
-                        lights.pdf_light(e, v.p)
-                    } else {
-                        lights.pdf(e, v.p, v.ns)
-                    };
-                    power_heuristic(v.wi.dot(v.ns) * INV_PI, light_pdf)
+                let o = offset(v.p, v.ng);
+                let light_hit = lights.intersect(o, v.wi, 0.0, f32::INFINITY);
+                let reached = if v.t_next.is_nan() {
+                    // Not traced: one occlusion test toward the emitter it would reach (no
+                    // ray at all toward none, or without `use_bsdf`).
+                    let target =
+                        light_hit.or_else(|| lights.escape(v.wi).map(|e| (f32::INFINITY, e)));
+                    target
+                        .filter(|&(t, _)| use_bsdf && !self.accel.occluded(o, v.wi, t))
+                        .map(|(_, e)| e)
                 } else {
-                    1.0
+                    match light_hit {
+                        Some((t, e)) if t < v.t_next => Some(e),
+                        _ if v.t_next.is_infinite() => lights.escape(v.wi),
+                        _ => None,
+                    }
                 };
-                // Throughput after the bounce: f · cos / pdf = albedo, i.e. π · f.
-                acc.add(px, e, v.throughput_f * std::f32::consts::PI * w);
+                let Some(e) = reached else {
+                    continue;
+                };
+                if use_bsdf {
+                    let w = if mis {
+                        let light_pdf = if st.every_light {
+                            lights.pdf_light(e, v.p)
+                        } else {
+                            lights.pdf(e, v.p, v.ns)
+                        };
+                        power_heuristic(v.wi.dot(v.ns) * INV_PI, light_pdf)
+                    } else {
+                        1.0
+                    };
+                    // Throughput after the bounce: f · cos / pdf = albedo, i.e. π · f.
+                    acc.add(px, e, v.throughput_f * std::f32::consts::PI * w);
+                }
+                alive[l] = false;
             }
-            break;
         }
-        true
+        hits
     }
 
     /// Next-event estimation of one light sample at vertex `v`: a shadow ray, and if the

@@ -42,6 +42,48 @@ pub struct Lights {
     pub env: Option<Envmap>,
 }
 
+/// Shading points whose light samples are drawn together ([`Lights::sample_lanes`]): eight
+/// f32 lanes fill a 256-bit vector register.
+pub const LANES: usize = 8;
+
+/// Up to [`LANES`] shading points and their sample numbers, structure of arrays (lane `l` of
+/// each field belongs to point `l`).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct LightQuery {
+    /// Lanes in use, `0..len`.
+    pub len: usize,
+    /// Position, world space (metres), per axis.
+    pub p: [[f32; LANES]; 3],
+    /// Unit shading normal, world space, per axis.
+    pub n: [[f32; LANES]; 3],
+    /// The pick's numbers and the direction's ([`Lights::sample`]).
+    pub u_light: [[f32; LANES]; 2],
+    pub u: [[f32; LANES]; 2],
+}
+
+impl LightQuery {
+    /// Adds a point in the next lane (at most [`LANES`]).
+    #[inline]
+    pub fn push(&mut self, p: Vec3, n: Vec3, u_light: Vec2, u: Vec2) {
+        let l = self.len;
+        (self.p[0][l], self.p[1][l], self.p[2][l]) = (p.x, p.y, p.z);
+        (self.n[0][l], self.n[1][l], self.n[2][l]) = (n.x, n.y, n.z);
+        (self.u_light[0][l], self.u_light[1][l]) = (u_light.x, u_light.y);
+        (self.u[0][l], self.u[1][l]) = (u.x, u.y);
+        self.len += 1;
+    }
+
+    #[inline(always)]
+    fn p(&self, l: usize) -> Vec3 {
+        Vec3::new(self.p[0][l], self.p[1][l], self.p[2][l])
+    }
+
+    #[inline(always)]
+    fn n(&self, l: usize) -> Vec3 {
+        Vec3::new(self.n[0][l], self.n[1][l], self.n[2][l])
+    }
+}
+
 /// Up to this many lights are picked by how strongly they light the shading point; more are
 /// picked uniformly (the weights would cost more than they save).
 pub const MAX_WEIGHTED: usize = 16;
@@ -95,12 +137,7 @@ impl Lights {
         }
         let mut w = [0.0f32; MAX_WEIGHTED + 1];
         for (i, s) in self.spheres.iter().enumerate() {
-            w[i] = Cone::of(s, p).map_or(0.0, |c| {
-                crate::imageio::luminance(s.radiance).max(0.0)
-                    * std::f32::consts::TAU
-                    * c.omc
-                    * c.max_cosine(n)
-            });
+            w[i] = pick_weight(s, p, n);
         }
         if let Some(env) = &self.env {
             w[count - 1] = env.luminance_integral().max(0.0);
@@ -124,78 +161,168 @@ impl Lights {
     /// Picks a light for the point `p` with shading normal `n` with `u_light.x`
     /// ([`Lights::pick_weights`]), then a direction to it: to a sphere with where `u_light.x`
     /// fell in its share (rescaled) and `u_light.y`; into the envmap, a cell with `u_light.y`
-    /// and a direction in it with `u`.
+    /// and a direction in it with `u`. One lane of [`Lights::sample_lanes`].
     #[inline]
     pub fn sample(&self, p: Vec3, n: Vec3, u_light: Vec2, u: Vec2) -> Option<LightSample> {
-        let count = self.len();
-        if count == 0 {
-            return None;
-        }
-        // The pick and where `u_light.x` fell within the picked light's share, rescaled to
-        // [0, 1).
-        let (i, pick, within) = match self.pick_weights(p, n) {
-            Some(w) => {
-                let target = u_light.x * w[count];
-                let mut acc = 0.0;
-                let mut i = count - 1;
-                for (k, &wk) in w[..count].iter().enumerate() {
-                    acc += wk;
-                    if target < acc && wk > 0.0 {
-                        i = k;
-                        break;
-                    }
-                }
-                // Rounding can leave the last index with weight zero: take the last nonzero.
-                while w[i] <= 0.0 && i > 0 {
-                    i -= 1;
-                }
-                let below: f32 = w[..i].iter().sum();
-                (i, w[i] / w[count], (target - below) / w[i])
-            }
-            None => {
-                let x = u_light.x * count as f32;
-                let i = (x as usize).min(count - 1);
-                (i, 1.0 / count as f32, x - i as f32)
-            }
-        };
-        // A sphere's direction comes from the pick's own pair, so the samples that pick it
-        // keep that pair's stratification; the other pair's points would be a random subset.
-        // Not for a light picked rarely: its share of the f32 `u_light.x` holds too few
-        // distinct values.
-        let u = if i < self.spheres.len() && pick >= 1.0 / 4096.0 {
-            Vec2::new(within.clamp(0.0, ONE_MINUS_EPS), u_light.y)
-        } else {
-            u
-        };
-        let ls = self.sample_light(i, p, u_light.y, u)?;
-        Some(LightSample {
-            pdf: ls.pdf * pick,
-            ..ls
-        })
+        let mut q = LightQuery::default();
+        q.push(p, n, u_light, u);
+        self.sample_lanes(&q, None)[0]
     }
 
     /// A direction toward light `i` alone (sphere `i`, or the envmap at `len() - 1`, its cell
     /// picked with `u_cell`), its pdf excluding any choice of light: next-event estimation
-    /// that samples every light ([`super::RenderSettings::every_light`]).
+    /// that samples every light ([`super::RenderSettings::every_light`]). One lane of
+    /// [`Lights::sample_lanes`].
     #[inline]
     pub fn sample_light(&self, i: usize, p: Vec3, u_cell: f32, u: Vec2) -> Option<LightSample> {
-        if i < self.spheres.len() {
-            let (wi, dist, pdf) = sample_sphere(&self.spheres[i], p, u)?;
-            return Some(LightSample {
-                emitter: Emitter::Sphere(i as u32),
-                wi,
-                dist,
-                pdf,
-            });
+        let mut q = LightQuery::default();
+        q.push(p, Vec3::Z, Vec2::new(0.0, u_cell), u);
+        self.sample_lanes(&q, Some(i))[0]
+    }
+
+    /// [`Lights::sample`] at each point of `q` (`only: None`), or [`Lights::sample_light`] of
+    /// light `i` (`only: Some(i)`, `u_light.y` picking the envmap cell). Lanes past `q.len`
+    /// get `None`. The arithmetic runs on all lanes at once, in loops over lanes the compiler
+    /// vectorises; only the envmap's cell search is done lane by lane.
+    pub fn sample_lanes(
+        &self,
+        q: &LightQuery,
+        only: Option<usize>,
+    ) -> [Option<LightSample>; LANES] {
+        let mut out = [None; LANES];
+        let count = self.len();
+        if count == 0 || q.len == 0 {
+            return out;
         }
-        let env = self.env.as_ref()?;
-        let (cell, wi, pdf) = env.sample(u_cell, u);
-        Some(LightSample {
-            emitter: Emitter::EnvCell(cell),
-            wi,
-            dist: f32::INFINITY,
-            pdf,
-        })
+        // Per lane: the light, the probability it was picked, the direction's numbers.
+        let (mut pick, mut prob, mut u) = ([0usize; LANES], [1.0f32; LANES], q.u);
+        match only {
+            Some(i) => pick = [i.min(count - 1); LANES],
+            None => self.pick_lanes(q, &mut pick, &mut prob, &mut u),
+        }
+
+        let spheres = self.spheres.len();
+        if spheres > 0 {
+            // The picked sphere of each lane (the first where the envmap was picked: that
+            // lane's cone is computed and thrown away).
+            let (mut center, mut radius) = ([[0.0f32; LANES]; 3], [0.0f32; LANES]);
+            for l in 0..LANES {
+                let s = &self.spheres[pick[l].min(spheres - 1)];
+                (center[0][l], center[1][l], center[2][l]) = (s.center.x, s.center.y, s.center.z);
+                radius[l] = s.radius;
+            }
+            let mut wi = [[0.0f32; LANES]; 3];
+            let (mut dist, mut pdf, mut inside) = ([0.0f32; LANES], [0.0f32; LANES], [true; LANES]);
+            for l in 0..LANES {
+                let c = Vec3::new(center[0][l], center[1][l], center[2][l]);
+                let cone = Cone::at(c, radius[l], q.p(l));
+                let (w, d, f) = cone.sample(radius[l], Vec2::new(u[0][l], u[1][l]));
+                (wi[0][l], wi[1][l], wi[2][l]) = (w.x, w.y, w.z);
+                (dist[l], pdf[l], inside[l]) = (d, f * prob[l], cone.inside);
+            }
+            for l in 0..q.len {
+                if pick[l] < spheres && !inside[l] {
+                    out[l] = Some(LightSample {
+                        emitter: Emitter::Sphere(pick[l] as u32),
+                        wi: Vec3::new(wi[0][l], wi[1][l], wi[2][l]),
+                        dist: dist[l],
+                        pdf: pdf[l],
+                    });
+                }
+            }
+        }
+        if let Some(env) = &self.env {
+            for l in (0..q.len).filter(|&l| pick[l] == count - 1) {
+                let (cell, wi, pdf) = env.sample(q.u_light[1][l], Vec2::new(u[0][l], u[1][l]));
+                out[l] = Some(LightSample {
+                    emitter: Emitter::EnvCell(cell),
+                    wi,
+                    dist: f32::INFINITY,
+                    pdf: pdf * prob[l],
+                });
+            }
+        }
+        out
+    }
+
+    /// The light each lane of `q` picks with `u_light.x` ([`Lights::pick_weights`]), the
+    /// probability of that pick, and for a sphere picked often enough, its direction numbers:
+    /// where `u_light.x` fell within the sphere's share (rescaled to [0, 1)) and `u_light.y`.
+    /// So the samples that pick a sphere keep that pair's stratification; the other pair's
+    /// points would be a random subset. Not for a light picked rarely: its share of the f32
+    /// `u_light.x` holds too few distinct values.
+    #[inline]
+    fn pick_lanes(
+        &self,
+        q: &LightQuery,
+        pick: &mut [usize; LANES],
+        prob: &mut [f32; LANES],
+        u: &mut [[f32; LANES]; 2],
+    ) {
+        let count = self.len();
+        let mut within = [0.0f32; LANES];
+        // Uniform picks (too many lights to weigh, or weights all zero) where needed.
+        let uniform = |l: usize,
+                       pick: &mut [usize; LANES],
+                       prob: &mut [f32; LANES],
+                       within: &mut [f32; LANES]| {
+            let x = q.u_light[0][l] * count as f32;
+            pick[l] = (x as usize).min(count - 1);
+            prob[l] = 1.0 / count as f32;
+            within[l] = x - pick[l] as f32;
+        };
+        if count > MAX_WEIGHTED {
+            (0..LANES).for_each(|l| uniform(l, pick, prob, &mut within));
+        } else {
+            let mut w = [[0.0f32; LANES]; MAX_WEIGHTED];
+            for (wi, s) in w.iter_mut().zip(&self.spheres) {
+                *wi = std::array::from_fn(|l| pick_weight(s, q.p(l), q.n(l)));
+            }
+            if let Some(env) = &self.env {
+                w[count - 1] = [env.luminance_integral().max(0.0); LANES];
+            }
+            let mut total = [0.0f32; LANES];
+            for wi in &w[..count] {
+                (0..LANES).for_each(|l| total[l] += wi[l]);
+            }
+            // The first light whose running sum passes the target, with the sum before it;
+            // rounding can leave none, then the last light of nonzero weight.
+            let target: [f32; LANES] = std::array::from_fn(|l| q.u_light[0][l] * total[l]);
+            let (mut sum, mut found) = ([0.0f32; LANES], [false; LANES]);
+            let (mut below, mut last, mut below_last) =
+                ([0.0f32; LANES], [0usize; LANES], [0.0f32; LANES]);
+            for (i, wi) in w[..count].iter().enumerate() {
+                for l in 0..LANES {
+                    let before = sum[l];
+                    sum[l] += wi[l];
+                    let take = !found[l] && target[l] < sum[l] && wi[l] > 0.0;
+                    if take {
+                        (pick[l], below[l], found[l]) = (i, before, true);
+                    }
+                    if wi[l] > 0.0 {
+                        (last[l], below_last[l]) = (i, before);
+                    }
+                }
+            }
+            for l in 0..LANES {
+                if !(total[l] > 0.0 && total[l].is_finite()) {
+                    uniform(l, pick, prob, &mut within);
+                    continue;
+                }
+                if !found[l] {
+                    (pick[l], below[l]) = (last[l], below_last[l]);
+                }
+                let wp = w[pick[l]][l];
+                prob[l] = wp / total[l];
+                within[l] = (target[l] - below[l]) / wp;
+            }
+        }
+        for l in 0..LANES {
+            if pick[l] < self.spheres.len() && prob[l] >= 1.0 / 4096.0 {
+                u[0][l] = within[l].clamp(0.0, ONE_MINUS_EPS);
+                u[1][l] = q.u_light[1][l];
+            }
+        }
     }
 
     /// The pdf [`Lights::sample`] has for reaching `emitter` (in a direction that does reach
@@ -264,28 +391,39 @@ struct Cone {
     omc: f32,
     sin_a: f32,
     cos_a: f32,
+    /// The point is inside the sphere (or on it): there is no cone, and the other fields are
+    /// meaningless.
+    inside: bool,
 }
 
 impl Cone {
     /// The cone of `s` from `p`, or `None` from inside it.
     #[inline]
     fn of(s: &SphereLight, p: Vec3) -> Option<Cone> {
-        let to_c = s.center - p;
+        let c = Cone::at(s.center, s.radius, p);
+        (!c.inside).then_some(c)
+    }
+
+    /// The cone of the sphere (`center`, `radius`) from `p`, without branches (so that loops
+    /// over lanes vectorise): check `inside`.
+    #[inline(always)]
+    fn at(center: Vec3, radius: f32, p: Vec3) -> Cone {
+        let to_c = center - p;
         let d2 = to_c.length_squared();
-        let r2 = s.radius * s.radius;
-        if d2 <= r2 * 1.0001 {
-            return None;
-        }
+        let r2 = radius * radius;
+        let inside = d2 <= r2 * 1.0001;
+        let d2 = d2.max(f32::MIN_POSITIVE);
         let dist = d2.sqrt();
-        let sin2 = r2 / d2;
-        let cos_a = (1.0 - sin2).max(0.0).sqrt();
-        Some(Cone {
+        let sin2 = (r2 / d2).min(1.0);
+        let cos_a = (1.0 - sin2).sqrt();
+        Cone {
             axis: to_c / dist,
             dist,
             omc: sin2 / (1.0 + cos_a),
-            sin_a: s.radius / dist,
+            sin_a: radius / dist,
             cos_a,
-        })
+            inside,
+        }
     }
 
     /// The largest cosine between unit `n` and a direction in the cone, clamped at zero:
@@ -293,11 +431,10 @@ impl Cone {
     #[inline]
     fn max_cosine(&self, n: Vec3) -> f32 {
         let cos_t = n.dot(self.axis).clamp(-1.0, 1.0);
-        if cos_t >= self.cos_a {
-            return 1.0; // n points into the cone
-        }
         let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
-        (cos_t * self.cos_a + sin_t * self.sin_a).max(0.0)
+        let rim = (cos_t * self.cos_a + sin_t * self.sin_a).max(0.0);
+        // 1 where n points into the cone.
+        if cos_t >= self.cos_a { 1.0 } else { rim }
     }
 
     /// Pdf per unit solid angle of uniform cone sampling.
@@ -317,6 +454,19 @@ impl Cone {
         let dist = d * cos_t - (radius * radius - perp2).max(0.0).sqrt();
         (wi, dist.max(0.0), self.pdf())
     }
+}
+
+/// How strongly sphere `s` can light the point `p` with shading normal `n`, the weight of
+/// its pick ([`Lights::pick_weights`]): luminance × solid angle × the largest cosine over
+/// the cone, zero from inside.
+#[inline(always)]
+fn pick_weight(s: &SphereLight, p: Vec3, n: Vec3) -> f32 {
+    let c = Cone::at(s.center, s.radius, p);
+    let w = crate::imageio::luminance(s.radiance).max(0.0)
+        * std::f32::consts::TAU
+        * c.omc
+        * c.max_cosine(n);
+    if c.inside { 0.0 } else { w }
 }
 
 /// `1 − cos θmax` of the cone a sphere subtends from `p`, or `None` from inside it.
@@ -369,6 +519,7 @@ pub fn intersect_sphere(s: &SphereLight, o: Vec3, d: Vec3, t_min: f32) -> Option
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::envmap::RingGrid;
     use crate::render::sampling::Rng;
 
     fn light() -> SphereLight {
@@ -561,6 +712,67 @@ mod tests {
         let s = light();
         assert!(sample_sphere(&s, s.center, Vec2::splat(0.5)).is_none());
         assert_eq!(cone_pdf(&s, s.center + Vec3::X * 0.1), 0.0);
+    }
+
+    #[test]
+    fn lanes_sample_as_each_point_alone() {
+        // Eight points at once give each point the sample it gets alone, whichever light
+        // (or none, from inside a sphere) each lane picks: the lanes do not leak into each
+        // other. Three spheres and an envmap, all picks and `sample_light` of each light.
+        let mut r = Rng::new(17);
+        let spheres = vec![
+            light(),
+            SphereLight {
+                center: Vec3::new(-1.0, 1.0, 0.5),
+                radius: 0.2,
+                radiance: Vec3::new(5.0, 1.0, 0.5),
+            },
+            SphereLight {
+                center: Vec3::new(0.5, 0.3, 1.5),
+                radius: 0.6,
+                radiance: Vec3::splat(0.3),
+            },
+        ];
+        let radiance = (0..RingGrid::new(4).cell_count())
+            .map(|c| Vec3::splat(0.1 + (c % 5) as f32))
+            .collect();
+        let mut lights = Lights::new(spheres);
+        lights.env = Some(Envmap::new(4, radiance).unwrap());
+        let mut same = 0;
+        for round in 0..500 {
+            let mut q = LightQuery::default();
+            let len = 1 + round % LANES;
+            for l in 0..len {
+                // One lane in four inside the first sphere.
+                let p = if l % 4 == 3 {
+                    lights.spheres[0].center + Vec3::X * 0.1
+                } else {
+                    Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 2.0 - Vec3::ONE
+                };
+                let n = crate::render::sampling::uniform_sphere(r.next_2d());
+                q.push(p, n, r.next_2d(), r.next_2d());
+            }
+            let together = lights.sample_lanes(&q, None);
+            for l in 0..LANES {
+                let alone = (l < len).then(|| {
+                    let (p, n) = (q.p(l), q.n(l));
+                    let u_light = Vec2::new(q.u_light[0][l], q.u_light[1][l]);
+                    lights.sample(p, n, u_light, Vec2::new(q.u[0][l], q.u[1][l]))
+                });
+                let alone = alone.flatten();
+                assert_eq!(format!("{:?}", together[l]), format!("{alone:?}"));
+                same += alone.is_some() as usize;
+            }
+            for i in 0..lights.len() {
+                let together = lights.sample_lanes(&q, Some(i));
+                for l in 0..len {
+                    let u = Vec2::new(q.u[0][l], q.u[1][l]);
+                    let alone = lights.sample_light(i, q.p(l), q.u_light[1][l], u);
+                    assert_eq!(format!("{:?}", together[l]), format!("{alone:?}"));
+                }
+            }
+        }
+        assert!(same > 1000, "too few samples compared: {same}");
     }
 
     #[test]

@@ -27,7 +27,8 @@ pub use lights::{Emitter, LightSample, Lights};
 use crate::accel::{Accel, Bundle};
 use crate::imageio::Image;
 use crate::scene::{Camera, Scene, SceneSettings};
-use integrator::{PathSampler, Tracer, Vertex};
+use integrator::{PathSampler, Tracer, Vertex, Walked};
+use lights::LANES;
 use sampling::{Rng, mix64};
 
 /// Side of the square tiles work is split into.
@@ -233,7 +234,8 @@ impl<'a> Renderer<'a> {
             .par_iter()
             .map(|&(x0, y0, x1, y1)| {
                 let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
-                let mut verts = Vec::with_capacity(settings.max_bounces as usize);
+                let mut verts = Vec::with_capacity(LANES * settings.max_bounces as usize);
+                let (mut dirs, mut samplers) = (Vec::new(), Vec::new());
                 let mut pixel = Bundle::default();
                 for y in y0..y1 {
                     for x in x0..x1 {
@@ -247,9 +249,25 @@ impl<'a> Renderer<'a> {
                             out.push((index, px, 0.0));
                             continue;
                         }
-                        for (dir, mut s) in camera_samples(key, index, x, y, &ray_dir, settings) {
-                            let p = &pixel;
-                            hits += tracer.trace(p, dir, &mut s, &mut verts, acc, &mut px) as u32;
+                        let mut samples = camera_samples(key, index, x, y, &ray_dir, settings);
+                        loop {
+                            dirs.clear();
+                            samplers.clear();
+                            for (dir, s) in samples.by_ref().take(LANES) {
+                                dirs.push(dir);
+                                samplers.push(s);
+                            }
+                            if dirs.is_empty() {
+                                break;
+                            }
+                            hits += tracer.trace(
+                                &pixel,
+                                &dirs,
+                                &mut samplers,
+                                &mut verts,
+                                acc,
+                                &mut px,
+                            );
                         }
                         acc.finish(&mut px, settings.spp);
                         out.push((index, px, hits as f32 / settings.spp as f32));
@@ -483,7 +501,6 @@ fn walk_tile(
         samples: Vec::with_capacity(((x1 - x0) * (y1 - y0) * settings.spp) as usize),
         vertices: Vec::new(),
     };
-    let mut verts = Vec::with_capacity(settings.max_bounces as usize);
     let mut pixel = Bundle::default();
     for y in y0..y1 {
         for x in x0..x1 {
@@ -496,9 +513,9 @@ fn walk_tile(
                 continue;
             }
             for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
-                let t = tracer.walk(&pixel, dir, &mut s, true, &mut verts);
-                tile.samples.push((t, verts.len() as u8));
-                tile.vertices.extend_from_slice(&verts);
+                let start = tile.vertices.len();
+                let t = tracer.walk(&pixel, dir, &mut s, true, &mut tile.vertices);
+                tile.samples.push((t, (tile.vertices.len() - start) as u8));
             }
         }
     }
@@ -519,6 +536,7 @@ fn light_tile<A: Accumulator>(
     let settings = tracer.settings;
     let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
     let (mut sample, mut vertex) = (0, 0);
+    let mut samplers = Vec::with_capacity(LANES);
     for y in y0..y1 {
         for x in x0..x1 {
             let index = y * camera.width + x;
@@ -537,19 +555,30 @@ fn light_tile<A: Accumulator>(
                 out.push((index, px, 0.0));
                 continue;
             }
-            for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
-                let (t_first, n) = walked.samples[sample];
-                let verts = &walked.vertices[vertex..vertex + n as usize];
-                (sample, vertex) = (sample + 1, vertex + n as usize);
-                hits += tracer.light(
-                    camera.origin_world,
-                    dir,
-                    t_first,
-                    verts,
-                    &mut s,
-                    acc,
-                    &mut px,
-                ) as u32;
+            let mut samples = camera_samples(key, index, x, y, ray_dir, settings);
+            loop {
+                let mut paths = [Walked {
+                    dir: Vec3::Z,
+                    t_first: f32::INFINITY,
+                    verts: &[],
+                }; LANES];
+                samplers.clear();
+                for (dir, s) in samples.by_ref().take(LANES) {
+                    let (t_first, n) = walked.samples[sample];
+                    let verts = &walked.vertices[vertex..vertex + n as usize];
+                    (sample, vertex) = (sample + 1, vertex + n as usize);
+                    paths[samplers.len()] = Walked {
+                        dir,
+                        t_first,
+                        verts,
+                    };
+                    samplers.push(s);
+                }
+                if samplers.is_empty() {
+                    break;
+                }
+                let paths = &paths[..samplers.len()];
+                hits += tracer.light(camera.origin_world, paths, &mut samplers, acc, &mut px);
             }
             acc.finish(&mut px, settings.spp);
             out.push((index, px, hits as f32 / settings.spp as f32));

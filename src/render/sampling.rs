@@ -195,31 +195,24 @@ pub fn permute(i: u32, n: u32, key: u32) -> u32 {
     (i.wrapping_add(key)) % n
 }
 
-/// (sin 2πu, cos 2πu) for `u` in [0, 1], within 2·10⁻⁷: the octant's centre from a table,
-/// then short Taylor series over ±π/8. A libm `sincosf` call per BSDF and light sample was
-/// 2.8% of a render.
+/// (sin 2πu, cos 2πu) for `u` in [0, 1], within 2·10⁻⁷: the octant's centre, then short
+/// Taylor series over ±π/8. A libm `sincosf` call per BSDF and light sample was 2.8% of a
+/// render. No table and no branches, so loops over lanes vectorise.
 #[inline]
 pub fn sin_cos_2pi(u: f32) -> (f32, f32) {
-    // (sin, cos) of (k + ½)·π/4.
+    // (sin, cos) of π/8 and 3π/8: the centres of the first quadrant's two octants.
     const S: f32 = 0.382_683_43;
     const C: f32 = 0.923_879_5;
-    const OCTANTS: [(f32, f32); 8] = [
-        (S, C),
-        (C, S),
-        (C, -S),
-        (S, -C),
-        (-S, -C),
-        (-C, -S),
-        (-C, S),
-        (-S, C),
-    ];
     let x = 8.0 * u;
-    let k = (x as usize).min(7);
+    let k = (x as u32).min(7);
     let t = (x - k as f32 - 0.5) * std::f32::consts::FRAC_PI_4;
     let t2 = t * t;
     let sin_t = t * (1.0 - t2 * (1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 * (1.0 / 5040.0))));
     let cos_t = 1.0 - t2 * (0.5 - t2 * (1.0 / 24.0 - t2 * (1.0 / 720.0)));
-    let (s, c) = OCTANTS[k];
+    // Octant k's centre (k + ½)·π/4: the quadrant's octant, turned by k / 2 quarter turns.
+    let (s, c) = if k & 1 != 0 { (C, S) } else { (S, C) };
+    let (s, c) = if k & 2 != 0 { (c, -s) } else { (s, c) };
+    let (s, c) = if k & 4 != 0 { (-s, -c) } else { (s, c) };
     (s * cos_t + c * sin_t, c * cos_t - s * sin_t)
 }
 
