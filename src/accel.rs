@@ -43,8 +43,19 @@ const WIDTH: usize = 8;
 /// A child reference with this bit set is a leaf, `LEAF | packet index`; otherwise it is a
 /// node index.
 const LEAF: u32 = 1 << 31;
-/// Traversal stack entries kept on the machine stack; deeper trees use a heap stack.
+/// Entries of the stack of [`Accel::bundle`]'s traversal (deeper trees give up the bundle).
 const STACK: usize = 128;
+
+thread_local! {
+    /// Each thread's traversal stacks (closest hit, any hit), grown to the deepest tree it
+    /// has traversed: a stack on the machine stack would be zeroed at every ray, which cost
+    /// an eighth of a closest-hit query.
+    static STACKS: std::cell::RefCell<Stacks> =
+        const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+}
+
+/// Traversal stacks: closest hit (child reference, entry distance), any hit (child reference).
+type Stacks = (Vec<(u32, f32)>, Vec<u32>);
 
 /// One 8-wide node: the boxes of its children, world space, metres.
 #[derive(Clone, Copy)]
@@ -193,8 +204,9 @@ impl Accel {
             &mut Duration::default(),
         );
         let depth = accel.collapse(&bvh2, triangles, 0);
-        // Each level pops one entry and pushes at most WIDTH.
-        accel.stack_len = depth * (WIDTH - 1) + 1;
+        // Each level pops one entry and pushes at most WIDTH; closest-hit traversal writes
+        // WIDTH entries at once (a fixed-size copy, no memmove call), hence the slack.
+        accel.stack_len = depth * (WIDTH - 1) + 1 + WIDTH;
         accel
     }
 
@@ -293,11 +305,12 @@ impl Accel {
             return None;
         }
         let ray = RayData::new(origin, dir);
-        if self.stack_len <= STACK {
-            self.closest(&ray, t_max, &mut [(0, 0.0); STACK])
-        } else {
-            self.closest(&ray, t_max, &mut vec![(0, 0.0); self.stack_len])
-        }
+        STACKS.with_borrow_mut(|(stack, _)| {
+            if stack.len() < self.stack_len {
+                stack.resize(self.stack_len, (0, 0.0));
+            }
+            self.closest(&ray, t_max, stack)
+        })
     }
 
     /// True if anything lies on the segment from `origin` along unit `dir` up to `t_max`.
@@ -307,11 +320,12 @@ impl Accel {
             return false;
         }
         let ray = RayData::new(origin, dir);
-        if self.stack_len <= STACK {
-            self.any(&ray, t_max, &mut [0; STACK])
-        } else {
-            self.any(&ray, t_max, &mut vec![0; self.stack_len])
-        }
+        STACKS.with_borrow_mut(|(_, stack)| {
+            if stack.len() < self.stack_len {
+                stack.resize(self.stack_len, 0);
+            }
+            self.any(&ray, t_max, stack)
+        })
     }
 
     /// Fills `out` with the leaves the pyramid with apex `origin` spanned by the four edge
@@ -466,7 +480,7 @@ impl Accel {
                 order[j] = entry;
                 n += 1;
             }
-            stack[top..top + n].copy_from_slice(&order[..n]);
+            stack[top..top + WIDTH].copy_from_slice(&order);
             top += n;
         }
         best.map(|(slot, b1, b2)| Hit {
@@ -589,16 +603,22 @@ fn hit_packet(k: &Packet, origin: Vec3, dir: Vec3, t_max: f32) -> Option<(usize,
         b1[i] = u;
         b2[i] = v;
     }
-    let mut best: Option<usize> = None;
-    let mut lanes = k.lanes;
-    while lanes != 0 {
-        let i = lanes.trailing_zeros() as usize;
-        lanes &= lanes - 1;
-        if t[i] < best.map_or(f32::INFINITY, |b| t[b]) {
-            best = Some(i);
-        }
+    // The nearest crossing, the first lane of it on ties: a vector minimum and compares
+    // rather than a scan over the lanes.
+    let mut hits = 0u8;
+    for (i, &t) in t.iter().enumerate() {
+        hits |= ((t < f32::INFINITY) as u8) << i;
     }
-    best.map(|i| (i, t[i], b1[i], b2[i]))
+    if hits as u32 & k.lanes == 0 {
+        return None;
+    }
+    let nearest = t.iter().fold(f32::INFINITY, |m, &t| fmin(m, t));
+    let mut at = 0u8;
+    for (i, &t) in t.iter().enumerate() {
+        at |= ((t == nearest) as u8) << i;
+    }
+    let i = (at as u32 & k.lanes).trailing_zeros() as usize;
+    Some((i, t[i], b1[i], b2[i]))
 }
 
 #[cfg(test)]
