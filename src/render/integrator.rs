@@ -204,9 +204,12 @@ impl Tracer<'_> {
     /// the pixel's bundle, [`super::pixel_bundle`]) with the sampler of the same index in `s`
     /// (at most [`LANES`]), and hands every emitter they reach to `acc`; `verts` is scratch
     /// space. Returns how many camera rays saw scene geometry (for the coverage mask).
+    /// `lights_ahead` as for [`Tracer::light`].
+    #[allow(clippy::too_many_arguments)]
     pub fn trace<A: Accumulator>(
         &self,
         pixel: &Bundle,
+        lights_ahead: bool,
         dirs: &[Vec3],
         s: &mut [PathSampler],
         verts: &mut Vec<Vertex>,
@@ -228,7 +231,14 @@ impl Tracer<'_> {
                 verts: &verts[a..b],
             }
         });
-        self.light(pixel.origin(), &paths[..dirs.len()], s, acc, px)
+        self.light(
+            pixel.origin(),
+            lights_ahead,
+            &paths[..dirs.len()],
+            s,
+            acc,
+            px,
+        )
     }
 
     /// The scattering vertices of a camera path from `pixel`'s origin along unit `dir` (inside
@@ -297,10 +307,14 @@ impl Tracer<'_> {
     /// segments reach, handed to `acc`. An emitter in front of a vertex ends the path there.
     /// The paths advance together, a vertex at a time, so that the light samples of their
     /// vertices at one depth are drawn together ([`Lights::sample_lanes`]). Returns how many
-    /// camera rays saw scene geometry before any emitter.
+    /// camera rays saw scene geometry before any emitter. `lights_ahead` false promises that
+    /// no camera ray meets a sphere light (the pixel's pyramid misses them all,
+    /// [`super::pyramid_meets_lights`]), which spares each its sphere tests.
+    #[allow(clippy::too_many_arguments)]
     pub fn light<A: Accumulator>(
         &self,
         origin: Vec3,
+        lights_ahead: bool,
         paths: &[Walked],
         s: &mut [PathSampler],
         acc: &A,
@@ -317,7 +331,10 @@ impl Tracer<'_> {
         // ---- The camera rays: emitters seen directly ----
         let mut alive = [false; LANES];
         for (l, path) in paths.iter().enumerate() {
-            let seen = match lights.intersect(origin, path.dir, 0.0, path.t_first) {
+            let light_hit = lights_ahead
+                .then(|| lights.intersect(origin, path.dir, 0.0, path.t_first))
+                .flatten();
+            let seen = match light_hit {
                 Some((_, e)) => Some(e),
                 None if path.t_first.is_infinite() => lights.escape(path.dir),
                 None => None,

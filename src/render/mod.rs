@@ -242,13 +242,15 @@ impl<'a> Renderer<'a> {
                         let index = y * w + x;
                         let mut px = acc.new_pixel();
                         let mut hits = 0u32;
-                        pixel_bundle(&self.accel, camera, &ray_dir, x, y, &mut pixel);
+                        let corners = pixel_bundle(&self.accel, camera, &ray_dir, x, y, &mut pixel);
                         if tracer.sees_nothing(&pixel) {
                             // No sample of this pixel can deliver anything.
                             acc.finish(&mut px, settings.spp);
                             out.push((index, px, 0.0));
                             continue;
                         }
+                        let lights_ahead =
+                            pyramid_meets_lights(self.lights, camera.origin_world, &corners);
                         let mut samples = camera_samples(key, index, x, y, &ray_dir, settings);
                         loop {
                             dirs.clear();
@@ -262,6 +264,7 @@ impl<'a> Renderer<'a> {
                             }
                             hits += tracer.trace(
                                 &pixel,
+                                lights_ahead,
                                 &dirs,
                                 &mut samplers,
                                 &mut verts,
@@ -555,6 +558,8 @@ fn light_tile<A: Accumulator>(
                 out.push((index, px, 0.0));
                 continue;
             }
+            let corners = pixel_corners(ray_dir, x, y);
+            let lights_ahead = pyramid_meets_lights(tracer.lights, camera.origin_world, &corners);
             let mut samples = camera_samples(key, index, x, y, ray_dir, settings);
             loop {
                 let mut paths = [Walked {
@@ -578,7 +583,14 @@ fn light_tile<A: Accumulator>(
                     break;
                 }
                 let paths = &paths[..samplers.len()];
-                hits += tracer.light(camera.origin_world, paths, &mut samplers, acc, &mut px);
+                hits += tracer.light(
+                    camera.origin_world,
+                    lights_ahead,
+                    paths,
+                    &mut samplers,
+                    acc,
+                    &mut px,
+                );
             }
             acc.finish(&mut px, settings.spp);
             out.push((index, px, hits as f32 / settings.spp as f32));
@@ -604,6 +616,7 @@ fn render_key(settings: &RenderSettings, stream: u64) -> u64 {
 
 /// The leaves of `accel` the camera rays of pixel (`x`, `y`) can reach, into `out`: the
 /// pyramid through the pixel's corners (its samples' jitter lies in [0, 1)²).
+/// Returns the unit directions through its corners.
 fn pixel_bundle(
     accel: &Accel,
     camera: &Camera,
@@ -611,15 +624,37 @@ fn pixel_bundle(
     x: u32,
     y: u32,
     out: &mut Bundle,
-) {
+) -> [Vec3; 4] {
+    let corners = pixel_corners(ray_dir, x, y);
+    accel.bundle(camera.origin_world, corners, out);
+    corners
+}
+
+/// The unit directions through pixel (`x`, `y`)'s corners, in order around it.
+fn pixel_corners(ray_dir: &impl Fn(f32, f32) -> Vec3, x: u32, y: u32) -> [Vec3; 4] {
     let (x, y) = (x as f32, y as f32);
-    let corners = [
+    [
         ray_dir(x, y),
         ray_dir(x + 1.0, y),
         ray_dir(x + 1.0, y + 1.0),
         ray_dir(x, y + 1.0),
-    ];
-    accel.bundle(camera.origin_world, corners, out);
+    ]
+}
+
+/// Whether a ray from `origin` inside the pyramid spanned by unit `corners` can meet one of
+/// the sphere lights. Conservative: the cone around the pyramid against the cone each sphere
+/// subtends (they meet when the angle between their axes is at most the sum of their
+/// half-angles), with a margin for rounding.
+fn pyramid_meets_lights(lights: &Lights, origin: Vec3, corners: &[Vec3; 4]) -> bool {
+    const MARGIN: f32 = 1e-3; // radians
+    let axis = corners.iter().copied().sum::<Vec3>().normalize();
+    let angle = |a: Vec3, b: Vec3| a.dot(b).clamp(-1.0, 1.0).acos();
+    let half = corners.iter().map(|&c| angle(c, axis)).fold(0.0, f32::max);
+    lights.spheres.iter().any(|s| {
+        let to_c = s.center - origin;
+        let d = to_c.length();
+        d <= s.radius * 1.001 || angle(to_c / d, axis) <= half + (s.radius / d).asin() + MARGIN
+    })
 }
 
 /// The camera samples of pixel (`x`, `y`) (`index` = y · width + x): each one's ray direction
@@ -685,4 +720,53 @@ fn tiles(w: u32, h: u32) -> Vec<(u32, u32, u32, u32)> {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::SphereLight;
+
+    #[test]
+    fn pyramids_that_reach_a_light_are_never_said_to_miss_it() {
+        // Random pixel-like pyramids and spheres: whenever a ray inside a pyramid hits a
+        // sphere, the pyramid must be said to meet the lights; and far from every sphere,
+        // it must not (or the test would prove nothing).
+        let mut r = Rng::new(3);
+        let (mut met, mut missed) = (0, 0);
+        for _ in 0..4000 {
+            let o = Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 4.0 - Vec3::splat(2.0);
+            let ahead = sampling::uniform_sphere(r.next_2d());
+            let (right, up) = sampling::frame(ahead);
+            let size = [0.002, 0.01, 0.1][r.next_u32() as usize % 3];
+            let corner = |u: f32, v: f32| (ahead + (right * u + up * v) * size).normalize();
+            let corners = [
+                corner(0.0, 0.0),
+                corner(1.0, 0.0),
+                corner(1.0, 1.0),
+                corner(0.0, 1.0),
+            ];
+            // A sphere near the pyramid's axis, sometimes off it.
+            let along = o + ahead * (0.5 + 3.0 * r.next_f32());
+            let off = sampling::uniform_sphere(r.next_2d()) * (0.2 * r.next_f32());
+            let lights = Lights::new(vec![SphereLight {
+                center: along + off,
+                radius: 0.005 + 0.05 * r.next_f32(),
+                radiance: Vec3::ONE,
+            }]);
+            let says = pyramid_meets_lights(&lights, o, &corners);
+            let hit = (0..200).any(|_| {
+                let u = r.next_2d();
+                let d = corner(u.x, u.y);
+                lights.intersect(o, d, 0.0, f32::INFINITY).is_some()
+            });
+            assert!(
+                says || !hit,
+                "a ray hits the sphere, the pyramid is said to miss it"
+            );
+            met += hit as usize;
+            missed += !says as usize;
+        }
+        assert!(met > 200 && missed > 1000, "met {met}, missed {missed}");
+    }
 }
