@@ -603,22 +603,16 @@ fn hit_packet(k: &Packet, origin: Vec3, dir: Vec3, t_max: f32) -> Option<(usize,
         b1[i] = u;
         b2[i] = v;
     }
-    // The nearest crossing, the first lane of it on ties: a vector minimum and compares
-    // rather than a scan over the lanes.
-    let mut hits = 0u8;
-    for (i, &t) in t.iter().enumerate() {
-        hits |= ((t < f32::INFINITY) as u8) << i;
+    let mut best: Option<usize> = None;
+    let mut lanes = k.lanes;
+    while lanes != 0 {
+        let i = lanes.trailing_zeros() as usize;
+        lanes &= lanes - 1;
+        if t[i] < best.map_or(f32::INFINITY, |b| t[b]) {
+            best = Some(i);
+        }
     }
-    if hits as u32 & k.lanes == 0 {
-        return None;
-    }
-    let nearest = t.iter().fold(f32::INFINITY, |m, &t| fmin(m, t));
-    let mut at = 0u8;
-    for (i, &t) in t.iter().enumerate() {
-        at |= ((t == nearest) as u8) << i;
-    }
-    let i = (at as u32 & k.lanes).trailing_zeros() as usize;
-    Some((i, t[i], b1[i], b2[i]))
+    best.map(|i| (i, t[i], b1[i], b2[i]))
 }
 
 #[cfg(test)]
