@@ -122,6 +122,8 @@ pub struct Bundle {
     /// Per leaf: the distance from `origin` to its box (no ray meets the leaf sooner) and its
     /// packet, by increasing distance.
     leaves: Vec<(f32, u32)>,
+    /// Per leaf, in the same order: its triangles prepared for rays from `origin`.
+    prepared: Vec<Prepared>,
     /// False when the pyramid met too many leaves for a flat list to pay off (rays then fall
     /// back to the full traversal).
     usable: bool,
@@ -335,6 +337,7 @@ impl Accel {
     pub fn bundle(&self, origin: Vec3, corners: [Vec3; 4], out: &mut Bundle) {
         out.origin = origin;
         out.leaves.clear();
+        out.prepared.clear();
         out.usable = true;
         if self.nodes.is_empty() {
             return;
@@ -409,6 +412,11 @@ impl Accel {
             }
         }
         out.leaves.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        out.prepared.extend(
+            out.leaves
+                .iter()
+                .map(|&(_, k)| Prepared::new(&self.packets[k as usize], origin)),
+        );
     }
 
     /// The closest hit with `t` in (0, `t_max`] of a ray from the bundle's origin along unit
@@ -421,14 +429,12 @@ impl Accel {
         }
         let mut t_max = t_max;
         let mut best = None;
-        for &(near, packet) in &bundle.leaves {
+        for (&(near, packet), prepared) in bundle.leaves.iter().zip(&bundle.prepared) {
             if near > t_max {
                 break;
             }
             let packet = packet as usize;
-            if let Some((lane, t, b1, b2)) =
-                hit_packet(&self.packets[packet], bundle.origin, dir, t_max)
-            {
+            if let Some((lane, t, b1, b2)) = hit_prepared(prepared, dir, t_max) {
                 t_max = t;
                 best = Some(((packet * WIDTH + lane) as u32, b1, b2));
             }
@@ -567,12 +573,59 @@ fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
     (t_near, mask as u32 & node.lanes)
 }
 
+/// A leaf's triangles as seen from one ray origin: what Möller–Trumbore computes from the
+/// origin alone (per lane `s` = origin − corner 0, `q` = s × e1, and e2 · q), so that the rays
+/// of a bundle, which share their origin, skip it.
+#[derive(Debug, Clone, Copy)]
+#[repr(C, align(32))]
+struct Prepared {
+    e1: [[f32; WIDTH]; 3],
+    e2: [[f32; WIDTH]; 3],
+    s: [[f32; WIDTH]; 3],
+    q: [[f32; WIDTH]; 3],
+    e2q: [f32; WIDTH],
+    lanes: u32,
+}
+
+impl Prepared {
+    #[inline(always)]
+    fn new(k: &Packet, origin: Vec3) -> Prepared {
+        let o = origin.to_array();
+        let s: [[f32; WIDTH]; 3] = std::array::from_fn(|a| k.v0[a].map(|v| o[a] - v));
+        let (e1, e2) = (&k.e1, &k.e2);
+        let mut q = [[0.0; WIDTH]; 3];
+        let mut e2q = [0.0; WIDTH];
+        for i in 0..WIDTH {
+            let (sx, sy, sz) = (s[0][i], s[1][i], s[2][i]);
+            let (e1x, e1y, e1z) = (e1[0][i], e1[1][i], e1[2][i]);
+            q[0][i] = sy * e1z - sz * e1y;
+            q[1][i] = sz * e1x - sx * e1z;
+            q[2][i] = sx * e1y - sy * e1x;
+            e2q[i] = e2[0][i] * q[0][i] + e2[1][i] * q[1][i] + e2[2][i] * q[2][i];
+        }
+        Prepared {
+            e1: k.e1,
+            e2: k.e2,
+            s,
+            q,
+            e2q,
+            lanes: k.lanes,
+        }
+    }
+}
+
 /// Möller–Trumbore on every lane of a leaf: the closest crossing with `t` in (0, `t_max`] as
 /// `(lane, t, b1, b2)`.
 #[inline(always)]
 fn hit_packet(k: &Packet, origin: Vec3, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32, f32)> {
+    hit_prepared(&Prepared::new(k, origin), dir, t_max)
+}
+
+/// [`hit_packet`] from the origin the leaf was prepared for (the same arithmetic, so the same
+/// answers).
+#[inline(always)]
+fn hit_prepared(k: &Prepared, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32, f32)> {
     let [dx, dy, dz] = dir.to_array();
-    let [ox, oy, oz] = origin.to_array();
     let (mut t, mut b1, mut b2) = ([f32::INFINITY; WIDTH], [0.0; WIDTH], [0.0; WIDTH]);
     for i in 0..WIDTH {
         let (e1x, e1y, e1z) = (k.e1[0][i], k.e1[1][i], k.e1[2][i]);
@@ -584,15 +637,11 @@ fn hit_packet(k: &Packet, origin: Vec3, dir: Vec3, t_max: f32) -> Option<(usize,
         );
         let det = e1x * px + e1y * py + e1z * pz;
         let inv_det = 1.0 / det;
-        let (sx, sy, sz) = (ox - k.v0[0][i], oy - k.v0[1][i], oz - k.v0[2][i]);
+        let (sx, sy, sz) = (k.s[0][i], k.s[1][i], k.s[2][i]);
         let u = (sx * px + sy * py + sz * pz) * inv_det;
-        let (qx, qy, qz) = (
-            sy * e1z - sz * e1y,
-            sz * e1x - sx * e1z,
-            sx * e1y - sy * e1x,
-        );
+        let (qx, qy, qz) = (k.q[0][i], k.q[1][i], k.q[2][i]);
         let v = (dx * qx + dy * qy + dz * qz) * inv_det;
-        let h = (e2x * qx + e2y * qy + e2z * qz) * inv_det;
+        let h = k.e2q[i] * inv_det;
         // Each comparison fails on NaN, so degenerate lanes (det = 0) never hit.
         let inside = det != 0.0 && u >= 0.0 && v >= 0.0 && u + v <= 1.0;
         t[i] = if inside && h > 0.0 && h <= t_max {
