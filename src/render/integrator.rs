@@ -13,7 +13,7 @@
 
 use glam::{Vec2, Vec3};
 
-use super::lights::{LANES, LightQuery, LightSample, Lights};
+use super::lights::{Emitter, LANES, LightQuery, LightSample, Lights};
 use super::sampling::{INV_PI, Rng, cosine_hemisphere, permute, power_heuristic, r2, sobol2};
 use super::{Accumulator, RenderSettings, Strategy};
 use crate::accel::{Accel, Bundle, Hit};
@@ -144,6 +144,14 @@ pub struct Vertex {
     t_next: f32,
 }
 
+/// Scratch space of [`Tracer::trace`]: the walked vertices, and what the paths deliver
+/// before it is handed to the accumulator ([`Tracer::light`]).
+#[derive(Default)]
+pub(super) struct Scratch {
+    pub verts: Vec<Vertex>,
+    pub added: Vec<(usize, Emitter, Vec3)>,
+}
+
 /// A walked camera path, ready to be lit ([`Tracer::light`]).
 #[derive(Debug, Clone, Copy)]
 pub struct Walked<'v> {
@@ -202,8 +210,7 @@ pub(super) struct Tracer<'a> {
 impl Tracer<'_> {
     /// Traces camera paths from `pixel`'s origin, one per unit direction of `dirs` (inside
     /// the pixel's bundle, [`super::pixel_bundle`]) with the sampler of the same index in `s`
-    /// (at most [`LANES`]), and hands every emitter they reach to `acc`; `verts` is scratch
-    /// space. Returns how many camera rays saw scene geometry (for the coverage mask).
+    /// (at most [`LANES`]), and hands every emitter they reach to `acc`. Returns how many camera rays saw scene geometry (for the coverage mask).
     /// `lights_ahead` as for [`Tracer::light`].
     #[allow(clippy::too_many_arguments)]
     pub fn trace<A: Accumulator>(
@@ -212,10 +219,11 @@ impl Tracer<'_> {
         lights_ahead: bool,
         dirs: &[Vec3],
         s: &mut [PathSampler],
-        verts: &mut Vec<Vertex>,
+        scratch: &mut Scratch,
         acc: &A,
         px: &mut A::Pixel,
     ) -> u32 {
+        let Scratch { verts, added } = scratch;
         verts.clear();
         let mut ranges = [(0.0f32, 0usize, 0usize); LANES];
         for (l, (&dir, s)) in dirs.iter().zip(s.iter_mut()).enumerate() {
@@ -236,6 +244,7 @@ impl Tracer<'_> {
             lights_ahead,
             &paths[..dirs.len()],
             s,
+            added,
             acc,
             px,
         )
@@ -317,10 +326,14 @@ impl Tracer<'_> {
         lights_ahead: bool,
         paths: &[Walked],
         s: &mut [PathSampler],
+        added: &mut Vec<(usize, Emitter, Vec3)>,
         acc: &A,
         px: &mut A::Pixel,
     ) -> u32 {
         let (lights, st) = (self.lights, self.settings);
+        // What each path delivers, tagged with its lane, handed to `acc` path by path at the
+        // end: the pixel's sums then run in sample order, as if each path were lit alone.
+        added.clear();
         let (use_light, use_bsdf) = match st.strategy {
             Strategy::Mis => (true, true),
             Strategy::LightOnly => (true, false),
@@ -341,7 +354,7 @@ impl Tracer<'_> {
             };
             if let Some(e) = seen {
                 if !st.hide_emitters {
-                    acc.add(px, e, Vec3::ONE);
+                    added.push((l, e, Vec3::ONE));
                 }
                 continue;
             }
@@ -386,7 +399,7 @@ impl Tracer<'_> {
                     let samples = lights.sample_lanes(&q, Some(i));
                     for (j, &l) in lanes.iter().enumerate() {
                         if let Some(ls) = &samples[j] {
-                            self.shadow_ray(&paths[l].verts[k], ls, mis, acc, px);
+                            self.shadow_ray(l, &paths[l].verts[k], ls, mis, added);
                         }
                     }
                 }
@@ -400,7 +413,7 @@ impl Tracer<'_> {
                 let samples = lights.sample_lanes(&q, None);
                 for (j, &l) in lanes.iter().enumerate() {
                     if let Some(ls) = &samples[j] {
-                        self.shadow_ray(&paths[l].verts[k], ls, mis, acc, px);
+                        self.shadow_ray(l, &paths[l].verts[k], ls, mis, added);
                     }
                 }
             }
@@ -444,24 +457,29 @@ impl Tracer<'_> {
                         1.0
                     };
                     // Throughput after the bounce: f · cos / pdf = albedo, i.e. π · f.
-                    acc.add(px, e, v.throughput_f * std::f32::consts::PI * w);
+                    added.push((l, e, v.throughput_f * std::f32::consts::PI * w));
                 }
                 alive[l] = false;
+            }
+        }
+        for l in 0..paths.len() {
+            for &(_, e, w) in added.iter().filter(|a| a.0 == l) {
+                acc.add(px, e, w);
             }
         }
         hits
     }
 
-    /// Next-event estimation of one light sample at vertex `v`: a shadow ray, and if the
-    /// light is visible its contribution.
+    /// Next-event estimation of one light sample at vertex `v` of path `lane`: a shadow ray,
+    /// and if the light is visible its contribution, into `added`.
     #[inline]
-    fn shadow_ray<A: Accumulator>(
+    fn shadow_ray(
         &self,
+        lane: usize,
         v: &Vertex,
         ls: &LightSample,
         mis: bool,
-        acc: &A,
-        px: &mut A::Pixel,
+        added: &mut Vec<(usize, Emitter, Vec3)>,
     ) {
         let cos_s = ls.wi.dot(v.ns);
         if cos_s <= 0.0 || ls.wi.dot(v.ng) <= 0.0 {
@@ -489,7 +507,7 @@ impl Tracer<'_> {
         } else {
             1.0
         };
-        acc.add(px, ls.emitter, v.throughput_f * (cos_s * w / ls.pdf));
+        added.push((lane, ls.emitter, v.throughput_f * (cos_s * w / ls.pdf)));
     }
 
     /// True when no camera ray inside `pixel`'s bundle can deliver anything: it meets no

@@ -27,7 +27,7 @@ pub use lights::{Emitter, LightSample, Lights};
 use crate::accel::{Accel, Bundle};
 use crate::imageio::Image;
 use crate::scene::{Camera, Scene, SceneSettings};
-use integrator::{PathSampler, Tracer, Vertex, Walked};
+use integrator::{PathSampler, Scratch, Tracer, Vertex, Walked};
 use lights::LANES;
 use sampling::{Rng, mix64};
 
@@ -234,7 +234,7 @@ impl<'a> Renderer<'a> {
             .par_iter()
             .map(|&(x0, y0, x1, y1)| {
                 let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
-                let mut verts = Vec::with_capacity(LANES * settings.max_bounces as usize);
+                let mut scratch = Scratch::default();
                 let (mut dirs, mut samplers) = (Vec::new(), Vec::new());
                 let mut pixel = Bundle::default();
                 for y in y0..y1 {
@@ -267,7 +267,7 @@ impl<'a> Renderer<'a> {
                                 lights_ahead,
                                 &dirs,
                                 &mut samplers,
-                                &mut verts,
+                                &mut scratch,
                                 acc,
                                 &mut px,
                             );
@@ -540,6 +540,7 @@ fn light_tile<A: Accumulator>(
     let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
     let (mut sample, mut vertex) = (0, 0);
     let mut samplers = Vec::with_capacity(LANES);
+    let mut added = Vec::new();
     for y in y0..y1 {
         for x in x0..x1 {
             let index = y * camera.width + x;
@@ -588,6 +589,7 @@ fn light_tile<A: Accumulator>(
                     lights_ahead,
                     paths,
                     &mut samplers,
+                    &mut added,
                     acc,
                     &mut px,
                 );
