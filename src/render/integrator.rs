@@ -318,7 +318,8 @@ impl Tracer<'_> {
     /// vertices at one depth are drawn together ([`Lights::sample_lanes`]). Returns how many
     /// camera rays saw scene geometry before any emitter. `lights_ahead` false promises that
     /// no camera ray meets a sphere light (the pixel's pyramid misses them all,
-    /// [`super::pyramid_meets_lights`]), which spares each its sphere tests.
+    /// [`super::pyramid_meets_lights`]), which spares each its sphere tests. `added` is
+    /// scratch space.
     #[allow(clippy::too_many_arguments)]
     pub fn light<A: Accumulator>(
         &self,
