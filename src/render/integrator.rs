@@ -210,8 +210,9 @@ pub(super) struct Tracer<'a> {
 impl Tracer<'_> {
     /// Traces camera paths from `pixel`'s origin, one per unit direction of `dirs` (inside
     /// the pixel's bundle, [`super::pixel_bundle`]) with the sampler of the same index in `s`
-    /// (at most [`LANES`]), and hands every emitter they reach to `acc`. Returns how many camera rays saw scene geometry (for the coverage mask).
-    /// `lights_ahead` as for [`Tracer::light`].
+    /// (at most [`LANES`]), and hands every emitter they reach to `acc`. Returns how many
+    /// camera rays saw scene geometry (for the coverage mask). `lights_ahead` as for
+    /// [`Tracer::light`].
     #[allow(clippy::too_many_arguments)]
     pub fn trace<A: Accumulator>(
         &self,
@@ -251,8 +252,8 @@ impl Tracer<'_> {
     }
 
     /// The scattering vertices of a camera path from `pixel`'s origin along unit `dir` (inside
-    /// the pixel's bundle) (at most `max_bounces`), appended to `out`, BSDF directions from `s`. With
-    /// `trace_last` the last segment's geometry is found too (worth it for a path lit many
+    /// the pixel's bundle) (at most `max_bounces`), appended to `out`, BSDF directions from
+    /// `s`. With `trace_last` the last segment's geometry is found too (worth it for a path lit many
     /// times). Returns the distance to the first surface (∞ if the camera ray sees none).
     #[inline(always)]
     pub fn walk(
