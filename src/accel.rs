@@ -451,14 +451,9 @@ impl Accel {
     #[inline(always)]
     fn closest(&self, ray: &RayData, mut t_max: f32, stack: &mut [(u32, f32)]) -> Option<Hit> {
         let mut best: Option<(u32, f32, f32)> = None;
-        stack[0] = (0, 0.0);
-        let mut top = 1;
-        while top > 0 {
-            top -= 1;
-            let (child, t_enter) = stack[top];
-            if t_enter > t_max {
-                continue;
-            }
+        let mut top = 0;
+        let mut child = 0u32;
+        loop {
             if child & LEAF != 0 {
                 let packet = (child & !LEAF) as usize;
                 if let Some((lane, t, b1, b2)) =
@@ -467,34 +462,55 @@ impl Accel {
                     t_max = t;
                     best = Some(((packet * WIDTH + lane) as u32, b1, b2));
                 }
-                continue;
-            }
-            let node = &self.nodes[child as usize];
-            let (t_near, mut mask) = node_test(node, ray, t_max);
-            // Push the hit children farthest first, so the nearest is popped next.
-            let mut order = [(0u32, 0f32); WIDTH];
-            let mut n = 0;
-            while mask != 0 {
-                let lane = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                let entry = (node.child[lane], t_near[lane]);
-                let mut j = n;
-                while j > 0 && order[j - 1].1 < entry.1 {
-                    order[j] = order[j - 1];
-                    j -= 1;
+            } else {
+                let node = &self.nodes[child as usize];
+                let (t_near, mut mask) = node_test(node, ray, t_max);
+                if mask != 0 {
+                    // Visit the nearest hit child next and push the others farthest first.
+                    // Keys order by entry distance (non-negative, so its bits order like
+                    // the value), ties by lane, later lanes first.
+                    let mut keys = [0u64; WIDTH];
+                    let mut n = 0;
+                    while mask != 0 {
+                        let lane = mask.trailing_zeros() as usize;
+                        mask &= mask - 1;
+                        let key =
+                            ((t_near[lane].to_bits() as u64) << 32) | (WIDTH - 1 - lane) as u64;
+                        let mut j = n;
+                        while j > 0 && keys[j - 1] < key {
+                            keys[j] = keys[j - 1];
+                            j -= 1;
+                        }
+                        keys[j] = key;
+                        n += 1;
+                    }
+                    for (slot, &key) in stack[top..top + WIDTH].iter_mut().zip(&keys) {
+                        let lane = WIDTH - 1 - (key as u32 as usize);
+                        *slot = (node.child[lane], f32::from_bits((key >> 32) as u32));
+                    }
+                    top += n - 1;
+                    child = stack[top].0;
+                    continue;
                 }
-                order[j] = entry;
-                n += 1;
             }
-            stack[top..top + WIDTH].copy_from_slice(&order);
-            top += n;
+            // Pop the nearest child not beyond the closest hit so far.
+            loop {
+                if top == 0 {
+                    return best.map(|(slot, b1, b2)| Hit {
+                        t: t_max,
+                        triangle: self.order[slot as usize],
+                        b1,
+                        b2,
+                    });
+                }
+                top -= 1;
+                let (c, t_enter) = stack[top];
+                if t_enter <= t_max {
+                    child = c;
+                    break;
+                }
+            }
         }
-        best.map(|(slot, b1, b2)| Hit {
-            t: t_max,
-            triangle: self.order[slot as usize],
-            b1,
-            b2,
-        })
     }
 
     /// Any-hit traversal: stops at the first triangle within (0, `t_max`].
