@@ -165,7 +165,7 @@ impl RingGrid {
     pub fn lookup(&self, d: Vec3) -> u32 {
         // Ring: how many band edges lie at or above d (θ ≥ edge, i.e. cos θ ≤ cos edge).
         let y = d.y as f64;
-        let ring = self.edges_cos.partition_point(|&e| y <= e);
+        let ring = count_while(&self.edges_cos, |e| y <= e);
         let n = self.counts[ring];
         if n == 1 {
             return self.first[ring];
@@ -174,8 +174,10 @@ impl RingGrid {
         if phi < 0.0 {
             phi += TAU;
         }
-        let j = (phi * n as f64 / TAU).round() as u32 % n;
-        self.first[ring] + j
+        // Nearest sector centre; φ ≥ 0, so rounding is a floor of x + ½ (f64::round is a
+        // library call) and the wrap past the last sector a comparison (not a division).
+        let j = (phi * n as f64 / TAU + 0.5).floor() as u32;
+        self.first[ring] + if j >= n { j - n } else { j }
     }
 
     /// cos θ at the top and bottom of ring `ring`'s band (the top is the larger).
@@ -235,9 +237,28 @@ impl RingGrid {
         let cos_t = c0 + (c1 - c0) * u.x as f64;
         let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
         let n = self.counts[ring as usize] as f64;
-        let phi = TAU * (j as f64 - 0.5 + u.y as f64) / n;
+        // φ in f32 (a sector is ≥ 0.5° wide, f32 rounds φ to ~1e-7 rad): glibc's f32 sincos
+        // is much cheaper than the f64 one, and this is on the tracer's path.
+        let phi = (TAU * (j as f64 - 0.5 + u.y as f64) / n) as f32;
         let (sp, cp) = phi.sin_cos();
-        DVec3::new(sin_t * sp, cos_t, -sin_t * cp).as_vec3()
+        Vec3::new(
+            (sin_t * sp as f64) as f32,
+            cos_t as f32,
+            (-sin_t * cp as f64) as f32,
+        )
+    }
+}
+
+/// How many leading elements of `sorted` satisfy `pred` (which must hold for a prefix, as for
+/// [`slice::partition_point`], whose answer this is). Short slices are counted whole, without
+/// the unpredictable branches of a binary search: the grid's and the envmap's searches run
+/// for every envmap sample and every escaping ray.
+#[inline]
+pub(crate) fn count_while(sorted: &[f64], pred: impl Fn(f64) -> bool) -> usize {
+    if sorted.len() <= 64 {
+        sorted.iter().map(|&e| pred(e) as usize).sum()
+    } else {
+        sorted.partition_point(|&e| pred(e))
     }
 }
 

@@ -183,9 +183,7 @@ impl Envmap {
     #[inline]
     pub fn sample(&self, u_cell: f32, u: Vec2) -> (u32, Vec3, f32) {
         let u_cell = u_cell as f64;
-        let ring = (self
-            .ring_cdf
-            .partition_point(|&c| c <= u_cell)
+        let ring = (grid::count_while(&self.ring_cdf, |c| c <= u_cell)
             .clamp(1, self.grid.rings() as usize)
             - 1) as u32;
         let (lo, hi) = (
@@ -201,9 +199,7 @@ impl Envmap {
             self.grid.ring_start(ring) as usize,
             self.grid.ring_len(ring) as usize,
         );
-        let j = self.cell_cdf[start..start + len]
-            .partition_point(|&c| c <= v)
-            .min(len - 1);
+        let j = grid::count_while(&self.cell_cdf[start..start + len], |c| c <= v).min(len - 1);
         let cell = (start + j) as u32;
         (cell, self.grid.sample_in_cell(cell, u), self.pdf[start + j])
     }
