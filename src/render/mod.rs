@@ -255,16 +255,7 @@ impl<'a> Renderer<'a> {
                         let lights_ahead =
                             pyramid_meets_lights(self.lights, camera.origin_world, &corners);
                         let mut samples = camera_samples(key, index, x, y, &ray_dir, settings);
-                        loop {
-                            dirs.clear();
-                            samplers.clear();
-                            for (dir, s) in samples.by_ref().take(LANES) {
-                                dirs.push(dir);
-                                samplers.push(s);
-                            }
-                            if dirs.is_empty() {
-                                break;
-                            }
+                        while next_chunk(&mut samples, &mut dirs, &mut samplers) {
                             hits += tracer.trace(
                                 &pixel,
                                 lights_ahead,
@@ -542,7 +533,7 @@ fn light_tile<A: Accumulator>(
     let settings = tracer.settings;
     let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
     let (mut sample, mut vertex) = (0, 0);
-    let mut samplers = Vec::with_capacity(LANES);
+    let (mut dirs, mut samplers) = (Vec::with_capacity(LANES), Vec::with_capacity(LANES));
     let mut added = Vec::new();
     for y in y0..y1 {
         for x in x0..x1 {
@@ -565,28 +556,23 @@ fn light_tile<A: Accumulator>(
             let corners = pixel_corners(ray_dir, x, y);
             let lights_ahead = pyramid_meets_lights(tracer.lights, camera.origin_world, &corners);
             let mut samples = camera_samples(key, index, x, y, ray_dir, settings);
-            loop {
+            while next_chunk(&mut samples, &mut dirs, &mut samplers) {
                 let mut paths = [Walked {
                     dir: Vec3::Z,
                     t_first: f32::INFINITY,
                     verts: &[],
                 }; LANES];
-                samplers.clear();
-                for (dir, s) in samples.by_ref().take(LANES) {
+                for (path, &dir) in paths.iter_mut().zip(&dirs) {
                     let (t_first, n) = walked.samples[sample];
                     let verts = &walked.vertices[vertex..vertex + n as usize];
                     (sample, vertex) = (sample + 1, vertex + n as usize);
-                    paths[samplers.len()] = Walked {
+                    *path = Walked {
                         dir,
                         t_first,
                         verts,
                     };
-                    samplers.push(s);
                 }
-                if samplers.is_empty() {
-                    break;
-                }
-                let paths = &paths[..samplers.len()];
+                let paths = &paths[..dirs.len()];
                 hits += tracer.light(
                     camera.origin_world,
                     lights_ahead,
@@ -602,6 +588,22 @@ fn light_tile<A: Accumulator>(
         }
     }
     out
+}
+
+/// Refills `dirs` and `samplers` with the next (at most [`LANES`]) camera samples of a pixel,
+/// the chunk the tracer takes at once. False when there are none left.
+fn next_chunk(
+    samples: &mut impl Iterator<Item = (Vec3, PathSampler)>,
+    dirs: &mut Vec<Vec3>,
+    samplers: &mut Vec<PathSampler>,
+) -> bool {
+    dirs.clear();
+    samplers.clear();
+    for (dir, s) in samples.by_ref().take(LANES) {
+        dirs.push(dir);
+        samplers.push(s);
+    }
+    !dirs.is_empty()
 }
 
 /// The random stream of a view's renders, from its name alone: a view renders the same image
