@@ -330,54 +330,6 @@ impl Accel {
         })
     }
 
-    /// Experimental: any-hit for several rays, N traversals interleaved.
-    pub fn occluded_n<const N: usize>(&self, rays: &[(Vec3, Vec3, f32); N]) -> [bool; N] {
-        let data: [RayData; N] = std::array::from_fn(|i| RayData::new(rays[i].0, rays[i].1));
-        let mut stacks = [[0u32; 64]; N];
-        let mut top = [1usize; N];
-        let mut out = [false; N];
-        let mut live = N;
-        while live > 0 {
-            for r in 0..N {
-                if top[r] == 0 {
-                    continue;
-                }
-                top[r] -= 1;
-                let child = stacks[r][top[r]];
-                let ray = &data[r];
-                if child & LEAF != 0 {
-                    if hit_packet(
-                        &self.packets[(child & !LEAF) as usize],
-                        ray.origin,
-                        ray.dir,
-                        rays[r].2,
-                    )
-                    .is_some()
-                    {
-                        out[r] = true;
-                        top[r] = 0;
-                    }
-                    if top[r] == 0 {
-                        live -= 1;
-                    }
-                    continue;
-                }
-                let node = &self.nodes[child as usize];
-                let (_, mut mask) = node_test(node, ray, rays[r].2);
-                while mask != 0 {
-                    let lane = mask.trailing_zeros() as usize;
-                    mask &= mask - 1;
-                    stacks[r][top[r]] = node.child[lane];
-                    top[r] += 1;
-                }
-                if top[r] == 0 {
-                    live -= 1;
-                }
-            }
-        }
-        out
-    }
-
     /// Fills `out` with the leaves the pyramid with apex `origin` spanned by the four edge
     /// directions `corners` (in order around it, each unit length, the pyramid narrower than a
     /// half-space) can reach. Conservative: a ray from `origin` inside the pyramid crosses no
@@ -759,16 +711,44 @@ fn hit_prepared(k: &Prepared, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32,
         b1[i] = u;
         b2[i] = v;
     }
-    let mut best: Option<usize> = None;
-    let mut lanes = k.lanes;
-    while lanes != 0 {
-        let i = lanes.trailing_zeros() as usize;
-        lanes &= lanes - 1;
-        if t[i] < best.map_or(f32::INFINITY, |b| t[b]) {
-            best = Some(i);
+    // Most leaves are crossed nowhere or once: only several crossings need a search (the
+    // first lane of the nearest, as a scan in lane order keeps).
+    let hits = finite_lanes(&t) & k.lanes;
+    if hits == 0 {
+        return None;
+    }
+    let mut best = hits.trailing_zeros() as usize;
+    let mut rest = hits & (hits - 1);
+    while rest != 0 {
+        let i = rest.trailing_zeros() as usize;
+        rest &= rest - 1;
+        if t[i] < t[best] {
+            best = i;
         }
     }
-    best.map(|i| (i, t[i], b1[i], b2[i]))
+    Some((best, t[best], b1[best], b2[best]))
+}
+
+/// Bit i set where `t[i]` is finite (a crossing; ∞ marks none).
+#[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
+#[inline(always)]
+fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
+    use std::arch::x86_64::*;
+    // SAFETY: AVX is enabled for the whole build (the cfg above); `t` holds 8 f32.
+    unsafe {
+        let t = _mm256_loadu_ps(t.as_ptr());
+        _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(
+            t,
+            _mm256_set1_ps(f32::INFINITY),
+        )) as u32
+    }
+}
+
+/// [`finite_lanes`] for targets without AVX.
+#[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
+#[inline(always)]
+fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
+    (0..WIDTH).fold(0, |m, i| m | ((t[i] < f32::INFINITY) as u32) << i)
 }
 
 #[cfg(test)]
