@@ -465,6 +465,11 @@ impl Accel {
             } else {
                 let node = &self.nodes[child as usize];
                 let (t_near, mut mask) = node_test(node, ray, t_max);
+                if mask != 0 && mask & (mask - 1) == 0 {
+                    // One child hit (the common case): nothing to order or push.
+                    child = node.child[mask.trailing_zeros() as usize];
+                    continue;
+                }
                 if mask != 0 {
                     // Visit the nearest hit child next and push the others farthest first.
                     // Keys order by entry distance (non-negative, so its bits order like
