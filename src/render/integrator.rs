@@ -144,6 +144,30 @@ pub struct Vertex {
     t_next: f32,
 }
 
+impl Vertex {
+    /// A placeholder, overwritten before it is read.
+    const NONE: Vertex = Vertex {
+        p: Vec3::ZERO,
+        ng: Vec3::ZERO,
+        ns: Vec3::ZERO,
+        throughput_f: Vec3::ZERO,
+        wi: Vec3::ZERO,
+        t_next: f32::NAN,
+    };
+}
+
+/// The lanes of the bit mask `mask`, in increasing order.
+#[inline]
+fn lanes(mut mask: u32) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        (mask != 0).then(|| {
+            let l = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            l
+        })
+    })
+}
+
 /// Scratch space of [`Tracer::trace`]: the walked vertices, and what the paths deliver
 /// before it is handed to the accumulator ([`Tracer::light`]).
 #[derive(Default)]
@@ -225,20 +249,12 @@ impl Tracer<'_> {
         px: &mut A::Pixel,
     ) -> u32 {
         let Scratch { verts, added } = scratch;
-        verts.clear();
-        let mut ranges = [(0.0f32, 0usize, 0usize); LANES];
-        for (l, (&dir, s)) in dirs.iter().zip(s.iter_mut()).enumerate() {
-            let start = verts.len();
-            let t_first = self.walk(pixel, dir, s, false, verts);
-            ranges[l] = (t_first, start, verts.len());
-        }
-        let paths: [Walked; LANES] = std::array::from_fn(|l| {
-            let (t_first, a, b) = ranges[l];
-            Walked {
-                dir: dirs.get(l).copied().unwrap_or(Vec3::Z),
-                t_first,
-                verts: &verts[a..b],
-            }
+        let (t_first, len) = self.walk(pixel, dirs, s, false, verts);
+        let mb = self.settings.max_bounces as usize;
+        let paths: [Walked; LANES] = std::array::from_fn(|l| Walked {
+            dir: dirs.get(l).copied().unwrap_or(Vec3::Z),
+            t_first: t_first[l],
+            verts: &verts[(l * mb).min(verts.len())..][..len[l]],
         });
         self.light(
             pixel.origin(),
@@ -251,65 +267,89 @@ impl Tracer<'_> {
         )
     }
 
-    /// The scattering vertices of a camera path from `pixel`'s origin along unit `dir` (inside
-    /// the pixel's bundle) (at most `max_bounces`), appended to `out`, BSDF directions from
-    /// `s`. With `trace_last` the last segment's geometry is found too (worth it for a path lit many
-    /// times). Returns the distance to the first surface (∞ if the camera ray sees none).
-    #[inline(always)]
+    /// The scattering vertices of camera paths from `pixel`'s origin, one per unit direction
+    /// of `dirs` (at most [`LANES`], inside the pixel's bundle), BSDF directions from the
+    /// sampler of the same index in `s`: lane `l`'s (at most `max_bounces`) at
+    /// `out[l · max_bounces..][..len[l]]`. With `trace_last` the last segment's geometry is
+    /// found too (worth it for a path lit many times). Returns per lane the distance to the
+    /// first surface (∞ if the camera ray sees none) and the number of vertices.
+    ///
+    /// The lanes advance together, a segment at a time: the surface lookups of their hits
+    /// (triangle, then its corners' attributes: cache misses, mostly) then do not wait on
+    /// each other, where one path after another would wait on every one in turn.
     pub fn walk(
         &self,
         pixel: &Bundle,
-        dir: Vec3,
-        s: &mut PathSampler,
+        dirs: &[Vec3],
+        s: &mut [PathSampler],
         trace_last: bool,
         out: &mut Vec<Vertex>,
-    ) -> f32 {
-        let start = out.len();
-        let (mut o, mut d) = (pixel.origin(), dir);
-        let mut t_first = f32::INFINITY;
-        let mut throughput = Vec3::ONE;
-        // One closest-hit query per segment; the camera ray's from the pixel's leaves.
-        loop {
-            let depth = out.len() - start;
-            let hit = if depth == 0 {
-                self.accel.intersect_bundle(pixel, d, f32::INFINITY)
-            } else {
-                self.accel.intersect(o, d, f32::INFINITY)
-            };
-            let t = hit.map_or(f32::INFINITY, |h| h.t);
-            match out.last_mut() {
-                Some(v) if depth > 0 => v.t_next = t,
-                _ => t_first = t,
-            }
-            let Some(hit) = hit else { break };
-            if depth as u32 == self.settings.max_bounces {
-                break;
-            }
-            let sp = surface_point(self.scene, &hit, d);
-            let mut v = Vertex {
-                p: sp.p,
-                ng: sp.ng,
-                ns: sp.ns,
-                throughput_f: throughput * sp.albedo * INV_PI,
-                wi: Vec3::ZERO,
-                t_next: f32::NAN,
-            };
-            let u = s.bsdf_sample(depth);
-            let wi = cosine_hemisphere(sp.ns, u);
-            let pdf = wi.dot(sp.ns) * INV_PI;
-            throughput *= sp.albedo; // f · cos / pdf for a Lambertian
-            let ends = wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 || throughput == Vec3::ZERO;
-            if !ends {
-                v.wi = wi;
-            }
-            out.push(v);
-            let last = depth as u32 + 1 == self.settings.max_bounces;
-            if ends || (last && !trace_last) {
-                break;
-            }
-            (o, d) = (offset(sp.p, sp.ng), wi);
+    ) -> ([f32; LANES], [usize; LANES]) {
+        let mb = self.settings.max_bounces as usize;
+        let n = dirs.len().min(LANES);
+        out.clear();
+        out.resize(n * mb, Vertex::NONE);
+        let mut t_first = [f32::INFINITY; LANES];
+        let mut len = [0usize; LANES];
+        let mut throughput = [Vec3::ONE; LANES];
+        // Per lane, the segment being traced: its direction and what it hit.
+        let mut d = [Vec3::ZERO; LANES];
+        let mut hits: [Option<Hit>; LANES] = [None; LANES];
+        // One closest-hit query per segment; the camera rays' from the pixel's leaves.
+        for l in 0..n {
+            d[l] = dirs[l];
+            hits[l] = self.accel.intersect_bundle(pixel, d[l], f32::INFINITY);
         }
-        t_first
+        let mut going = (1u32 << n) - 1;
+        for depth in 0..=mb {
+            let mut next = 0u32;
+            for l in lanes(going) {
+                let t = hits[l].map_or(f32::INFINITY, |h| h.t);
+                if depth == 0 {
+                    t_first[l] = t;
+                } else {
+                    out[l * mb + depth - 1].t_next = t;
+                }
+                let Some(hit) = hits[l] else { continue };
+                if depth == mb {
+                    continue;
+                }
+                let sp = surface_point(self.scene, &hit, d[l]);
+                let mut v = Vertex {
+                    p: sp.p,
+                    ng: sp.ng,
+                    ns: sp.ns,
+                    throughput_f: throughput[l] * sp.albedo * INV_PI,
+                    wi: Vec3::ZERO,
+                    t_next: f32::NAN,
+                };
+                let u = s[l].bsdf_sample(depth);
+                let wi = cosine_hemisphere(sp.ns, u);
+                let pdf = wi.dot(sp.ns) * INV_PI;
+                throughput[l] *= sp.albedo; // f · cos / pdf for a Lambertian
+                let ends = wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 || throughput[l] == Vec3::ZERO;
+                if !ends {
+                    v.wi = wi;
+                }
+                out[l * mb + depth] = v;
+                len[l] += 1;
+                let last = depth + 1 == mb;
+                if ends || (last && !trace_last) {
+                    continue;
+                }
+                d[l] = wi;
+                next |= 1 << l;
+            }
+            going = next;
+            if going == 0 {
+                break;
+            }
+            for l in lanes(going) {
+                let v = &out[l * mb + depth];
+                hits[l] = self.accel.intersect(offset(v.p, v.ng), d[l], f32::INFINITY);
+            }
+        }
+        (t_first, len)
     }
 
     /// Lights walked camera paths from `origin` (at most [`LANES`], each with the sampler of

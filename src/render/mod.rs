@@ -499,6 +499,9 @@ fn walk_tile(
         vertices: Vec::new(),
     };
     let mut pixel = Bundle::default();
+    let (mut dirs, mut samplers) = (Vec::with_capacity(LANES), Vec::with_capacity(LANES));
+    let mut verts = Vec::new();
+    let mb = settings.max_bounces as usize;
     for y in y0..y1 {
         for x in x0..x1 {
             let index = y * camera.width + x;
@@ -509,10 +512,14 @@ fn walk_tile(
                 tile.samples.resize(n, (f32::INFINITY, 0));
                 continue;
             }
-            for (dir, mut s) in camera_samples(key, index, x, y, ray_dir, settings) {
-                let start = tile.vertices.len();
-                let t = tracer.walk(&pixel, dir, &mut s, true, &mut tile.vertices);
-                tile.samples.push((t, (tile.vertices.len() - start) as u8));
+            let mut samples = camera_samples(key, index, x, y, ray_dir, settings);
+            while next_chunk(&mut samples, &mut dirs, &mut samplers) {
+                let (t, len) = tracer.walk(&pixel, &dirs, &mut samplers, true, &mut verts);
+                for l in 0..dirs.len() {
+                    tile.vertices
+                        .extend_from_slice(&verts[l * mb..][..len[l]]);
+                    tile.samples.push((t[l], len[l] as u8));
+                }
             }
         }
     }
