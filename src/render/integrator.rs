@@ -168,12 +168,16 @@ fn lanes(mut mask: u32) -> impl Iterator<Item = usize> {
     })
 }
 
+/// What each of [`LANES`] paths delivers, (emitter, weight per unit emitted radiance), in
+/// order: [`Tracer::light`]'s scratch space.
+pub(super) type Added = [Vec<(Emitter, Vec3)>; LANES];
+
 /// Scratch space of [`Tracer::trace`]: the walked vertices, and what the paths deliver
 /// before it is handed to the accumulator ([`Tracer::light`]).
 #[derive(Default)]
 pub(super) struct Scratch {
     pub verts: Vec<Vertex>,
-    pub added: Vec<(usize, Emitter, Vec3)>,
+    pub added: Added,
 }
 
 /// A walked camera path, ready to be lit ([`Tracer::light`]).
@@ -368,14 +372,14 @@ impl Tracer<'_> {
         lights_ahead: bool,
         paths: &[Walked],
         s: &mut [PathSampler],
-        added: &mut Vec<(usize, Emitter, Vec3)>,
+        added: &mut Added,
         acc: &A,
         px: &mut A::Pixel,
     ) -> u32 {
         let (lights, st) = (self.lights, self.settings);
-        // What each path delivers, tagged with its lane, handed to `acc` path by path at the
-        // end: the pixel's sums then run in sample order, as if each path were lit alone.
-        added.clear();
+        // What each path delivers, kept by lane and handed to `acc` path by path at the end:
+        // the pixel's sums then run in sample order, as if each path were lit alone.
+        added.iter_mut().for_each(Vec::clear);
         let (use_light, use_bsdf) = match st.strategy {
             Strategy::Mis => (true, true),
             Strategy::LightOnly => (true, false),
@@ -396,7 +400,7 @@ impl Tracer<'_> {
             };
             if let Some(e) = seen {
                 if !st.hide_emitters {
-                    added.push((l, e, Vec3::ONE));
+                    added[l].push((e, Vec3::ONE));
                 }
                 continue;
             }
@@ -499,13 +503,13 @@ impl Tracer<'_> {
                         1.0
                     };
                     // Throughput after the bounce: f · cos / pdf = albedo, i.e. π · f.
-                    added.push((l, e, v.throughput_f * std::f32::consts::PI * w));
+                    added[l].push((e, v.throughput_f * std::f32::consts::PI * w));
                 }
                 alive[l] = false;
             }
         }
-        for l in 0..paths.len() {
-            for &(_, e, w) in added.iter().filter(|a| a.0 == l) {
+        for added in &added[..paths.len()] {
+            for &(e, w) in added {
                 acc.add(px, e, w);
             }
         }
@@ -515,14 +519,7 @@ impl Tracer<'_> {
     /// Next-event estimation of one light sample at vertex `v` of path `lane`: a shadow ray,
     /// and if the light is visible its contribution, into `added`.
     #[inline]
-    fn shadow_ray(
-        &self,
-        lane: usize,
-        v: &Vertex,
-        ls: &LightSample,
-        mis: bool,
-        added: &mut Vec<(usize, Emitter, Vec3)>,
-    ) {
+    fn shadow_ray(&self, lane: usize, v: &Vertex, ls: &LightSample, mis: bool, added: &mut Added) {
         let cos_s = ls.wi.dot(v.ns);
         if cos_s <= 0.0 || ls.wi.dot(v.ng) <= 0.0 {
             return;
@@ -549,7 +546,7 @@ impl Tracer<'_> {
         } else {
             1.0
         };
-        added.push((lane, ls.emitter, v.throughput_f * (cos_s * w / ls.pdf)));
+        added[lane].push((ls.emitter, v.throughput_f * (cos_s * w / ls.pdf)));
     }
 
     /// True when no camera ray inside `pixel`'s bundle can deliver anything: it meets no

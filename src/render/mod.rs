@@ -516,8 +516,7 @@ fn walk_tile(
             while next_chunk(&mut samples, &mut dirs, &mut samplers) {
                 let (t, len) = tracer.walk(&pixel, &dirs, &mut samplers, true, &mut verts);
                 for l in 0..dirs.len() {
-                    tile.vertices
-                        .extend_from_slice(&verts[l * mb..][..len[l]]);
+                    tile.vertices.extend_from_slice(&verts[l * mb..][..len[l]]);
                     tile.samples.push((t[l], len[l] as u8));
                 }
             }
@@ -541,7 +540,7 @@ fn light_tile<A: Accumulator>(
     let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
     let (mut sample, mut vertex) = (0, 0);
     let (mut dirs, mut samplers) = (Vec::with_capacity(LANES), Vec::with_capacity(LANES));
-    let mut added = Vec::new();
+    let mut added = integrator::Added::default();
     for y in y0..y1 {
         for x in x0..x1 {
             let index = y * camera.width + x;
