@@ -465,12 +465,11 @@ impl Accel {
             } else {
                 let node = &self.nodes[child as usize];
                 let (t_near, mut mask) = node_test(node, ray, t_max);
-                if mask != 0 && mask & (mask - 1) == 0 {
+                if mask.is_power_of_two() {
                     // One child hit (the common case): nothing to order or push.
                     child = node.child[mask.trailing_zeros() as usize];
                     continue;
-                }
-                if mask != 0 {
+                } else if mask != 0 {
                     // Visit the nearest hit child next and push the others farthest first.
                     // Keys order by entry distance (non-negative, so its bits order like
                     // the value), ties by lane, later lanes first.
@@ -553,28 +552,35 @@ impl Accel {
 }
 
 /// `a.max(b)` without NaN handling, so it compiles to one vector instruction.
-#[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
+#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
 #[inline(always)]
 fn fmax(a: f32, b: f32) -> f32 {
     if a > b { a } else { b }
 }
 
-#[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
+#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
 #[inline(always)]
 fn fmin(a: f32, b: f32) -> f32 {
     if a < b { a } else { b }
 }
 
+/// (box − origin) · (1/d) rounds twice; widening a slab's exit distance by 1 + 2γ₃ (pbrt-v4's
+/// bound) keeps rays that graze a box from missing it.
+const WIDEN: f32 = 1.0 + 2.0 * 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
+
+// The AVX code below reads and writes rows of exactly eight f32.
+const _: () = assert!(WIDTH == 8);
+
 /// Slab test of the ray against all children of `node` over (0, `t_max`]: the entry
 /// distances, and a bit mask of the children hit. Spelled out in AVX where the target has it:
-/// the compiler's own vectorisation of the portable loop below split it into scalar and
-/// 4-wide pieces with shuffles (three times the instructions); this is the same arithmetic,
-/// so the same answers (`maxps`/`minps` pick as `fmax`/`fmin` do).
+/// the compiler's own vectorisation of the portable loop ([`node_test_portable`]) split it
+/// into scalar and 4-wide pieces with shuffles (three times the instructions); this is the
+/// same arithmetic, so the same answers (`maxps`/`minps` pick as `fmax`/`fmin` do; a test
+/// compares the two).
 #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
 #[inline(always)]
 fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
     use std::arch::x86_64::*;
-    const WIDEN: f32 = 1.0 + 2.0 * 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
     let b = &node.bounds;
     let [nx, ny, nz] = ray.near;
     // SAFETY: AVX is enabled for the whole build (the cfg above); each row is 8 contiguous
@@ -606,13 +612,16 @@ fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
     }
 }
 
-/// [`node_test`] for targets without AVX.
 #[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
 #[inline(always)]
 fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
-    // (box − origin) · (1/d) rounds twice; widening the exit distance by 1 + 2γ₃ (pbrt-v4's
-    // bound) keeps rays that graze a box from missing it.
-    const WIDEN: f32 = 1.0 + 2.0 * 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
+    node_test_portable(node, ray, t_max)
+}
+
+/// [`node_test`] in plain Rust, for targets without AVX.
+#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
+#[inline(always)]
+fn node_test_portable(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
     let b = &node.bounds;
     let o = ray.origin.to_array();
     let [nx, ny, nz] = ray.near;
@@ -734,7 +743,7 @@ fn hit_prepared(k: &Prepared, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32,
     Some((best, t[best], b1[best], b2[best]))
 }
 
-/// Bit i set where `t[i]` is finite (a crossing; ∞ marks none).
+/// Bit i set where `t[i]` is below +∞ (a crossing; ∞ marks none).
 #[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
 #[inline(always)]
 fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
@@ -749,10 +758,16 @@ fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
     }
 }
 
-/// [`finite_lanes`] for targets without AVX.
 #[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
 #[inline(always)]
 fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
+    finite_lanes_portable(t)
+}
+
+/// [`finite_lanes`] in plain Rust, for targets without AVX.
+#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
+#[inline(always)]
+fn finite_lanes_portable(t: &[f32; WIDTH]) -> u32 {
     (0..WIDTH).fold(0, |m, i| m | ((t[i] < f32::INFINITY) as u32) << i)
 }
 
@@ -987,6 +1002,55 @@ mod tests {
                 assert!(accel.occluded(o, d, 3.0));
                 assert!(!accel.occluded(o, d, 1.9));
             }
+        }
+    }
+
+    #[test]
+    fn vector_tests_answer_as_the_portable_ones() {
+        // Random boxes and rays, with the awkward cases mixed in: origins on a slab plane,
+        // axis-parallel rays (±0 direction components), empty and infinite boxes, t_max = ∞.
+        let mut s = 9u64;
+        let specials = [0.0, -0.0, 1.0, f32::INFINITY, f32::NEG_INFINITY];
+        for i in 0..20_000 {
+            let mut node = Node {
+                bounds: [[0.0; WIDTH]; 6],
+                child: [0; WIDTH],
+                lanes: (lcg(&mut s) * 256.0) as u32,
+            };
+            for lane in 0..WIDTH {
+                for axis in 0..3 {
+                    let (a, b) = (lcg(&mut s) * 4.0 - 2.0, lcg(&mut s) * 4.0 - 2.0);
+                    node.bounds[2 * axis][lane] = a.min(b);
+                    node.bounds[2 * axis + 1][lane] = a.max(b);
+                    if i % 7 == 0 {
+                        node.bounds[2 * axis + (i / 7) % 2][lane] = specials[(i / 14) % 5];
+                    }
+                }
+            }
+            let mut o = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 6.0 - Vec3::splat(3.0);
+            let mut d = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) - Vec3::splat(0.5);
+            if i % 5 == 0 {
+                o.x = node.bounds[0][i % WIDTH]; // on a slab plane
+            }
+            if i % 3 == 0 {
+                d[i % 3] = if i % 2 == 0 { 0.0 } else { -0.0 };
+            }
+            let d = d.normalize();
+            let t_max = if i % 4 == 0 {
+                f32::INFINITY
+            } else {
+                lcg(&mut s) * 5.0
+            };
+            let ray = RayData::new(o, d);
+            let (near_v, mask_v) = node_test(&node, &ray, t_max);
+            let (near_p, mask_p) = node_test_portable(&node, &ray, t_max);
+            assert_eq!(mask_v, mask_p, "ray {i}");
+            for lane in 0..WIDTH {
+                assert_eq!(near_v[lane].to_bits(), near_p[lane].to_bits(), "ray {i}");
+            }
+            let t: [f32; WIDTH] = std::array::from_fn(|lane| near_p[lane] - 1.0);
+            let t = t.map(|x| if x > 1.0 { f32::INFINITY } else { x });
+            assert_eq!(finite_lanes(&t), finite_lanes_portable(&t));
         }
     }
 

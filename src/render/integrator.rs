@@ -145,7 +145,7 @@ pub struct Vertex {
 }
 
 impl Vertex {
-    /// A placeholder, overwritten before it is read.
+    /// A placeholder (scratch space), overwritten before it is read.
     const NONE: Vertex = Vertex {
         p: Vec3::ZERO,
         ng: Vec3::ZERO,
@@ -156,9 +156,9 @@ impl Vertex {
     };
 }
 
-/// The lanes of the bit mask `mask`, in increasing order.
+/// The set bits of `mask` (lanes), in increasing order.
 #[inline]
-fn lanes(mut mask: u32) -> impl Iterator<Item = usize> {
+fn set_bits(mut mask: u32) -> impl Iterator<Item = usize> {
     std::iter::from_fn(move || {
         (mask != 0).then(|| {
             let l = mask.trailing_zeros() as usize;
@@ -274,7 +274,8 @@ impl Tracer<'_> {
     /// The scattering vertices of camera paths from `pixel`'s origin, one per unit direction
     /// of `dirs` (at most [`LANES`], inside the pixel's bundle), BSDF directions from the
     /// sampler of the same index in `s`: lane `l`'s (at most `max_bounces`) at
-    /// `out[l · max_bounces..][..len[l]]`. With `trace_last` the last segment's geometry is
+    /// `out[l · max_bounces..][..len[l]]` (`out` is scratch space, grown as needed; the rest
+    /// of each lane's stretch holds nothing of this call). With `trace_last` the last segment's geometry is
     /// found too (worth it for a path lit many times). Returns per lane the distance to the
     /// first surface (∞ if the camera ray sees none) and the number of vertices.
     ///
@@ -290,9 +291,11 @@ impl Tracer<'_> {
         out: &mut Vec<Vertex>,
     ) -> ([f32; LANES], [usize; LANES]) {
         let mb = self.settings.max_bounces as usize;
+        debug_assert!(dirs.len() <= LANES && s.len() >= dirs.len());
         let n = dirs.len().min(LANES);
-        out.clear();
-        out.resize(n * mb, Vertex::NONE);
+        if out.len() < n * mb {
+            out.resize(n * mb, Vertex::NONE);
+        }
         let mut t_first = [f32::INFINITY; LANES];
         let mut len = [0usize; LANES];
         let mut throughput = [Vec3::ONE; LANES];
@@ -307,7 +310,7 @@ impl Tracer<'_> {
         let mut going = (1u32 << n) - 1;
         for depth in 0..=mb {
             let mut next = 0u32;
-            for l in lanes(going) {
+            for l in set_bits(going) {
                 let t = hits[l].map_or(f32::INFINITY, |h| h.t);
                 if depth == 0 {
                     t_first[l] = t;
@@ -348,7 +351,7 @@ impl Tracer<'_> {
             if going == 0 {
                 break;
             }
-            for l in lanes(going) {
+            for l in set_bits(going) {
                 let v = &out[l * mb + depth];
                 hits[l] = self.accel.intersect(offset(v.p, v.ng), d[l], f32::INFINITY);
             }
