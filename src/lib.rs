@@ -11,6 +11,7 @@ pub mod error;
 pub mod estimate;
 pub mod experiment;
 pub mod imageio;
+pub mod math;
 pub mod memory;
 pub mod metrics;
 pub mod render;

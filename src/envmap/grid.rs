@@ -15,6 +15,8 @@ use std::f64::consts::{PI, TAU};
 
 use glam::{DVec3, Vec2, Vec3};
 
+use crate::math::{atan2, sin_cos_2pi};
+
 /// The cell layout of an `N`-ring envmap.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RingGrid {
@@ -237,39 +239,16 @@ impl RingGrid {
         let cos_t = c0 + (c1 - c0) * u.x as f64;
         let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
         let n = self.counts[ring as usize] as f64;
-        // φ in f32 (a sector is ≥ 0.5° wide, f32 rounds φ to ~1e-7 rad): glibc's f32 sincos
-        // is much cheaper than the f64 one, and this is on the tracer's path.
-        let phi = (TAU * (j as f64 - 0.5 + u.y as f64) / n) as f32;
-        let (sp, cp) = phi.sin_cos();
+        // φ / 2π in f32 (a sector is ≥ 0.5° wide, f32 rounds φ to ~1e-7 rad), wrapped into
+        // [0, 1), and its sine and cosine inline: this is on the tracer's path.
+        let turns = ((j as f64 - 0.5 + u.y as f64) / n) as f32;
+        let (sp, cp) = sin_cos_2pi(if turns < 0.0 { turns + 1.0 } else { turns });
         Vec3::new(
             (sin_t * sp as f64) as f32,
             cos_t as f32,
             (-sin_t * cp as f64) as f32,
         )
     }
-}
-
-/// `y.atan2(x)` in [−π, π], within 3·10⁻⁷ rad, inline: the ratio of the smaller to the larger
-/// magnitude reduced to [0, tan π/8] and Cephes' `atanf` polynomial, then the octant restored
-/// by selects. (The libm call was ~4% of an envmap render, for the sector of every escaping
-/// ray.) `atan2(0, 0)` is 0.
-#[inline]
-pub(crate) fn atan2(y: f32, x: f32) -> f32 {
-    use std::f32::consts::{FRAC_PI_2, FRAC_PI_4, PI};
-    let (ax, ay) = (x.abs(), y.abs());
-    let (lo, hi) = (ax.min(ay), ax.max(ay));
-    let t = if hi > 0.0 { lo / hi } else { 0.0 };
-    let big = t > 0.414_213_57; // tan π/8
-    let z = if big { (t - 1.0) / (t + 1.0) } else { t };
-    let z2 = z * z;
-    let p = (((8.053_744_5e-2 * z2 - 1.387_768_6e-1) * z2 + 1.997_771_1e-1) * z2 - 3.333_295e-1)
-        * z2
-        * z
-        + z;
-    let a = if big { FRAC_PI_4 + p } else { p };
-    let a = if ay > ax { FRAC_PI_2 - a } else { a };
-    let a = if x < 0.0 { PI - a } else { a };
-    if y < 0.0 { -a } else { a }
 }
 
 /// How many leading elements of `sorted` satisfy `pred` (which must hold for a prefix, as for
@@ -365,25 +344,6 @@ mod tests {
                     "N={n} φ={p} {b:?}"
                 );
             }
-        }
-    }
-
-    #[test]
-    fn inline_arctangent_matches_libm() {
-        let mut r = Rng::new(17);
-        for i in 0..200_000 {
-            let (y, x) = match i {
-                0 => (0.0, 0.0),
-                1 => (0.0, -1.0),
-                2 => (-1.0, 0.0),
-                3 => (1.0, 1.0),
-                _ => {
-                    let d = uniform_sphere(r.next_2d());
-                    (d.x, d.z * [1.0, 1e-3, 1e3][i % 3])
-                }
-            };
-            let err = (atan2(y, x) as f64 - (y as f64).atan2(x as f64)).abs();
-            assert!(err < 3e-7, "atan2({y}, {x}) off by {err}");
         }
     }
 

@@ -5,6 +5,8 @@ use std::f32::consts::PI;
 
 use glam::{Vec2, Vec3};
 
+use crate::math::sin_cos_2pi;
+
 /// SplitMix64's finaliser: a fast, well-mixed 64-bit hash.
 #[inline]
 pub fn mix64(mut z: u64) -> u64 {
@@ -195,27 +197,6 @@ pub fn permute(i: u32, n: u32, key: u32) -> u32 {
     (i.wrapping_add(key)) % n
 }
 
-/// (sin 2πu, cos 2πu) for `u` in [0, 1], within 2·10⁻⁷: the octant's centre, then short
-/// Taylor series over ±π/8. A libm `sincosf` call per BSDF and light sample was 2.8% of a
-/// render. No table and no branches, so loops over lanes vectorise.
-#[inline]
-pub fn sin_cos_2pi(u: f32) -> (f32, f32) {
-    // (sin, cos) of π/8 and 3π/8: the centres of the first quadrant's two octants.
-    const S: f32 = 0.382_683_43;
-    const C: f32 = 0.923_879_5;
-    let x = 8.0 * u;
-    let k = (x as u32).min(7);
-    let t = (x - k as f32 - 0.5) * std::f32::consts::FRAC_PI_4;
-    let t2 = t * t;
-    let sin_t = t * (1.0 - t2 * (1.0 / 6.0 - t2 * (1.0 / 120.0 - t2 * (1.0 / 5040.0))));
-    let cos_t = 1.0 - t2 * (0.5 - t2 * (1.0 / 24.0 - t2 * (1.0 / 720.0)));
-    // Octant k's centre (k + ½)·π/4: the quadrant's octant, turned by k / 2 quarter turns.
-    let (s, c) = if k & 1 != 0 { (C, S) } else { (S, C) };
-    let (s, c) = if k & 2 != 0 { (c, -s) } else { (s, c) };
-    let (s, c) = if k & 4 != 0 { (-s, -c) } else { (s, c) };
-    (s * cos_t + c * sin_t, c * cos_t - s * sin_t)
-}
-
 /// An orthonormal basis (t, b, n) around unit `n` (Duff et al. 2017, branchless).
 #[inline]
 pub fn frame(n: Vec3) -> (Vec3, Vec3) {
@@ -381,20 +362,6 @@ mod tests {
         }
         let mean = chi2_sum / pairs as f64;
         assert!((7.0..11.0).contains(&mean), "mean χ² {mean}");
-    }
-
-    #[test]
-    fn sin_cos_2pi_matches_the_library_everywhere() {
-        let mut worst = 0f64;
-        for i in 0..=1_000_000u32 {
-            let u = i as f32 / 1_000_000.0;
-            let (s, c) = sin_cos_2pi(u);
-            let (s64, c64) = (std::f64::consts::TAU * u as f64).sin_cos();
-            worst = worst
-                .max((s as f64 - s64).abs())
-                .max((c as f64 - c64).abs());
-        }
-        assert!(worst < 2e-7, "worst error {worst:e}");
     }
 
     #[test]
