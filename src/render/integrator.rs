@@ -200,6 +200,16 @@ struct SurfacePoint {
     albedo: Vec3,
 }
 
+impl SurfacePoint {
+    /// A placeholder for an idle lane: a normal (+Z) that BSDF sampling accepts.
+    const NONE: SurfacePoint = SurfacePoint {
+        p: Vec3::ZERO,
+        ng: Vec3::Z,
+        ns: Vec3::Z,
+        albedo: Vec3::ZERO,
+    };
+}
+
 fn surface_point(scene: &Scene, hit: &Hit, d: Vec3) -> SurfacePoint {
     let mesh = &scene.mesh;
     let t = hit.triangle as usize;
@@ -309,7 +319,10 @@ impl Tracer<'_> {
         }
         let mut going = (1u32 << n) - 1;
         for depth in 0..=mb {
-            let mut next = 0u32;
+            // The surface points of this depth's hits, and their BSDF samples' numbers.
+            let mut shade = 0u32;
+            let mut sp = [SurfacePoint::NONE; LANES];
+            let mut u = [Vec2::ZERO; LANES];
             for l in set_bits(going) {
                 let t = hits[l].map_or(f32::INFINITY, |h| h.t);
                 if depth == 0 {
@@ -321,7 +334,16 @@ impl Tracer<'_> {
                 if depth == mb {
                     continue;
                 }
-                let sp = surface_point(self.scene, &hit, d[l]);
+                sp[l] = surface_point(self.scene, &hit, d[l]);
+                u[l] = s[l].bsdf_sample(depth);
+                shade |= 1 << l;
+            }
+            // The BSDF directions of all lanes at once (a loop the compiler vectorises; idle
+            // lanes compute and drop a direction about +Z).
+            let wi: [Vec3; LANES] = std::array::from_fn(|l| cosine_hemisphere(sp[l].ns, u[l]));
+            let mut next = 0u32;
+            for l in set_bits(shade) {
+                let (sp, wi) = (&sp[l], wi[l]);
                 let mut v = Vertex {
                     p: sp.p,
                     ng: sp.ng,
@@ -330,8 +352,6 @@ impl Tracer<'_> {
                     wi: Vec3::ZERO,
                     t_next: f32::NAN,
                 };
-                let u = s[l].bsdf_sample(depth);
-                let wi = cosine_hemisphere(sp.ns, u);
                 let pdf = wi.dot(sp.ns) * INV_PI;
                 throughput[l] *= sp.albedo; // f · cos / pdf for a Lambertian
                 let ends = wi.dot(sp.ng) <= 0.0 || pdf <= 0.0 || throughput[l] == Vec3::ZERO;
