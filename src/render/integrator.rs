@@ -172,6 +172,18 @@ fn set_bits(mut mask: u32) -> impl Iterator<Item = usize> {
 /// order: [`Tracer::light`]'s scratch space.
 pub(super) type Added = [Vec<(Emitter, Vec3)>; LANES];
 
+/// Lane `l`'s `len` vertices in the scratch space [`Tracer::walk`] filled with
+/// `max_bounces`-long stretches (empty for a lane past the last).
+#[inline]
+pub(super) fn lane_vertices(
+    verts: &[Vertex],
+    max_bounces: usize,
+    l: usize,
+    len: usize,
+) -> &[Vertex] {
+    verts.get(l * max_bounces..).map_or(&[], |v| &v[..len])
+}
+
 /// Scratch space of [`Tracer::trace`]: the walked vertices, and what the paths deliver
 /// before it is handed to the accumulator ([`Tracer::light`]).
 #[derive(Default)]
@@ -268,7 +280,7 @@ impl Tracer<'_> {
         let paths: [Walked; LANES] = std::array::from_fn(|l| Walked {
             dir: dirs.get(l).copied().unwrap_or(Vec3::Z),
             t_first: t_first[l],
-            verts: &verts[(l * mb).min(verts.len())..][..len[l]],
+            verts: lane_vertices(verts, mb, l, len[l]),
         });
         self.light(
             pixel.origin(),

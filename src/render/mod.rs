@@ -516,7 +516,8 @@ fn walk_tile(
             while next_chunk(&mut samples, &mut dirs, &mut samplers) {
                 let (t, len) = tracer.walk(&pixel, &dirs, &mut samplers, true, &mut verts);
                 for l in 0..dirs.len() {
-                    tile.vertices.extend_from_slice(&verts[l * mb..][..len[l]]);
+                    tile.vertices
+                        .extend_from_slice(integrator::lane_vertices(&verts, mb, l, len[l]));
                     tile.samples.push((t[l], len[l] as u8));
                 }
             }
