@@ -169,6 +169,35 @@ pub struct Accel {
     stack_len: usize,
     /// Number of the caller's triangles.
     len: usize,
+    /// Whether traversal runs its AVX kernels ([`Isa::detect`]).
+    isa: Isa,
+}
+
+/// The instruction set the traversal kernels are compiled for, chosen at run time: the binary
+/// is built for the baseline x86-64 (or any other target), and the AVX kernels run where the
+/// CPU has AVX. Both compute the same arithmetic in the same order, so they give the same
+/// answers bit for bit (a test compares them).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Isa {
+    /// Plain Rust, for any target.
+    Portable,
+    /// 256-bit AVX (x86-64 only).
+    Avx,
+}
+
+impl Isa {
+    /// AVX where this CPU has it, unless the environment variable `LIGHTPROBE_ISA` is
+    /// `portable` (to test or compare the portable kernels on an AVX machine).
+    pub fn detect() -> Isa {
+        if std::env::var_os("LIGHTPROBE_ISA").is_some_and(|v| v == "portable") {
+            return Isa::Portable;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx") {
+            return Isa::Avx;
+        }
+        Isa::Portable
+    }
 }
 
 impl Accel {
@@ -180,6 +209,7 @@ impl Accel {
             order: Vec::new(),
             stack_len: 1,
             len: triangles.len(),
+            isa: Isa::detect(),
         };
         if triangles.is_empty() {
             return accel;
@@ -311,7 +341,12 @@ impl Accel {
             if stack.len() < self.stack_len {
                 stack.resize(self.stack_len, (0, 0.0));
             }
-            self.closest(&ray, t_max, stack)
+            #[cfg(target_arch = "x86_64")]
+            if self.isa == Isa::Avx {
+                // SAFETY: `isa` is `Avx` only where the CPU has AVX (`Isa::detect`).
+                return unsafe { self.closest_avx(&ray, t_max, stack) };
+            }
+            self.closest::<false>(&ray, t_max, stack)
         })
     }
 
@@ -326,8 +361,28 @@ impl Accel {
             if stack.len() < self.stack_len {
                 stack.resize(self.stack_len, 0);
             }
-            self.any(&ray, t_max, stack)
+            #[cfg(target_arch = "x86_64")]
+            if self.isa == Isa::Avx {
+                // SAFETY: as in `intersect`.
+                return unsafe { self.any_avx(&ray, t_max, stack) };
+            }
+            self.any::<false>(&ray, t_max, stack)
         })
+    }
+
+    /// The instruction set traversal uses.
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// The same BVH with traversal on `isa` (which this CPU must support; tests compare the
+    /// kernels with it).
+    pub fn with_isa(mut self, isa: Isa) -> Accel {
+        if isa == Isa::Avx {
+            assert_eq!(Isa::detect(), Isa::Avx, "this CPU has no AVX");
+        }
+        self.isa = isa;
+        self
     }
 
     /// Fills `out` with the leaves the pyramid with apex `origin` spanned by the four edge
@@ -427,6 +482,35 @@ impl Accel {
         if !bundle.usable {
             return self.intersect(bundle.origin, dir, t_max);
         }
+        #[cfg(target_arch = "x86_64")]
+        if self.isa == Isa::Avx {
+            // SAFETY: as in `intersect`.
+            return unsafe { self.bundle_hit_avx(bundle, dir, t_max) };
+        }
+        self.bundle_hit::<false>(bundle, dir, t_max)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    fn bundle_hit_avx(&self, bundle: &Bundle, dir: Vec3, t_max: f32) -> Option<Hit> {
+        self.bundle_hit::<true>(bundle, dir, t_max)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    fn closest_avx(&self, ray: &RayData, t_max: f32, stack: &mut [(u32, f32)]) -> Option<Hit> {
+        self.closest::<true>(ray, t_max, stack)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    fn any_avx(&self, ray: &RayData, t_max: f32, stack: &mut [u32]) -> bool {
+        self.any::<true>(ray, t_max, stack)
+    }
+
+    /// [`Accel::intersect_bundle`] on a usable bundle, with the kernels of `AVX`.
+    #[inline(always)]
+    fn bundle_hit<const AVX: bool>(&self, bundle: &Bundle, dir: Vec3, t_max: f32) -> Option<Hit> {
         let mut t_max = t_max;
         let mut best = None;
         for (&(near, packet), prepared) in bundle.leaves.iter().zip(&bundle.prepared) {
@@ -434,7 +518,7 @@ impl Accel {
                 break;
             }
             let packet = packet as usize;
-            if let Some((lane, t, b1, b2)) = hit_prepared(prepared, dir, t_max) {
+            if let Some((lane, t, b1, b2)) = hit_prepared::<AVX>(prepared, dir, t_max) {
                 t_max = t;
                 best = Some(((packet * WIDTH + lane) as u32, b1, b2));
             }
@@ -447,9 +531,15 @@ impl Accel {
         })
     }
 
-    /// Closest-hit traversal with a stack of (child reference, entry distance).
+    /// Closest-hit traversal with a stack of (child reference, entry distance), with the
+    /// kernels of `AVX` (true only inside functions compiled with AVX enabled).
     #[inline(always)]
-    fn closest(&self, ray: &RayData, mut t_max: f32, stack: &mut [(u32, f32)]) -> Option<Hit> {
+    fn closest<const AVX: bool>(
+        &self,
+        ray: &RayData,
+        mut t_max: f32,
+        stack: &mut [(u32, f32)],
+    ) -> Option<Hit> {
         let mut best: Option<(u32, f32, f32)> = None;
         let mut top = 0;
         let mut child = 0u32;
@@ -457,14 +547,14 @@ impl Accel {
             if child & LEAF != 0 {
                 let packet = (child & !LEAF) as usize;
                 if let Some((lane, t, b1, b2)) =
-                    hit_packet(&self.packets[packet], ray.origin, ray.dir, t_max)
+                    hit_packet::<AVX>(&self.packets[packet], ray.origin, ray.dir, t_max)
                 {
                     t_max = t;
                     best = Some(((packet * WIDTH + lane) as u32, b1, b2));
                 }
             } else {
                 let node = &self.nodes[child as usize];
-                let (t_near, mut mask) = node_test(node, ray, t_max);
+                let (t_near, mut mask) = node_test::<AVX>(node, ray, t_max);
                 if mask.is_power_of_two() {
                     // One child hit (the common case): nothing to order or push.
                     child = node.child[mask.trailing_zeros() as usize];
@@ -517,16 +607,17 @@ impl Accel {
         }
     }
 
-    /// Any-hit traversal: stops at the first triangle within (0, `t_max`].
+    /// Any-hit traversal: stops at the first triangle within (0, `t_max`], with the kernels
+    /// of `AVX` as in [`Accel::closest`].
     #[inline(always)]
-    fn any(&self, ray: &RayData, t_max: f32, stack: &mut [u32]) -> bool {
+    fn any<const AVX: bool>(&self, ray: &RayData, t_max: f32, stack: &mut [u32]) -> bool {
         stack[0] = 0;
         let mut top = 1;
         while top > 0 {
             top -= 1;
             let child = stack[top];
             if child & LEAF != 0 {
-                if hit_packet(
+                if hit_packet::<AVX>(
                     &self.packets[(child & !LEAF) as usize],
                     ray.origin,
                     ray.dir,
@@ -539,7 +630,7 @@ impl Accel {
                 continue;
             }
             let node = &self.nodes[child as usize];
-            let (_, mut mask) = node_test(node, ray, t_max);
+            let (_, mut mask) = node_test::<AVX>(node, ray, t_max);
             while mask != 0 {
                 let lane = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
@@ -552,13 +643,11 @@ impl Accel {
 }
 
 /// `a.max(b)` without NaN handling, so it compiles to one vector instruction.
-#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
 #[inline(always)]
 fn fmax(a: f32, b: f32) -> f32 {
     if a > b { a } else { b }
 }
 
-#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
 #[inline(always)]
 fn fmin(a: f32, b: f32) -> f32 {
     if a < b { a } else { b }
@@ -572,19 +661,31 @@ const WIDEN: f32 = 1.0 + 2.0 * 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSI
 const _: () = assert!(WIDTH == 8);
 
 /// Slab test of the ray against all children of `node` over (0, `t_max`]: the entry
-/// distances, and a bit mask of the children hit. Spelled out in AVX where the target has it:
+/// distances, and a bit mask of the children hit. With `AVX`, spelled out in AVX intrinsics:
 /// the compiler's own vectorisation of the portable loop ([`node_test_portable`]) split it
 /// into scalar and 4-wide pieces with shuffles (three times the instructions); this is the
 /// same arithmetic, so the same answers (`maxps`/`minps` pick as `fmax`/`fmin` do; a test
 /// compares the two).
-#[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
 #[inline(always)]
-fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
+fn node_test<const AVX: bool>(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
+    #[cfg(target_arch = "x86_64")]
+    if AVX {
+        // SAFETY: `AVX` is true only in kernels compiled with AVX enabled, which run only
+        // where the CPU has it (`Isa::detect`).
+        return unsafe { node_test_avx(node, ray, t_max) };
+    }
+    node_test_portable(node, ray, t_max)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+#[inline]
+fn node_test_avx(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
     use std::arch::x86_64::*;
     let b = &node.bounds;
     let [nx, ny, nz] = ray.near;
-    // SAFETY: AVX is enabled for the whole build (the cfg above); each row is 8 contiguous
-    // f32 (an unaligned load asks no more), and so is `t_near`.
+    // SAFETY: each row is 8 contiguous f32 (an unaligned load asks no more), and so is
+    // `t_near`.
     unsafe {
         let slab = |r: usize, a: usize| {
             let o = _mm256_set1_ps(ray.origin[a]);
@@ -612,14 +713,7 @@ fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
     }
 }
 
-#[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
-#[inline(always)]
-fn node_test(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
-    node_test_portable(node, ray, t_max)
-}
-
-/// [`node_test`] in plain Rust, for targets without AVX.
-#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
+/// [`node_test`] in plain Rust, for any target.
 #[inline(always)]
 fn node_test_portable(node: &Node, ray: &RayData, t_max: f32) -> ([f32; WIDTH], u32) {
     let b = &node.bounds;
@@ -690,14 +784,23 @@ impl Prepared {
 /// Möller–Trumbore on every lane of a leaf: the closest crossing with `t` in (0, `t_max`] as
 /// `(lane, t, b1, b2)`.
 #[inline(always)]
-fn hit_packet(k: &Packet, origin: Vec3, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32, f32)> {
-    hit_prepared(&Prepared::new(k, origin), dir, t_max)
+fn hit_packet<const AVX: bool>(
+    k: &Packet,
+    origin: Vec3,
+    dir: Vec3,
+    t_max: f32,
+) -> Option<(usize, f32, f32, f32)> {
+    hit_prepared::<AVX>(&Prepared::new(k, origin), dir, t_max)
 }
 
 /// [`hit_packet`] from the origin the leaf was prepared for (the same arithmetic, so the same
 /// answers).
 #[inline(always)]
-fn hit_prepared(k: &Prepared, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32, f32)> {
+fn hit_prepared<const AVX: bool>(
+    k: &Prepared,
+    dir: Vec3,
+    t_max: f32,
+) -> Option<(usize, f32, f32, f32)> {
     let [dx, dy, dz] = dir.to_array();
     let (mut t, mut b1, mut b2) = ([f32::INFINITY; WIDTH], [0.0; WIDTH], [0.0; WIDTH]);
     for i in 0..WIDTH {
@@ -727,7 +830,7 @@ fn hit_prepared(k: &Prepared, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32,
     }
     // Most leaves are crossed nowhere or once: only several crossings need a search (the
     // first lane of the nearest, as a scan in lane order keeps).
-    let hits = finite_lanes(&t) & k.lanes;
+    let hits = finite_lanes::<AVX>(&t) & k.lanes;
     if hits == 0 {
         return None;
     }
@@ -744,11 +847,22 @@ fn hit_prepared(k: &Prepared, dir: Vec3, t_max: f32) -> Option<(usize, f32, f32,
 }
 
 /// Bit i set where `t[i]` is below +∞ (a crossing; ∞ marks none).
-#[cfg(all(target_arch = "x86_64", target_feature = "avx"))]
 #[inline(always)]
-fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
+fn finite_lanes<const AVX: bool>(t: &[f32; WIDTH]) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    if AVX {
+        // SAFETY: as in `node_test`.
+        return unsafe { finite_lanes_avx(t) };
+    }
+    finite_lanes_portable(t)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+#[inline]
+fn finite_lanes_avx(t: &[f32; WIDTH]) -> u32 {
     use std::arch::x86_64::*;
-    // SAFETY: AVX is enabled for the whole build (the cfg above); `t` holds 8 f32.
+    // SAFETY: `t` holds 8 f32.
     unsafe {
         let t = _mm256_loadu_ps(t.as_ptr());
         _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(
@@ -758,14 +872,7 @@ fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
     }
 }
 
-#[cfg(not(all(target_arch = "x86_64", target_feature = "avx")))]
-#[inline(always)]
-fn finite_lanes(t: &[f32; WIDTH]) -> u32 {
-    finite_lanes_portable(t)
-}
-
-/// [`finite_lanes`] in plain Rust, for targets without AVX.
-#[cfg(any(test, not(all(target_arch = "x86_64", target_feature = "avx"))))]
+/// [`finite_lanes`] in plain Rust, for any target.
 #[inline(always)]
 fn finite_lanes_portable(t: &[f32; WIDTH]) -> u32 {
     (0..WIDTH).fold(0, |m, i| m | ((t[i] < f32::INFINITY) as u32) << i)
@@ -1006,7 +1113,12 @@ mod tests {
     }
 
     #[test]
+    #[cfg(target_arch = "x86_64")]
     fn vector_tests_answer_as_the_portable_ones() {
+        if Isa::detect() != Isa::Avx {
+            eprintln!("skipped: this CPU runs no AVX kernel, so there is nothing to compare");
+            return;
+        }
         // Random boxes and rays, with the awkward cases mixed in: origins on a slab plane,
         // axis-parallel rays (±0 direction components), empty and infinite boxes, t_max = ∞.
         let mut s = 9u64;
@@ -1042,7 +1154,8 @@ mod tests {
                 lcg(&mut s) * 5.0
             };
             let ray = RayData::new(o, d);
-            let (near_v, mask_v) = node_test(&node, &ray, t_max);
+            // SAFETY: the CPU has AVX (checked above).
+            let (near_v, mask_v) = unsafe { node_test_avx(&node, &ray, t_max) };
             let (near_p, mask_p) = node_test_portable(&node, &ray, t_max);
             assert_eq!(mask_v, mask_p, "ray {i}");
             for lane in 0..WIDTH {
@@ -1050,7 +1163,38 @@ mod tests {
             }
             let t: [f32; WIDTH] = std::array::from_fn(|lane| near_p[lane] - 1.0);
             let t = t.map(|x| if x > 1.0 { f32::INFINITY } else { x });
-            assert_eq!(finite_lanes(&t), finite_lanes_portable(&t));
+            // SAFETY: as above.
+            assert_eq!(unsafe { finite_lanes_avx(&t) }, finite_lanes_portable(&t));
+        }
+    }
+
+    #[test]
+    fn portable_and_detected_kernels_give_the_same_hits() {
+        // Whole traversals (closest hit, occlusion, bundles) on both instruction sets: the
+        // same bits, so images do not depend on the CPU.
+        let mut s = 13u64;
+        let tris = soup(&mut s, 2000, 0.4);
+        let fast = Accel::build(&tris);
+        let portable = Accel::build(&tris).with_isa(Isa::Portable);
+        let (mut b_fast, mut b_port) = (Bundle::default(), Bundle::default());
+        for i in 0..4000 {
+            let o = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 6.0 - 3.0;
+            let d = (Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 2.0 - 1.0).normalize();
+            let t_max = if i % 3 == 0 { 2.0 } else { f32::INFINITY };
+            assert_eq!(fast.intersect(o, d, t_max), portable.intersect(o, d, t_max));
+            assert_eq!(fast.occluded(o, d, t_max), portable.occluded(o, d, t_max));
+            // A thin pyramid around d.
+            let (u, v) = (
+                d.any_orthonormal_vector() * 0.01,
+                d.cross(d.any_orthonormal_vector()) * 0.01,
+            );
+            let corners = [d - u - v, d + u - v, d + u + v, d - u + v].map(|c| c.normalize());
+            fast.bundle(o, corners, &mut b_fast);
+            portable.bundle(o, corners, &mut b_port);
+            assert_eq!(
+                fast.intersect_bundle(&b_fast, d, t_max),
+                portable.intersect_bundle(&b_port, d, t_max)
+            );
         }
     }
 

@@ -1,24 +1,55 @@
 //! The library's one error type. Every variant says *where* (a file, and a line and column when
-//! the input is text) and *what* is wrong, so the CLI can print it as one line.
+//! the input is text, or the setting or stage) and *what* is wrong, in the terms of the inputs,
+//! so the CLI can print it as one line. Command-line wording (flag names) belongs to the CLI.
 
-use std::fmt;
 use std::path::{Path, PathBuf};
 
 /// A result with the library's [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 /// An error from loading, validating, rendering or writing.
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// An input or output file is unreadable, malformed or invalid. `at` is a (line, column)
-    /// in text inputs, 1-based.
+    /// Reading or writing `path` failed; the operating system's error is the source.
+    #[error("{}: {}", path.display(), io_words(source))]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// An input or output file is malformed or invalid. `at` is a (line, column) in text
+    /// inputs, 1-based.
+    #[error("{}{}: {message}", path.display(), at.map_or(String::new(), |(l, c)| format!(":{l}:{c}")))]
     File {
         path: PathBuf,
         at: Option<(usize, usize)>,
         message: String,
     },
-    /// A request that is invalid whatever the files say (bad option values, a job too large).
+    /// A setting outside its range: `name` as the library calls it (the CLI maps it to its
+    /// flag).
+    #[error("{name} must be {expected}, got {got}")]
+    Setting {
+        name: &'static str,
+        expected: String,
+        got: String,
+    },
+    /// A step of a longer job failed; `inner` says why.
+    #[error("{stage}: {inner}")]
+    Stage {
+        stage: &'static str,
+        inner: Box<Error>,
+    },
+    /// A request that is invalid whatever the files say (a job too large, nothing to fit).
+    #[error("{0}")]
     Invalid(String),
+}
+
+/// An I/O error worded for a person (the operating system's text without "(os error N)").
+fn io_words(err: &std::io::Error) -> String {
+    match err.kind() {
+        std::io::ErrorKind::NotFound => "no such file or directory".to_string(),
+        std::io::ErrorKind::PermissionDenied => "permission denied".to_string(),
+        _ => err.to_string(),
+    }
 }
 
 impl Error {
@@ -45,35 +76,19 @@ impl Error {
         }
     }
 
-    /// An I/O error on `path`, worded for a person.
-    pub fn io(path: impl AsRef<Path>, err: std::io::Error) -> Self {
-        let what = match err.kind() {
-            std::io::ErrorKind::NotFound => "no such file or directory".to_string(),
-            std::io::ErrorKind::PermissionDenied => "permission denied".to_string(),
-            _ => err.to_string(),
-        };
-        Error::file(path, what)
+    /// An I/O error on `path`, keeping the operating system's error as the source.
+    pub fn io(path: impl AsRef<Path>, source: std::io::Error) -> Self {
+        Error::Io {
+            path: path.as_ref().to_path_buf(),
+            source,
+        }
     }
-}
 
-impl fmt::Display for Error {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+    /// The error under any [`Error::Stage`] wrappers.
+    pub fn innermost(&self) -> &Error {
         match self {
-            Error::File {
-                path,
-                at: Some((line, col)),
-                message,
-            } => {
-                write!(f, "{}:{line}:{col}: {message}", path.display())
-            }
-            Error::File {
-                path,
-                at: None,
-                message,
-            } => write!(f, "{}: {message}", path.display()),
-            Error::Invalid(message) => f.write_str(message),
+            Error::Stage { inner, .. } => inner.innermost(),
+            e => e,
         }
     }
 }
-
-impl std::error::Error for Error {}

@@ -14,7 +14,9 @@ pub mod imageio;
 pub mod math;
 pub mod memory;
 pub mod metrics;
+pub mod output;
 pub mod render;
+pub mod sampling;
 pub mod scene;
 
 pub use error::{Error, Result};

@@ -49,7 +49,7 @@ pub fn atan2(y: f32, x: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::sampling::{Rng, uniform_sphere};
+    use crate::sampling::{Rng, uniform_sphere};
 
     #[test]
     fn sin_cos_2pi_matches_the_library_everywhere() {

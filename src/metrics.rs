@@ -16,7 +16,7 @@ use crate::error::{Error, Result};
 use crate::imageio::{Image, write_rgb8_png};
 
 /// Error figures of an image against a reference.
-#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+#[derive(Debug, Clone, Copy, Serialize, PartialEq, schemars::JsonSchema)]
 pub struct Metrics {
     /// Pixels compared (in the mask).
     pub pixels: usize,
@@ -24,8 +24,14 @@ pub struct Metrics {
     pub masked_out: usize,
     pub mae: f64,
     pub rmse: f64,
+    /// Σ|x − r| / Σ|r| (null when the reference is black).
+    #[schemars(with = "Option<f64>")]
     pub rel_mae: f64,
+    /// Σ(x − r)² / Σr² (null when the reference is black).
+    #[schemars(with = "Option<f64>")]
     pub rel_mse: f64,
+    /// 10 log10(peak² / MSE), dB (null for identical images).
+    #[schemars(with = "Option<f64>")]
     pub psnr: f64,
     /// Mean RGB of the image and of the reference over the mask.
     pub mean: [f64; 3],

@@ -436,10 +436,13 @@ fn rings_auto_reports_its_choice_and_the_sweep_charts_it() {
 #[test]
 fn albedo_error_perturbs_every_material_within_bounds_and_is_swept() {
     let scene = Scene::load(&root().join("scenes/tabletop/tabletop.ron")).unwrap();
-    let p = scene.with_albedo_error(0.1, 7);
+    let p = lightprobe::experiment::with_albedo_error(&scene, 0.1, 7);
     assert_eq!(
         format!("{:?}", p.materials),
-        format!("{:?}", scene.with_albedo_error(0.1, 7).materials)
+        format!(
+            "{:?}",
+            lightprobe::experiment::with_albedo_error(&scene, 0.1, 7).materials
+        )
     );
     let uv = glam::Vec2::new(0.3, 0.6);
     let mut changed = 0;

@@ -267,7 +267,7 @@ pub(crate) fn count_while(sorted: &[f64], pred: impl Fn(f64) -> bool) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::sampling::{Rng, uniform_sphere};
+    use crate::sampling::{Rng, uniform_sphere};
 
     #[test]
     fn counts_match_the_authors_table() {

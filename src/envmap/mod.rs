@@ -30,7 +30,9 @@ pub use grid::RingGrid;
 
 use crate::error::{Error, Result};
 use crate::imageio::{luminance, write_bytes};
-use crate::scene::sidecar::{Rgb, Rings};
+
+/// Largest accepted ring count of the grid (1000 rings hold about 1.3 million cells).
+pub const MAX_RINGS: u32 = 1000;
 
 /// Relative weight floor of the sampling distribution (× the mean luminance).
 const FLOOR: f64 = 1e-3;
@@ -57,10 +59,9 @@ impl Envmap {
     /// An envmap from per-cell radiance (length must equal the grid's cell count; every
     /// channel finite and ≥ 0).
     pub fn new(rings: u32, radiance: Vec<Vec3>) -> std::result::Result<Envmap, String> {
-        if !(1..=crate::scene::sidecar::MAX_RINGS).contains(&rings) {
+        if !(1..=MAX_RINGS).contains(&rings) {
             return Err(format!(
-                "rings must be between 1 and {}, got {rings}",
-                crate::scene::sidecar::MAX_RINGS
+                "rings must be between 1 and {MAX_RINGS}, got {rings}"
             ));
         }
         let grid = RingGrid::new(rings);
@@ -224,8 +225,9 @@ impl Envmap {
         #[derive(Deserialize)]
         #[serde(rename = "Envmap", deny_unknown_fields)]
         struct File {
-            rings: Rings,
-            radiance: Vec<Rgb>,
+            rings: u32,
+            /// Linear RGB per cell.
+            radiance: Vec<(f32, f32, f32)>,
         }
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let f: File = ron::Options::default().from_str(&text).map_err(|e| {
@@ -239,9 +241,9 @@ impl Envmap {
         let radiance = f
             .radiance
             .iter()
-            .map(|c| Vec3::new(c.0.0, c.0.1, c.0.2))
+            .map(|&(r, g, b)| Vec3::new(r, g, b))
             .collect();
-        Envmap::new(f.rings.0, radiance).map_err(|m| Error::file(path, m))
+        Envmap::new(f.rings, radiance).map_err(|m| Error::file(path, m))
     }
 
     /// The `envmap.ron` text: exact f32 values, one cell per line.
@@ -275,7 +277,7 @@ impl Envmap {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::sampling::Rng;
+    use crate::sampling::Rng;
 
     fn varied(rings: u32) -> Envmap {
         let g = RingGrid::new(rings);

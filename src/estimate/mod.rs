@@ -9,6 +9,7 @@
 //!   search, re-estimating T between rounds with importance sampling from the current estimate
 //!   (sequential Monte Carlo).
 
+pub mod job;
 pub mod nnls;
 pub mod pipeline;
 pub mod recovery;
@@ -29,7 +30,9 @@ use crate::scene::Camera;
 pub use transport::{Transport, estimate_transport};
 
 /// Which solver fits λ.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Solver {
     /// Exact non-negative least squares (active set) on the normal equations.
@@ -80,7 +83,7 @@ pub struct FitSettings {
 /// The fixed quarter of the pixels a hold-out fit leaves out, by (view, pixel index): a hash,
 /// so held-out pixels are scattered over every view.
 pub fn is_held_out((view, pixel): (usize, u32)) -> bool {
-    crate::render::sampling::mix64(((view as u64) << 32 | pixel as u64) ^ 0x401D).is_multiple_of(4)
+    crate::sampling::mix64(((view as u64) << 32 | pixel as u64) ^ 0x401D).is_multiple_of(4)
 }
 
 /// Error of a hold-out fit on the held-out pixels.
@@ -122,7 +125,7 @@ impl FitSettings {
 }
 
 /// One channel's solve.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, schemars::JsonSchema)]
 pub struct ChannelFit {
     pub iterations: usize,
     pub kkt_violation: f64,

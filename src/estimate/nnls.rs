@@ -279,7 +279,7 @@ pub fn projected_gradient(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::sampling::Rng;
+    use crate::sampling::Rng;
 
     /// A random least-squares problem: T is m × n, y = T x_true + noise, with some x_true = 0.
     fn problem(m: usize, n: usize, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {

@@ -97,6 +97,10 @@ pub struct SeenViews<'a> {
     pub masks: Vec<Vec<bool>>,
     /// Views whose mask is empty: nothing to fit or to measure there.
     pub blind: Vec<String>,
+    /// Why a view's mask is empty, for a person ("it sees no scene geometry").
+    pub blind_reason: String,
+    /// Seconds spent rendering or reading the references.
+    pub seconds: f64,
 }
 
 /// Splits the views (in order, with their references and masks) into those with at least one
@@ -111,6 +115,8 @@ pub fn seen_views<'a>(
         references: Vec::new(),
         masks: Vec::new(),
         blind: Vec::new(),
+        blind_reason: String::new(),
+        seconds: 0.0,
     };
     for ((cam, r), m) in views.iter().zip(references).zip(masks) {
         if m.contains(&true) {
@@ -318,6 +324,7 @@ pub fn run(
 }
 
 /// A sphere-model estimate and its figures.
+#[derive(Clone)]
 pub struct SphereOutcome {
     pub fit: SphereFit,
     /// The model re-rendered, per view (empty without `evaluate`).

@@ -17,7 +17,7 @@ use crate::imageio::luminance;
 use crate::scene::SphereLight;
 
 /// Recovery figures of one light.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, schemars::JsonSchema)]
 pub struct LightRecovery {
     /// True direction from the scene centre (unit, world).
     pub true_direction: [f32; 3],
@@ -148,7 +148,7 @@ pub fn clusters(env: &Envmap) -> Vec<Cluster> {
 }
 
 /// Recovery figures of one true sphere light against a sphere-model estimate.
-#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct SphereRecovery {
     /// Index of the matched estimated light (None: the model has fewer lights).
     pub estimated: Option<usize>,

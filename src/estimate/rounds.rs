@@ -114,7 +114,7 @@ pub fn nearest_psd(mut g: Vec<f64>) -> Vec<f64> {
 mod tests {
     use super::*;
     use crate::estimate::nnls;
-    use crate::render::sampling::Rng;
+    use crate::sampling::Rng;
     use std::time::Duration;
 
     /// A transport of one channel (copied to all three) from row-major `t`.

@@ -20,7 +20,7 @@ use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::Camera;
 
 /// One candidate resolution's held-out figures.
-#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct Candidate {
     pub rings: u32,
     pub cells: usize,
@@ -35,7 +35,7 @@ pub struct Candidate {
 }
 
 /// The chosen resolution and every candidate's figures.
-#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct Selection {
     pub rings: u32,
     /// Ring count of the candidate with the lowest held-out error.
@@ -125,7 +125,7 @@ pub fn choose(validations: &[(u32, usize, Validation, f64)]) -> Option<Selection
 }
 
 /// One candidate light model's held-out figures (`--model auto`).
-#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct ModelCandidate {
     /// `envmap` or `spheres:K`.
     pub model: String,
@@ -139,7 +139,7 @@ pub struct ModelCandidate {
 }
 
 /// The chosen light model and every candidate's figures.
-#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct ModelSelection {
     pub chosen: String,
     /// The candidate with the lowest held-out error.

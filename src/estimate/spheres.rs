@@ -916,7 +916,7 @@ impl SphereSettings {
 }
 
 /// How well the images pin a recovered light down.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case", tag = "status")]
 pub enum LightStatus {
     /// A light 25% nearer or farther explains the images worse by more than two standard
@@ -935,9 +935,10 @@ pub enum LightStatus {
 }
 
 /// One recovered light and how well it is determined.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, schemars::JsonSchema)]
 pub struct FittedLight {
     #[serde(with = "light_json")]
+    #[schemars(with = "light_json::Light")]
     pub light: SphereLight,
     #[serde(flatten)]
     pub status: LightStatus,
@@ -956,6 +957,16 @@ mod light_json {
     use crate::scene::SphereLight;
     use serde::Serializer;
     use serde::ser::SerializeStruct;
+
+    /// What the light is written as: centre (world, metres), radius (metres), linear RGB
+    /// radiance.
+    #[derive(schemars::JsonSchema)]
+    #[allow(dead_code)]
+    pub struct Light {
+        center: [f32; 3],
+        radius: f32,
+        radiance: [f32; 3],
+    }
 
     pub fn serialize<S: Serializer>(l: &SphereLight, s: S) -> Result<S::Ok, S::Error> {
         let mut st = s.serialize_struct("SphereLight", 3)?;

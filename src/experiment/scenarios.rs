@@ -13,7 +13,7 @@ use glam::Vec3;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::render::sampling::{Rng, mix64};
+use crate::sampling::{Rng, mix64};
 use crate::scene::sidecar::{self, LightDesc, Sidecar};
 use crate::scene::{Scene, SphereLight};
 

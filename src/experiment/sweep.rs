@@ -22,14 +22,18 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::estimate::pipeline::{self, EstimateOptions};
+use crate::estimate::job::{
+    self, EstimateReport, EstimateSettings, FitStatus, Job, LightModel, Rings,
+};
+use crate::estimate::pipeline::{self, SeenViews};
 use crate::estimate::recovery::SphereRecovery;
-use crate::estimate::select::{self, Selection};
-use crate::estimate::spheres::{LightStatus, Observations, PathCache};
+use crate::estimate::select::Selection;
+use crate::estimate::spheres::LightStatus;
 use crate::estimate::{FitSettings, Solver, Transport, first_round_transport};
-use crate::imageio::{self, Image};
-use crate::render::sampling::mix64;
+use crate::imageio;
+use crate::metrics::Metrics;
 use crate::render::{Lights, RenderSettings, Renderer};
+use crate::sampling::mix64;
 use crate::scene::sidecar::{self, Sidecar};
 use crate::scene::{Camera, Scene, SphereLight};
 
@@ -45,10 +49,10 @@ impl Shard {
 
     /// Parses `i/n` with 0 ≤ i < n.
     pub fn parse(s: &str) -> Result<Shard> {
-        let bad = || {
-            Error::Invalid(format!(
-                "--shard {s:?}: expected i/n with 0 <= i < n, e.g. 0/4"
-            ))
+        let bad = || Error::Setting {
+            name: "shard",
+            expected: "i/n with 0 <= i < n, e.g. 0/4".into(),
+            got: format!("{s:?}"),
         };
         let (i, n) = s.split_once('/').ok_or_else(bad)?;
         let (index, count) = (
@@ -321,9 +325,9 @@ fn scene_key(sc: &Sidecar, path: &Path) -> Result<String> {
 }
 
 /// A scenario's references, geometry masks and noise floor.
-struct Observed {
-    references: Vec<Image>,
-    masks: Vec<Vec<bool>>,
+struct Observed<'a> {
+    /// Every view, with its reference and mask.
+    seen: SeenViews<'a>,
     /// relMAE of the noise floor, per view.
     noise_floor: Vec<f64>,
     /// Hash of the masks: the shared first round must have seen the same pixels.
@@ -406,19 +410,21 @@ pub fn run(
         });
     }
     for &r in settings.rings.iter().chain(&settings.spheres) {
-        if !(1..=sidecar::MAX_RINGS).contains(&r) {
-            return Err(Error::Invalid(format!(
-                "--rings: {r} is not in 1..={}",
-                sidecar::MAX_RINGS
-            )));
+        if !(1..=crate::envmap::MAX_RINGS).contains(&r) {
+            return Err(Error::Setting {
+                name: "rings",
+                expected: format!("between 1 and {}", crate::envmap::MAX_RINGS),
+                got: r.to_string(),
+            });
         }
     }
     for &s in &settings.spp {
         if !(1..=sidecar::MAX_SPP).contains(&s) {
-            return Err(Error::Invalid(format!(
-                "--spp: {s} is not in 1..={}",
-                sidecar::MAX_SPP
-            )));
+            return Err(Error::Setting {
+                name: "spp",
+                expected: format!("between 1 and {}", sidecar::MAX_SPP),
+                got: s.to_string(),
+            });
         }
     }
 
@@ -438,9 +444,11 @@ pub fn run(
             && (0.0..1.0).contains(*e)
             && (**e * 100.0 - (**e * 100.0).round()).abs() < 1e-3)
     }) {
-        return Err(Error::Invalid(format!(
-            "--albedo-error: {e} is not a whole percentage in [0, 1) (e.g. 0.05)"
-        )));
+        return Err(Error::Setting {
+            name: "albedo error",
+            expected: "a whole percentage in [0, 1) (e.g. 0.05)".into(),
+            got: e.to_string(),
+        });
     }
     let (rings_list, spp_list, solvers) = (
         dedup(&settings.rings),
@@ -454,14 +462,28 @@ pub fn run(
             for rings in fixed.chain(auto) {
                 for &solver in &solvers {
                     for &s in &mine {
-                        plan.push((s, spp, rings, solver, a, false));
+                        plan.push(Trial {
+                            scenario: s,
+                            spp,
+                            rings,
+                            solver,
+                            albedo: a,
+                            spheres: false,
+                        });
                     }
                 }
             }
             if let Some(r) = settings.spheres {
                 for &solver in &solvers {
                     for &s in &mine {
-                        plan.push((s, spp, Some(r), solver, a, true));
+                        plan.push(Trial {
+                            scenario: s,
+                            spp,
+                            rings: Some(r),
+                            solver,
+                            albedo: a,
+                            spheres: true,
+                        });
                     }
                 }
             }
@@ -484,7 +506,15 @@ pub fn run(
     };
     let mut todo = Vec::new();
     let (mut failed_before, mut not_converged_before) = (0, 0);
-    for &(s, spp, rings, solver, a, spheres) in &plan {
+    for &trial in &plan {
+        let Trial {
+            scenario: s,
+            spp,
+            rings,
+            solver,
+            albedo: a,
+            spheres,
+        } = trial;
         let id = trial_id(
             &scenarios[s].name,
             spp,
@@ -494,7 +524,7 @@ pub fn run(
             spheres,
         );
         match done.get(&id) {
-            None => todo.push((s, spp, rings, solver, a, spheres)),
+            None => todo.push(trial),
             // Records from before fingerprints ("") are taken as they are.
             Some(r) if !r.fingerprint.is_empty() && r.fingerprint != fingerprint(s, solver) => {
                 return Err(Error::file(
@@ -538,7 +568,7 @@ pub fn run(
     let mut sink = open_append(&trials_file)?;
 
     // ---- Scenes: loaded and BVH-built once per group ----
-    let needed: HashSet<usize> = todo.iter().map(|t| scenarios[t.0].group).collect();
+    let needed: HashSet<usize> = todo.iter().map(|t| scenarios[t.scenario].group).collect();
     let scenes: Vec<Option<Scene>> = (0..keys.len())
         .map(|g| {
             needed
@@ -561,17 +591,24 @@ pub fn run(
                 .map(|&e| {
                     s.as_ref()
                         .filter(|_| e > 0.0)
-                        .map(|s| s.with_albedo_error(e, ALBEDO_SEED))
+                        .map(|s| super::with_albedo_error(s, e, ALBEDO_SEED))
                 })
                 .collect()
         })
         .collect();
 
     let mut observed: HashMap<usize, Arc<Observed>> = HashMap::new();
-    type SharedKey = (usize, usize, u32, u32, u32, u64, u64, Solver);
     let mut shared: HashMap<SharedKey, (Arc<Transport>, f64)> = HashMap::new();
     let mut block = None;
-    for (k, &(s, spp, rings_plan, solver, a, spheres)) in todo.iter().enumerate() {
+    for (k, &trial) in todo.iter().enumerate() {
+        let Trial {
+            scenario: s,
+            spp,
+            rings: rings_plan,
+            solver,
+            albedo: a,
+            spheres,
+        } = trial;
         let t_trial = Instant::now();
         let sf = &scenarios[s];
         let scene = scenes[sf.group].as_ref().expect("loaded above");
@@ -581,9 +618,9 @@ pub fn run(
         let lights = Lights::new(sf.lights.clone());
         let renderer = base.with_lights(&lights);
         // What the fit sees: the scene, or its albedo-perturbed twin (same BVH).
-        let (fit_base, fit_renderer) = match &perturbed[sf.group][a] {
-            Some(p) => (base.with_scene(p, &no_lights), base.with_scene(p, &lights)),
-            None => (base.with_lights(&no_lights), base.with_lights(&lights)),
+        let fit_renderer = match &perturbed[sf.group][a] {
+            Some(p) => base.with_scene(p, &no_lights),
+            None => base.with_lights(&no_lights),
         };
         let report = |phase: &str, p: &mut dyn FnMut(Progress)| {
             p(Progress {
@@ -617,13 +654,29 @@ pub fn run(
             shared.clear();
             block = Some((spp, a, rings_plan, solver));
         }
-        let template = FitSettings {
+        let estimate = EstimateSettings {
+            rings: match rings_plan {
+                Some(r) => Rings::Fixed(r),
+                None => Rings::Auto(rings_list.clone()),
+            },
+            model: if spheres {
+                LightModel::Spheres(None)
+            } else {
+                LightModel::Envmap
+            },
+            solver,
+            spp,
+            rounds: solver.default_rounds(),
             smooth: settings.smooth,
             ridge: settings.ridge,
             time_limit: settings.time_limit,
-            ..FitSettings::new(&render, 1, solver, spp, solver.default_rounds())
+            evaluate: true,
+            // Measured once per scenario (`observe`).
+            noise_floor: false,
+            oracle: false,
         };
-        // The shared first round of a resolution: (transport, seconds it took, was cached).
+        // The shared first round of a resolution: per call, (seconds it took, was cached).
+        let mut first_rounds: Vec<(f64, bool)> = Vec::new();
         let mut first_of = |fit: &FitSettings| {
             let key = (
                 sf.group,
@@ -635,14 +688,14 @@ pub fn run(
                 fit.transport.seed,
                 solver,
             );
-            match shared.get(&key) {
+            let (tr, secs, cached) = match shared.get(&key) {
                 Some((t, secs)) => (t.clone(), *secs, true),
                 None => {
                     let t = Instant::now();
                     let tr = Arc::new(first_round_transport(
-                        &fit_base,
+                        &fit_renderer,
                         &views,
-                        &obs.masks,
+                        &obs.seen.masks,
                         fit,
                         &|_| {},
                     ));
@@ -650,171 +703,48 @@ pub fn run(
                     shared.insert(key, (tr.clone(), secs));
                     (tr, secs, false)
                 }
-            }
+            };
+            first_rounds.push((secs, cached));
+            Some(tr)
         };
-        let mut selection = None;
-        let mut shared_selection_seconds = 0.0;
-        let rings = match rings_plan {
-            Some(r) => r,
-            None => {
-                report(&format!("{} choosing rings", sf.name), progress);
-                let sel = select::select_rings(
-                    &fit_renderer,
-                    &views,
-                    &obs.references,
-                    &obs.masks,
-                    &rings_list,
-                    &template,
-                    &mut |fit| {
-                        let (t, secs, cached) = first_of(fit);
-                        if cached {
-                            shared_selection_seconds += secs;
-                        }
-                        Some(t)
-                    },
-                    &|_| {},
-                );
-                let Some(sel) = sel else {
-                    return Err(Error::Invalid(
-                        "--auto needs at least one --rings value".into(),
-                    ));
-                };
-                let r = sel.rings;
-                selection = Some(sel);
-                r
-            }
-        };
-        let fit = FitSettings { rings, ..template };
-        report(&format!("{rings} rings transport"), progress);
-        let (first, first_seconds, was_shared) = first_of(&fit);
-        report(&format!("{} {rings} rings {solver:?}", sf.name), progress);
-        let options = EstimateOptions {
-            fit,
-            evaluate: true,
-            noise_floor: false,
-            oracle: false,
-        };
-        let outcome = pipeline::run(
-            &fit_renderer,
-            &renderer,
-            &views,
-            &obs.references,
-            &obs.masks,
-            &sf.lights,
-            scene.center(),
-            &options,
-            &render,
-            Some(&first),
-            &|_| {},
+        report(
+            &format!(
+                "{} {}",
+                sf.name,
+                trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a], spheres)
+            ),
+            progress,
         );
-        // The sphere model, from this envmap estimate (its figures replace the envmap's).
-        let sphere_outcome = match (&outcome, spheres) {
-            (Ok(o), true) => {
-                report(&format!("{} spheres", sf.name), progress);
-                let (lo, hi) = scene.mesh.bounds();
-                let paths = PathCache::default();
-                let sphere_obs = Observations {
-                    cameras: &views,
-                    masks: &obs.masks,
-                    references: &obs.references,
-                    bin: 4,
-                    holdout: true,
-                    background: None,
-                    paths: Some(&paths),
-                };
-                // As `estimate --model spheres`: 1..=3 lights, chosen on held-out pixels.
-                Some(
-                    pipeline::run_sphere_models(
-                        &fit_renderer,
-                        &renderer,
-                        &sphere_obs,
-                        &o.fit.envmap,
-                        &sf.lights,
-                        (scene.center(), (hi.x - lo.x).max(hi.z - lo.z).max(1e-3)),
-                        3,
-                        true,
-                        &render,
-                        true,
-                        &|_| {},
-                    )
-                    .and_then(|models| {
-                        let sel =
-                            pipeline::select_model(None, &models, &obs.references, &obs.masks)
-                                .ok_or_else(|| {
-                                    Error::Invalid("no sphere model to choose".into())
-                                })?;
-                        let i = models
-                            .iter()
-                            .position(|m| sel.chosen == m.fit.model_name())
-                            .unwrap_or(0);
-                        // Nested fits: the last one's time includes the others'.
-                        let seconds = models.last().map_or(0.0, |m| m.fit.seconds);
-                        let so = pipeline::refit_on_all_pixels(
-                            &fit_renderer,
-                            &renderer,
-                            &sphere_obs,
-                            &models[i].fit,
-                            &sf.lights,
-                            scene.center(),
-                            &render,
-                            true,
-                            &|_| {},
-                        )?;
-                        let seconds = seconds + so.fit.seconds - models[i].fit.seconds;
-                        Ok((so, sel, seconds))
-                    }),
-                )
-            }
-            _ => None,
-        };
-        let id = trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a], spheres);
         let (lo, hi) = scene.mesh.bounds();
-        let size = (hi.x - lo.x).max(hi.z - lo.z).max(1e-3);
-        let center = scene.center();
+        let job = Job {
+            fit: &fit_renderer,
+            truth: &renderer,
+            seen: &obs.seen,
+            render: &render,
+            settings: &estimate,
+            center: scene.center(),
+            size: (hi.x - lo.x).max(hi.z - lo.z).max(1e-3),
+        };
+        let result = job::run(&job, &mut first_of, &());
         let mut record = TrialRecord {
-            id,
+            id: trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a], spheres),
             scenario: sf.name.clone(),
             file: sf.path.clone(),
-            rings,
-            cells: crate::envmap::RingGrid::new(rings).cell_count(),
+            rings: rings_plan.unwrap_or(0),
+            cells: 0,
             solver,
             spp,
-            rounds: fit.rounds,
+            rounds: estimate.rounds,
             status: Status::Ok,
             error: None,
             rel_mae: None,
             noise_floor_rel_mae: pipeline_mean(&obs.noise_floor),
             views: Vec::new(),
-            lights: sf
-                .lights
-                .iter()
-                .map(|l| {
-                    let d = l.center - center;
-                    LightFigures {
-                        distance: d.length(),
-                        distance_over_size: d.length() / size,
-                        elevation_degrees: if d.length() > 0.0 {
-                            (d.y / d.length()).clamp(-1.0, 1.0).asin().to_degrees()
-                        } else {
-                            0.0
-                        },
-                        angle_error_degrees: None,
-                        power_ratio: None,
-                    }
-                })
-                .collect(),
+            lights: light_figures(&sf.lights, job.center, job.size),
             iterations: 0,
             kkt_violation: 0.0,
-            timings: Timings {
-                first_round_seconds: first_seconds,
-                first_round_shared: was_shared,
-                // Stand-alone, the candidates' shared first rounds would have been paid too.
-                selection_seconds: selection
-                    .as_ref()
-                    .map_or(0.0, |s| s.seconds + shared_selection_seconds),
-                ..Default::default()
-            },
-            auto: selection,
+            timings: Timings::default(),
+            auto: None,
             spheres: None,
             albedo_error: albedo_errors[a],
             fingerprint: fingerprint(s, solver),
@@ -822,99 +752,21 @@ pub fn run(
             peak_bytes: 0,
             threads: rayon::current_num_threads(),
         };
-        match outcome {
+        match result {
             Err(e) => {
                 record.status = Status::Failed;
                 record.error = Some(e.to_string());
-                summary.failed += 1;
             }
-            Ok(o) => {
-                let f = &o.fit;
-                record.rel_mae = o.rel_mae();
-                record.views = views
-                    .iter()
-                    .zip(&o.errors)
-                    .zip(&obs.noise_floor)
-                    .map(|((cam, e), nf)| ViewFigures {
-                        view: cam.name.clone(),
-                        rel_mae: fin(e.rel_mae),
-                        rel_mse: fin(e.rel_mse),
-                        rmse: fin(e.rmse),
-                        psnr: fin(e.psnr),
-                        noise_floor_rel_mae: fin(*nf),
-                    })
-                    .collect();
-                // Recovery lists lights by decreasing power; match them back by direction.
-                for r in &o.recovery {
-                    let dir = Vec3::from(r.true_direction);
-                    if let Some(lf) = record.lights.iter_mut().zip(&sf.lights).find(|(lf, l)| {
-                        lf.angle_error_degrees.is_none()
-                            && (l.center - center).normalize().dot(dir) > 0.99999
-                    }) {
-                        lf.0.angle_error_degrees = Some(r.angle_error_degrees);
-                        lf.0.power_ratio = Some(r.power_ratio);
-                    }
-                }
-                record.iterations = f.channels.iter().map(|c| c.iterations).sum();
-                record.kkt_violation = f
-                    .channels
-                    .iter()
-                    .map(|c| c.kkt_violation)
-                    .fold(0.0, f64::max);
-                if f.channels.iter().any(|c| !c.converged) {
-                    record.status = Status::NotConverged;
-                    summary.not_converged += 1;
-                }
-                if record.rel_mae.is_some_and(|e| !e.is_finite()) {
-                    if record.status == Status::NotConverged {
-                        summary.not_converged -= 1;
-                    }
-                    record.status = Status::Failed;
-                    record.error = Some("the estimate's error is not finite".into());
-                    record.rel_mae = None;
-                    summary.failed += 1;
-                }
-                // The fit's own transport time counts the clone of the shared round, not its
-                // rendering: the stand-alone cost adds the first round's measured time.
-                record.timings.transport_seconds = f.transport_seconds;
-                record.timings.solve_seconds = f.solve_seconds;
-                record.timings.fit_seconds = record.timings.selection_seconds
-                    + first_seconds
-                    + f.transport_seconds
-                    + f.solve_seconds;
-                record.timings.rerender_seconds = o.rerender_seconds;
-                record.transport_bytes = f.transport_bytes;
-            }
+            Ok(est) => fill_record(
+                &mut record,
+                est.report,
+                &first_rounds,
+                &obs.noise_floor,
+                (&sf.lights, job.center),
+            ),
         }
-        match sphere_outcome {
-            None => {}
-            Some(Err(e)) => {
-                if record.status != Status::Failed {
-                    summary.failed += 1;
-                }
-                record.status = Status::Failed;
-                record.error = Some(format!("sphere model: {e}"));
-                record.rel_mae = None;
-            }
-            Some(Ok((so, selection, seconds))) => {
-                let envmap_rel_mae = record.rel_mae;
-                record.rel_mae = so.rel_mae().filter(|e| e.is_finite());
-                for (v, e) in record.views.iter_mut().zip(&so.errors) {
-                    (v.rel_mae, v.rel_mse, v.rmse, v.psnr) =
-                        (fin(e.rel_mae), fin(e.rel_mse), fin(e.rmse), fin(e.psnr));
-                }
-                record.timings.rerender_seconds = so.rerender_seconds;
-                record.spheres = Some(SphereTrial {
-                    statuses: so.fit.fitted.iter().map(|f| f.status).collect(),
-                    recovery: so.recovery,
-                    envmap_rel_mae,
-                    sphere_fit_seconds: seconds,
-                    selection: Some(selection),
-                    renders: so.fit.renders,
-                    iterations: so.fit.iterations,
-                });
-            }
-        }
+        summary.failed += (record.status == Status::Failed) as usize;
+        summary.not_converged += (record.status == Status::NotConverged) as usize;
         record.timings.trial_seconds = t_trial.elapsed().as_secs_f64();
         record.peak_bytes = crate::memory::peak_bytes();
         let line =
@@ -943,6 +795,142 @@ pub fn run(
     let mut log = open_append(&log_path)?;
     writeln!(log, "{run}").map_err(|e| Error::io(&log_path, e))?;
     Ok(summary)
+}
+
+/// Key of a shared first-round transport: (scene group, albedo error, rings, spp, bounces,
+/// mask hash, seed, solver).
+type SharedKey = (usize, usize, u32, u32, u32, u64, u64, Solver);
+
+/// One planned trial.
+#[derive(Debug, Clone, Copy)]
+struct Trial {
+    /// Index into the scenarios.
+    scenario: usize,
+    spp: u32,
+    /// None: the `--rings auto` trial.
+    rings: Option<u32>,
+    solver: Solver,
+    /// Index into the albedo errors.
+    albedo: usize,
+    /// The sphere-light model, started from an envmap of `rings`.
+    spheres: bool,
+}
+
+/// The true lights as seen from the scene's `center` (`size`: its larger horizontal extent),
+/// to be matched with the estimate's.
+fn light_figures(lights: &[SphereLight], center: Vec3, size: f32) -> Vec<LightFigures> {
+    lights
+        .iter()
+        .map(|l| {
+            let d = l.center - center;
+            LightFigures {
+                distance: d.length(),
+                distance_over_size: d.length() / size,
+                elevation_degrees: if d.length() > 0.0 {
+                    (d.y / d.length()).clamp(-1.0, 1.0).asin().to_degrees()
+                } else {
+                    0.0
+                },
+                angle_error_degrees: None,
+                power_ratio: None,
+            }
+        })
+        .collect()
+}
+
+/// A trial's figures from its estimate's report. `first_rounds`: per shared first-round
+/// transport the job asked for, in order (the candidates of `--rings auto`, then the fit),
+/// its seconds and whether it was shared; a stand-alone estimate would have paid for each.
+fn fill_record(
+    record: &mut TrialRecord,
+    report: EstimateReport,
+    first_rounds: &[(f64, bool)],
+    noise_floor: &[f64],
+    (truth, center): (&[SphereLight], Vec3),
+) {
+    let (first_seconds, was_shared) = first_rounds.last().copied().unwrap_or((0.0, false));
+    let candidates = &first_rounds[..first_rounds.len().saturating_sub(1)];
+    let shared_selection: f64 = candidates.iter().filter(|c| c.1).map(|c| c.0).sum();
+    record.rings = report.rings;
+    record.cells = report.cells;
+    record.rel_mae = report.rel_mae;
+    let fig = |m: &Metrics, nf: f64, view: &str| ViewFigures {
+        view: view.to_string(),
+        rel_mae: fin(m.rel_mae),
+        rel_mse: fin(m.rel_mse),
+        rmse: fin(m.rmse),
+        psnr: fin(m.psnr),
+        noise_floor_rel_mae: fin(nf),
+    };
+    record.views = report
+        .views
+        .iter()
+        .zip(noise_floor)
+        .filter_map(|(v, &nf)| v.estimate.as_ref().map(|m| fig(m, nf, &v.view)))
+        .collect();
+    // Recovery lists lights by decreasing power; match them back by direction.
+    for r in &report.light_recovery {
+        let dir = Vec3::from(r.true_direction);
+        if let Some((lf, _)) = record.lights.iter_mut().zip(truth).find(|(lf, l)| {
+            lf.angle_error_degrees.is_none() && (l.center - center).normalize().dot(dir) > 0.99999
+        }) {
+            lf.angle_error_degrees = Some(r.angle_error_degrees);
+            lf.power_ratio = Some(r.power_ratio);
+        }
+    }
+    record.iterations = report.channels.iter().map(|c| c.iterations).sum();
+    record.kkt_violation = report
+        .channels
+        .iter()
+        .map(|c| c.kkt_violation)
+        .fold(0.0, f64::max);
+    if report.status != FitStatus::Ok {
+        record.status = Status::NotConverged;
+    }
+    if record.rel_mae.is_some_and(|e| !e.is_finite()) {
+        record.status = Status::Failed;
+        record.error = Some("the estimate's error is not finite".into());
+        record.rel_mae = None;
+    }
+    let t = &report.timings;
+    let selection_seconds = report
+        .rings_selection
+        .as_ref()
+        .map_or(0.0, |s| s.seconds + shared_selection);
+    record.timings = Timings {
+        // The fit's own transport time counts the clone of the shared round, not its
+        // rendering: the stand-alone cost adds the first round's measured time.
+        fit_seconds: selection_seconds + first_seconds + t.transport_seconds + t.solve_seconds,
+        transport_seconds: t.transport_seconds,
+        solve_seconds: t.solve_seconds,
+        first_round_seconds: first_seconds,
+        first_round_shared: was_shared,
+        rerender_seconds: t.rerender_seconds,
+        trial_seconds: 0.0,
+        // Stand-alone, the candidates' shared first rounds would have been paid too.
+        selection_seconds,
+    };
+    record.transport_bytes = report.memory.transport_bytes;
+    record.auto = report.rings_selection;
+    // The sphere model's figures replace the envmap's.
+    if let Some(so) = report.spheres {
+        let envmap_rel_mae = record.rel_mae;
+        record.rel_mae = so.rel_mae.filter(|e| e.is_finite());
+        for (v, e) in record.views.iter_mut().zip(&so.views) {
+            (v.rel_mae, v.rel_mse, v.rmse, v.psnr) =
+                (fin(e.rel_mae), fin(e.rel_mse), fin(e.rmse), fin(e.psnr));
+        }
+        record.timings.rerender_seconds = so.rerender_seconds;
+        record.spheres = Some(SphereTrial {
+            statuses: so.lights.iter().map(|f| f.status).collect(),
+            recovery: so.recovery,
+            envmap_rel_mae,
+            sphere_fit_seconds: t.sphere_fit_seconds,
+            selection: report.model_selection,
+            renders: so.renders,
+            iterations: so.iterations,
+        });
+    }
 }
 
 /// `v` without repeats, in first-seen order (a value given twice runs once).
@@ -1004,13 +992,13 @@ struct NoiseFile {
 }
 
 /// A scenario's references and noise floor, from `dir` when a previous run left them there.
-fn observe(
+fn observe<'a>(
     renderer: &Renderer,
-    views: &[&Camera],
+    views: &[&'a Camera],
     render: &RenderSettings,
     dir: &Path,
     fingerprint: &str,
-) -> Result<Observed> {
+) -> Result<Observed<'a>> {
     let names: Vec<String> = views.iter().map(|c| c.name.clone()).collect();
     let noise_path = dir.join("noise.json");
     // Reused only for the same views and scenario (files from before fingerprints: "").
@@ -1052,8 +1040,14 @@ fn observe(
         .flatten()
         .fold(0x1234_5678u64, |h, &b| mix64(h ^ b as u64));
     Ok(Observed {
-        references,
-        masks,
+        seen: SeenViews {
+            views: views.to_vec(),
+            references,
+            masks,
+            blind: Vec::new(),
+            blind_reason: String::new(),
+            seconds: 0.0,
+        },
         noise_floor,
         mask_hash,
     })

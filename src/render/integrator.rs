@@ -14,9 +14,9 @@
 use glam::{Vec2, Vec3};
 
 use super::lights::{Emitter, LANES, LightQuery, LightSample, Lights};
-use super::sampling::{INV_PI, Rng, cosine_hemisphere, permute, power_heuristic, r2, sobol2};
 use super::{Accumulator, RenderSettings, Strategy};
 use crate::accel::{Accel, Bundle, Hit};
+use crate::sampling::{INV_PI, Rng, cosine_hemisphere, permute, power_heuristic, r2, sobol2};
 use crate::scene::Scene;
 
 /// The random numbers of one camera sample. The pixel jitter comes from a per-pixel-rotated
@@ -62,7 +62,7 @@ impl PathSampler {
     ) -> PathSampler {
         PathSampler {
             streams: None,
-            stream_key: pixel_key.wrapping_add(super::sampling::mix64(index as u64 + 1)),
+            stream_key: pixel_key.wrapping_add(crate::sampling::mix64(index as u64 + 1)),
             max_bounces,
             index,
             pixel_offset,

@@ -8,8 +8,8 @@
 
 use glam::{Vec2, Vec3};
 
-use super::sampling::{ONE_MINUS_EPS, uniform_cone};
 use crate::envmap::Envmap;
+use crate::sampling::{ONE_MINUS_EPS, uniform_cone};
 use crate::scene::SphereLight;
 
 /// Which emitter a path reached. Transport is linear in each emitter's radiance, so
@@ -520,7 +520,7 @@ pub fn intersect_sphere(s: &SphereLight, o: Vec3, d: Vec3, t_min: f32) -> Option
 mod tests {
     use super::*;
     use crate::envmap::RingGrid;
-    use crate::render::sampling::Rng;
+    use crate::sampling::Rng;
 
     fn light() -> SphereLight {
         SphereLight {
@@ -648,12 +648,12 @@ mod tests {
         let mut r = Rng::new(9);
         for _ in 0..200 {
             let s = SphereLight {
-                center: crate::render::sampling::uniform_sphere(r.next_2d()) * 2.0,
+                center: crate::sampling::uniform_sphere(r.next_2d()) * 2.0,
                 radius: 0.1 + r.next_f32(),
                 radiance: Vec3::ONE,
             };
             let p = Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 0.2;
-            let n = crate::render::sampling::uniform_sphere(r.next_2d());
+            let n = crate::sampling::uniform_sphere(r.next_2d());
             let bound = max_cosine(&s, p, n);
             let mut seen = 0.0f32;
             for _ in 0..2000 {
@@ -699,7 +699,7 @@ mod tests {
         let n = 400_000;
         let mut acc = 0.0f64;
         for _ in 0..n {
-            let w = crate::render::sampling::uniform_sphere(r.next_2d());
+            let w = crate::sampling::uniform_sphere(r.next_2d());
             if intersect_sphere(&s, p, w, 0.0).is_some() {
                 acc += cone_pdf(&s, p) as f64 * 4.0 * std::f64::consts::PI;
             }
@@ -749,7 +749,7 @@ mod tests {
                 } else {
                     Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) * 2.0 - Vec3::ONE
                 };
-                let n = crate::render::sampling::uniform_sphere(r.next_2d());
+                let n = crate::sampling::uniform_sphere(r.next_2d());
                 q.push(p, n, r.next_2d(), r.next_2d());
             }
             let together = lights.sample_lanes(&q, None);

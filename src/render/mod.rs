@@ -16,7 +16,7 @@
 
 mod integrator;
 pub mod lights;
-pub mod sampling;
+pub mod report;
 
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
@@ -26,10 +26,10 @@ pub use lights::{Emitter, LightSample, Lights};
 
 use crate::accel::{Accel, Bundle};
 use crate::imageio::Image;
+use crate::sampling::{Rng, mix64};
 use crate::scene::{Camera, Scene, SceneSettings};
 use integrator::{PathSampler, Scratch, Tracer, Vertex, Walked};
 use lights::LANES;
-use sampling::{Rng, mix64};
 
 /// Side of the square tiles work is split into. Small enough that the threads finish a view
 /// together: the bundled scene's 16-pixel tiles (48 per view, some ten times the work of
@@ -38,7 +38,7 @@ use sampling::{Rng, mix64};
 pub const TILE: u32 = 8;
 
 /// Which light-transport estimator to use at each surface vertex.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum Strategy {
     /// Emitter sampling and BSDF sampling combined by the power heuristic (default).
@@ -50,7 +50,7 @@ pub enum Strategy {
 }
 
 /// Monte Carlo settings of one render.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, Serialize, schemars::JsonSchema)]
 pub struct RenderSettings {
     /// Camera samples per pixel.
     pub spp: u32,
@@ -739,6 +739,7 @@ fn tiles(w: u32, h: u32) -> Vec<(u32, u32, u32, u32)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sampling;
     use crate::scene::SphereLight;
 
     #[test]

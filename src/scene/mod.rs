@@ -254,6 +254,35 @@ pub struct SceneSettings {
     pub rings: u32,
 }
 
+/// Why views could not be picked by name.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PickError {
+    /// A name given twice: its renders would overwrite each other's files and count twice in
+    /// a fit.
+    Twice(String),
+    /// A name no camera has.
+    Missing(String),
+}
+
+/// The cameras named, in the order named.
+pub fn pick_views(
+    cameras: &[Camera],
+    names: &[String],
+) -> std::result::Result<Vec<Camera>, PickError> {
+    let mut picked = Vec::new();
+    for (i, v) in names.iter().enumerate() {
+        if names[..i].contains(v) {
+            return Err(PickError::Twice(v.clone()));
+        }
+        let c = cameras
+            .iter()
+            .find(|c| &c.name == v)
+            .ok_or_else(|| PickError::Missing(v.clone()))?;
+        picked.push(c.clone());
+    }
+    Ok(picked)
+}
+
 /// A loaded scene, ready to build an acceleration structure over and render.
 #[derive(Debug, Clone)]
 pub struct Scene {
@@ -320,28 +349,20 @@ impl Scene {
             }
             loaded.cameras
         } else {
-            let mut picked = Vec::new();
-            for (i, v) in sidecar.views.iter().enumerate() {
-                if sidecar.views[..i].contains(v) {
-                    // Its renders would overwrite each other's files and count twice in a fit.
-                    return Err(Error::file(
-                        sidecar_path,
-                        format!("view {v:?} is listed twice in `views`"),
-                    ));
-                }
-                let Some(c) = loaded.cameras.iter().find(|c| &c.name == v) else {
-                    let names: Vec<_> = loaded.cameras.iter().map(|c| c.name.as_str()).collect();
-                    return Err(Error::file(
-                        sidecar_path,
+            pick_views(&loaded.cameras, &sidecar.views).map_err(|e| {
+                let message = match e {
+                    PickError::Twice(v) => format!("view {v:?} is listed twice in `views`"),
+                    PickError::Missing(v) => {
+                        let names: Vec<_> =
+                            loaded.cameras.iter().map(|c| c.name.as_str()).collect();
                         format!(
                             "view {v:?} is not a perspective camera node of {} (it has {names:?})",
                             gltf_path.display()
-                        ),
-                    ));
+                        )
+                    }
                 };
-                picked.push(c.clone());
-            }
-            picked
+                Error::file(sidecar_path, message)
+            })?
         };
 
         let lights = sidecar.sphere_lights();
@@ -363,26 +384,10 @@ impl Scene {
         })
     }
 
-    /// This scene with every material's albedo scaled per channel by a random factor in
-    /// [1 − `fraction`, 1 + `fraction`] (clamped to [0, 1]), deterministic in `seed`: the
-    /// imperfect albedo an estimate may have to live with.
-    pub fn with_albedo_error(&self, fraction: f32, seed: u64) -> Scene {
-        let mut s = self.clone();
-        for (i, m) in s.materials.iter_mut().enumerate() {
-            let mut rng = crate::render::sampling::Rng::new(crate::render::sampling::mix64(
-                seed ^ (i as u64).wrapping_mul(0x9E37_79B9),
-            ));
-            let k = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32())
-                .map(|u| 1.0 + fraction * (2.0 * u - 1.0));
-            m.albedo = match &m.albedo {
-                Albedo::Constant(c) => Albedo::Constant((*c * k).clamp(Vec3::ZERO, Vec3::ONE)),
-                Albedo::Texture { texture, factor } => Albedo::Texture {
-                    texture: texture.clone(),
-                    factor: (*factor * k).max(Vec3::ZERO),
-                },
-            };
-        }
-        s
+    /// Keeps only the views named, in that order.
+    pub fn keep_views(&mut self, names: &[String]) -> std::result::Result<(), PickError> {
+        self.cameras = pick_views(&self.cameras, names)?;
+        Ok(())
     }
 
     /// The centre of the geometry's bounding box (the "scene centre" of light directions).

@@ -32,7 +32,7 @@ pub const MAX_SPP: u32 = 1 << 20;
 /// Largest accepted bounce count.
 pub const MAX_BOUNCES: u32 = 64;
 /// Largest accepted ring count of the envmap grid.
-pub const MAX_RINGS: u32 = 1000;
+pub use crate::envmap::MAX_RINGS;
 
 /// The sidecar file, as written by a person.
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]

@@ -1,0 +1,388 @@
+//! `estimate`: the lighting that best explains reference images. Flags become
+//! [`EstimateSettings`]; the library's one estimate job does the work; this prints a summary.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+
+use lightprobe::Error;
+use lightprobe::estimate::job::{
+    self, EstimateReport, EstimateSettings, Job, LightModel, References, Rings,
+};
+use lightprobe::estimate::spheres::LightStatus;
+use lightprobe::output;
+use lightprobe::render::{Lights, RenderSettings, Renderer};
+use lightprobe::scene::{Scene, sidecar};
+
+use super::{Bars, SolverArg, check_memory, prepare_out_dir};
+
+/// `--model`: the envmap, K sphere lights (None: 1 to 3, chosen on held-out pixels), or
+/// chosen from the data.
+fn parse_model(s: &str) -> Result<LightModel, String> {
+    match s {
+        "envmap" => Ok(LightModel::Envmap),
+        "spheres" => Ok(LightModel::Spheres(None)),
+        "auto" => Ok(LightModel::Auto),
+        _ => match s.strip_prefix("spheres:").map(str::parse::<usize>) {
+            Some(Ok(k)) if (1..=8).contains(&k) => Ok(LightModel::Spheres(Some(k))),
+            _ => Err(format!(
+                "expected envmap, spheres, spheres:K (K = 1..8) or auto, got {s:?}"
+            )),
+        },
+    }
+}
+
+/// `--rings`: a ring count or `auto`.
+#[derive(Clone, Copy, Debug)]
+enum RingsArg {
+    Auto,
+    Fixed(u32),
+}
+
+fn parse_rings(s: &str) -> Result<RingsArg, String> {
+    if s == "auto" {
+        return Ok(RingsArg::Auto);
+    }
+    s.parse()
+        .map(RingsArg::Fixed)
+        .map_err(|_| format!("expected a ring count or `auto`, got {s:?}"))
+}
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// The scene sidecar (.ron).
+    scene: PathBuf,
+    /// Output folder (created if missing).
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Folder of reference EXRs named <view>.exr (default: render them from the sidecar's
+    /// sphere lights into OUT/reference/).
+    #[arg(long)]
+    reference: Option<PathBuf>,
+    /// Rings of the envmap (default: the sidecar's), or `auto`: fit each of
+    /// --rings-candidates on three quarters of the pixels and take the smallest whose error
+    /// on the held-out quarter is within one standard error of the best.
+    #[arg(long, value_parser = parse_rings)]
+    rings: Option<RingsArg>,
+    /// Light model: `envmap` (the ring envmap); `spheres:K`: K sphere lights at finite
+    /// distance, started from the best set of K candidate lights (the envmap's bright cells and
+    /// an even scan of directions) and a distance search, refined by Levenberg–Marquardt
+    /// (centres, radii; radiances exact), written as a sidecar fragment (spheres/lights.ron)
+    /// with its own re-render and errors; `spheres`: 1, 2, … (at most 3) lights fitted on
+    /// three quarters of the pixels, the fewest
+    /// within one standard error of the best on the held-out quarter kept; `auto`: the same
+    /// with two more candidates, the envmap, and the sphere model chosen so far with an envmap
+    /// behind its lights (`envmap+spheres:K`, for light from afar beside near lights; written
+    /// as spheres/lights.ron plus spheres/background.ron and .exr).
+    #[arg(long, default_value = "envmap", value_parser = parse_model)]
+    model: LightModel,
+    /// Resolutions `--rings auto` chooses from.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "3,5,7,9,11,13,15,17,19,21,23,25,27"
+    )]
+    rings_candidates: Vec<u32>,
+    #[arg(long, value_enum, default_value_t = SolverArg::Nnls)]
+    solver: SolverArg,
+    /// Samples per pixel of the transport estimate, over all rounds (default: the sidecar's).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=sidecar::MAX_SPP as i64))]
+    spp: Option<u32>,
+    /// Smoothness weight between neighbouring cells (relative; 0 = none).
+    #[arg(long, default_value_t = 0.0)]
+    smooth: f64,
+    /// Ridge weight pulling cells toward zero (relative to the mean diagonal of TᵀT): keeps
+    /// cells the views barely see from taking wild values. 0.001 shrinks a cell of average
+    /// visibility by about 0.1% (0.01, the default before the renderer's noise fell, cost a
+    /// visible 1% of brightness on coarse grids).
+    #[arg(long, default_value_t = 1e-3)]
+    ridge: f64,
+    /// Transport rounds (sequential Monte Carlo), sharing --spp: rounds after the first sample
+    /// cells by the current estimate. Default 4 for nnls (which fits their mean transport,
+    /// with TᵀT from products of different rounds: unbiased from 2 rounds on), 3 for gradient
+    /// (which continues from its estimate each round).
+    #[arg(long)]
+    rounds: Option<u32>,
+    /// Also compute the representation limit: the best envmap of this resolution, fitted to a
+    /// transport with 8× the samples (slower).
+    #[arg(long)]
+    oracle: bool,
+    /// Only fit and write the envmap: skip the noise floor and the re-render of the estimate
+    /// (and their errors in report.json), for speed.
+    #[arg(long, conflicts_with = "oracle")]
+    fit_only: bool,
+    /// Time budget per channel solve, seconds.
+    #[arg(long, default_value_t = 60.0)]
+    time_limit: f64,
+    /// Exit 0 even when the solver stops at its iteration or time limit (the outputs are
+    /// written either way; report.json says "status": "not-converged").
+    #[arg(long)]
+    allow_nonconvergence: bool,
+    /// Print report.json to stdout instead of a summary.
+    #[arg(long)]
+    json: bool,
+    /// No progress bars.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+impl Args {
+    /// The estimate's settings: these flags over the sidecar's defaults.
+    fn settings(&self, scene: &Scene) -> EstimateSettings {
+        let solver = self.solver.into();
+        EstimateSettings {
+            rings: match self.rings {
+                Some(RingsArg::Fixed(r)) => Rings::Fixed(r),
+                Some(RingsArg::Auto) => Rings::Auto(self.rings_candidates.clone()),
+                None => Rings::Fixed(scene.settings.rings),
+            },
+            model: self.model,
+            solver,
+            spp: self.spp.unwrap_or(scene.settings.spp),
+            rounds: self.rounds.unwrap_or(solver.default_rounds()),
+            smooth: self.smooth,
+            ridge: self.ridge,
+            time_limit: Duration::from_secs_f64(self.time_limit.clamp(0.0, 1e9)),
+            evaluate: !self.fit_only,
+            noise_floor: true,
+            oracle: self.oracle,
+        }
+    }
+
+    /// A settings error in the words of these flags.
+    fn flag_error(&self, e: Error) -> anyhow::Error {
+        let Error::Setting {
+            name,
+            expected,
+            got,
+        } = &e
+        else {
+            if self.fit_only && self.model.chooses() {
+                return anyhow::anyhow!(
+                    "--model auto and --model spheres (without :K) compare the models' re-renders; they cannot be used with --fit-only"
+                );
+            }
+            return e.into();
+        };
+        let flag = match *name {
+            "rings" if matches!(self.rings, Some(RingsArg::Auto)) => "--rings-candidates",
+            "time limit" => {
+                return anyhow::anyhow!(
+                    "--time-limit must be a positive number of seconds, at most 1e6"
+                );
+            }
+            "sphere light count" => "--model spheres:K",
+            other => return anyhow::anyhow!("--{other} must be {expected}, got {got}"),
+        };
+        anyhow::anyhow!("{flag} must be {expected}, got {got}")
+    }
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let t_all = Instant::now();
+    let scene = Scene::load(&a.scene)?;
+    let settings = a.settings(&scene);
+    if !(a.time_limit.is_finite() && a.time_limit > 0.0 && a.time_limit <= 1e6) {
+        anyhow::bail!("--time-limit must be a positive number of seconds, at most 1e6");
+    }
+    settings.check().map_err(|e| a.flag_error(e))?;
+    anyhow::ensure!(
+        a.reference.is_some() || !scene.lights.is_empty(),
+        "{}: has no sphere lights to render references from; pass --reference DIR",
+        a.scene.display()
+    );
+    let (w, h) = (scene.settings.width as u64, scene.settings.height as u64);
+    let views = scene.cameras.len() as u64;
+    let rings = settings.ring_counts().iter().copied().max().unwrap_or(1);
+    check_memory(settings.memory_needed(w * h * views, w * h), || {
+        format!("{rings} rings at {w}×{h} × {views} views (use fewer rings)")
+    })?;
+    prepare_out_dir(&a.out)?;
+    let render = RenderSettings::from_scene(&scene.settings);
+    let true_lights = Lights::new(scene.lights.clone());
+    let renderer = Renderer::new(&scene, &true_lights);
+    let bars = Bars::new(a.quiet);
+    let references = match &a.reference {
+        Some(dir) => References::Folder(dir),
+        None => References::Render,
+    };
+    let in_scene = || a.scene.display().to_string();
+    let seen = job::observe(&renderer, &render, references, &bars).with_context(in_scene)?;
+    bars.finish();
+    for name in &seen.blind {
+        eprintln!(
+            "lightprobe: warning: view {name:?} is left out of the fit and of the errors: {}",
+            seen.blind_reason
+        );
+    }
+    let job = Job::new(&renderer, &seen, &render, &settings);
+    let mut estimate = job::run(&job, &mut |_| None, &bars).with_context(in_scene)?;
+    bars.finish();
+    let report = &mut estimate.report;
+    report.scene = a.scene.clone();
+    for (ch, c) in report.channels.iter().enumerate() {
+        if !c.converged {
+            eprintln!(
+                "lightprobe: warning: the {:?} solver did not converge in channel {} within {} iterations / {} s (KKT violation {:.2e})",
+                report.solver,
+                ["R", "G", "B"][ch],
+                c.iterations,
+                a.time_limit,
+                c.kkt_violation
+            );
+        }
+    }
+    report.timings.total_seconds = t_all.elapsed().as_secs_f64();
+    output::write_estimate(&a.out, &estimate, &seen, a.reference.is_none())?;
+    let report = &estimate.report;
+    if a.json {
+        print!("{}", output::report_json(report));
+    } else {
+        for line in summary(report) {
+            println!("{line}");
+        }
+        println!(
+            "total {:.1} s; peak memory {:.0} MiB; {}",
+            report.timings.total_seconds,
+            report.memory.peak_bytes as f64 / (1u64 << 20) as f64,
+            a.out.join("report.json").display()
+        );
+    }
+    // The outputs are complete and valid either way; the exit code tells scripts the fit
+    // stopped at its limits.
+    if report.status != job::FitStatus::Ok && !a.allow_nonconvergence {
+        anyhow::bail!(
+            "{}: the {:?} solver did not converge (\"status\": \"not-converged\"; the envmap is written); pass --allow-nonconvergence to exit 0 anyway",
+            a.out.join("report.json").display(),
+            report.solver
+        );
+    }
+    Ok(())
+}
+
+/// The summary lines of a report, each saying which model its figures belong to.
+fn summary(r: &EstimateReport) -> Vec<String> {
+    let mut lines = vec![format!(
+        "envmap: {} rings ({} cells), {:?} solver, transport {} spp",
+        r.rings, r.cells, r.solver, r.transport_spp
+    )];
+    if let Some(sel) = &r.rings_selection {
+        lines.push(format!(
+            "rings auto: {} (held-out relMAE {}; lowest at {} rings), {:.1} s",
+            sel.rings,
+            sel.candidates
+                .iter()
+                .map(|c| format!("{}: {:.2}%", c.rings, 100.0 * c.validation_rel_mae))
+                .collect::<Vec<_>>()
+                .join(", "),
+            sel.best_rings,
+            sel.seconds
+        ));
+    }
+    for v in &r.views {
+        let Some(e) = v.estimate else { continue };
+        let mut line = format!("{:<12} relMAE {:.2}%", v.view, 100.0 * e.rel_mae);
+        if let Some(nf) = v.noise_floor {
+            line += &format!(
+                "  noise floor {:.2}% (×{:.2})",
+                100.0 * nf.rel_mae,
+                e.rel_mae / nf.rel_mae
+            );
+        }
+        if let Some(l) = v.representation_limit {
+            line += &format!(
+                "  representation limit {:.2}% (×{:.2})",
+                100.0 * l.rel_mae,
+                e.rel_mae / l.rel_mae
+            );
+        }
+        lines.push(line);
+    }
+    for (k, rec) in r.light_recovery.iter().enumerate() {
+        lines.push(if rec.cluster_cells > 0 {
+            format!(
+                "envmap, light {k}: direction off by {:.1}°, power ratio {:.2}",
+                rec.angle_error_degrees, rec.power_ratio
+            )
+        } else {
+            // Every bright cluster went to a brighter light: none is left for this one.
+            format!("envmap, light {k}: not recovered (no bright cluster left for it)")
+        });
+    }
+    if let Some(sel) = &r.model_selection {
+        lines.push(format!(
+            "model chosen: {} (held-out relMAE {}; lowest: {})",
+            sel.chosen,
+            sel.candidates
+                .iter()
+                .map(|c| format!("{} {:.2}%", c.model, 100.0 * c.validation_rel_mae))
+                .collect::<Vec<_>>()
+                .join(", "),
+            sel.best
+        ));
+    }
+    if let Some(s) = &r.spheres {
+        lines.extend(spheres_summary(s, r.rel_mae));
+    }
+    lines.push(format!(
+        "envmap fit {:.2} s (transport {:.2} s, solve {:.2} s)",
+        r.timings.fit_seconds, r.timings.transport_seconds, r.timings.solve_seconds
+    ));
+    lines
+}
+
+/// Lines for a sphere-model estimate, beside the envmap's relMAE.
+fn spheres_summary(s: &job::SpheresReport, envmap_rel_mae: Option<f64>) -> Vec<String> {
+    let mut lines = Vec::new();
+    let kept = s
+        .lights
+        .iter()
+        .filter(|f| {
+            matches!(
+                f.status,
+                LightStatus::Identified | LightStatus::DistanceUnidentified
+            )
+        })
+        .count();
+    if let Some(e) = s.rel_mae {
+        lines.push(format!(
+            "{} ({kept} lights): relMAE {:.2}% (envmap {:.2}%), fit {:.1} s, {} renders",
+            s.model,
+            100.0 * e,
+            100.0 * envmap_rel_mae.unwrap_or(f64::NAN),
+            s.fit_seconds,
+            s.renders,
+        ));
+    }
+    for (j, f) in s.lights.iter().enumerate() {
+        let sigma = |v: Option<f64>| v.map_or("?".into(), |v| format!("{v:.3}"));
+        lines.push(match f.status {
+            LightStatus::Identified => format!(
+                "sphere {j}: centre ({:.3}, {:.3}, {:.3}) ± {} m along its direction, radius {:.3}",
+                f.light.center.x, f.light.center.y, f.light.center.z,
+                sigma(f.distance_sigma_m), f.light.radius
+            ),
+            LightStatus::DistanceUnidentified => format!(
+                "sphere {j}: direction and power fit; its distance is not identifiable from these images (25% nearer or farther fits within {:.1} σ)",
+                f.distance_profile_sigmas.unwrap_or(0.0)
+            ),
+            LightStatus::Merged { into } => format!(
+                "sphere {j}: too close in direction to sphere {into} to tell apart; merged into it"
+            ),
+            LightStatus::NoContribution => format!(
+                "sphere {j}: changes no pixel (e.g. hidden below the table); left out"
+            ),
+        });
+    }
+    for (k, r) in s.recovery.iter().enumerate() {
+        lines.push(match (r.centre_error_m, r.radius, r.power_ratio) {
+            (Some(off), Some(rad), Some(p)) => format!(
+                "true light {k}: centre off {off:.3} m ({:.1}% of its {:.2} m distance), radius {rad:.3} (true {:.3}), power ×{p:.3}",
+                100.0 * off / r.true_distance_m, r.true_distance_m, r.true_radius
+            ),
+            _ => format!("true light {k}: not recovered (the model has fewer lights)"),
+        });
+    }
+    lines
+}

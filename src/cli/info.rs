@@ -1,0 +1,57 @@
+//! `info`: what lightprobe loaded from a scene, as JSON.
+
+use std::path::Path;
+
+use serde_json::json;
+
+use lightprobe::scene::{Albedo, Scene};
+
+pub fn run(path: &Path) -> anyhow::Result<()> {
+    let scene = Scene::load(path)?;
+    let (lo, hi) = scene.mesh.bounds();
+    let materials: Vec<_> = scene
+        .materials
+        .iter()
+        .map(|m| match &m.albedo {
+            Albedo::Constant(c) => json!({ "name": m.name, "albedo": c.to_array() }),
+            Albedo::Texture { texture, factor } => json!({
+                "name": m.name,
+                "albedo_factor": factor.to_array(),
+                "texture": { "width": texture.width, "height": texture.height, "mean_linear": texture.mean().to_array() },
+            }),
+        })
+        .collect();
+    let cameras: Vec<_> = scene
+        .cameras
+        .iter()
+        .map(|c| {
+            json!({
+                "name": c.name,
+                "origin": c.origin_world.to_array(),
+                "right": c.world_from_camera.x_axis.to_array(),
+                "up": c.world_from_camera.y_axis.to_array(),
+                "forward": (-c.world_from_camera.z_axis).to_array(),
+                "yfov": c.yfov,
+                "width": c.width,
+                "height": c.height,
+            })
+        })
+        .collect();
+    let out = json!({
+        "scene": path,
+        "triangles": scene.mesh.triangle_count(),
+        "vertices": scene.mesh.positions.len(),
+        "bounds": { "min": lo.to_array(), "max": hi.to_array() },
+        "surface_area": scene.mesh.surface_area(),
+        "materials": materials,
+        "cameras": cameras,
+        "lights": scene.lights.iter().map(|l| json!({
+            "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })).collect::<Vec<_>>(),
+        "settings": {
+            "width": scene.settings.width, "height": scene.settings.height, "spp": scene.settings.spp,
+            "max_bounces": scene.settings.max_bounces, "seed": scene.settings.seed, "rings": scene.settings.rings,
+        },
+    });
+    println!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}

@@ -1,0 +1,194 @@
+//! The commands of the `lightprobe` binary, one module each: flags (clap), their checks in
+//! command-line terms, a call into the library, and what is printed. Work and files belong to
+//! the library.
+
+pub mod compare;
+pub mod envmap;
+pub mod estimate;
+pub mod experiment;
+pub mod info;
+pub mod render;
+
+use std::io::IsTerminal;
+use std::path::Path;
+use std::sync::Mutex;
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+use lightprobe::envmap::latlong::{Filter, Target};
+use lightprobe::estimate::Solver;
+use lightprobe::estimate::job::Progress;
+use lightprobe::render::Strategy;
+
+/// Mirrors a library option enum as a clap value enum (the library does not depend on clap);
+/// variant doc comments become the values' help.
+macro_rules! cli_enum {
+    ($cli:ident => $lib:ident { $($(#[$doc:meta])* $v:ident),+ $(,)? }) => {
+        #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+        pub enum $cli { $($(#[$doc])* $v),+ }
+        impl From<$cli> for $lib {
+            fn from(c: $cli) -> Self {
+                match c { $($cli::$v => $lib::$v),+ }
+            }
+        }
+    };
+}
+
+cli_enum!(StrategyArg => Strategy {
+    /// Emitter sampling and BSDF sampling combined by the power heuristic.
+    Mis,
+    /// Emitter sampling only.
+    LightOnly,
+    /// BSDF sampling only.
+    BsdfOnly,
+});
+cli_enum!(SolverArg => Solver {
+    /// Exact non-negative least squares (active set) on the normal equations.
+    Nnls,
+    /// The paper's projected gradient descent with sequential Monte Carlo re-sampling.
+    Gradient,
+});
+cli_enum!(TargetArg => Target {
+    /// Mitsuba 3's envmap: +Y up, poles on the first and last rows.
+    Mitsuba,
+    /// Blender's World Environment Texture, for a scene imported from the glTF (Z up).
+    Blender,
+    /// pbrt-v3's lat-long infinite light (Z up, same axis change as Blender's importer).
+    PbrtV3,
+});
+cli_enum!(FilterArg => Filter {
+    /// The cell under each pixel centre.
+    Box,
+    /// Interpolated between grid points.
+    Smooth,
+});
+
+/// A library error in command-line terms: a setting becomes its flag (`spp` → `--spp`).
+pub fn flag_error(e: lightprobe::Error) -> anyhow::Error {
+    match e {
+        lightprobe::Error::Setting {
+            name,
+            expected,
+            got,
+        } => anyhow::anyhow!("--{} must be {expected}, got {got}", name.replace(' ', "-")),
+        e => e.into(),
+    }
+}
+
+/// Creates the `--out` folder and proves it writable before any long work starts.
+pub fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
+    if dir.exists() && !dir.is_dir() {
+        anyhow::bail!(
+            "{}: exists and is not a folder (--out names a folder)",
+            dir.display()
+        );
+    }
+    Ok(lightprobe::output::prepare_dir(dir)?)
+}
+
+/// Refuses a job that needs more than nine tenths of the memory available.
+pub fn check_memory(need: u64, what: impl FnOnce() -> String) -> anyhow::Result<()> {
+    if let Some(avail) = lightprobe::memory::available_bytes()
+        && need > avail / 10 * 9
+    {
+        anyhow::bail!(
+            "{} would need about {:.1} GiB, but only {:.1} GiB is available",
+            what(),
+            need as f64 / (1u64 << 30) as f64,
+            avail as f64 / (1u64 << 30) as f64
+        );
+    }
+    Ok(())
+}
+
+/// Progress on stderr: a bar per phase on a terminal; elsewhere (logs of batch jobs and CI)
+/// a line when a phase starts and at every tenth of it.
+pub struct Bars {
+    quiet: bool,
+    terminal: bool,
+    state: Mutex<Phase>,
+}
+
+#[derive(Default)]
+struct Phase {
+    name: String,
+    bar: Option<ProgressBar>,
+    total: u64,
+    done: u64,
+    /// Tenths logged so far (non-terminal).
+    tenths: u64,
+    start: Option<std::time::Instant>,
+}
+
+impl Bars {
+    pub fn new(quiet: bool) -> Bars {
+        Bars {
+            quiet,
+            terminal: std::io::stderr().is_terminal(),
+            state: Mutex::new(Phase::default()),
+        }
+    }
+
+    /// A bar of `total` units outside any job (one command, one phase).
+    pub fn single(quiet: bool, name: &str, total: u64) -> Bars {
+        let bars = Bars::new(quiet);
+        bars.phase(name, total);
+        bars
+    }
+
+    /// Clears the bar of the last phase.
+    pub fn finish(&self) {
+        let mut s = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(bar) = s.bar.take() {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+impl Progress for Bars {
+    fn phase(&self, name: &str, units: u64) {
+        if self.quiet {
+            return;
+        }
+        self.finish();
+        let mut s = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        *s = Phase {
+            name: name.to_string(),
+            total: units.max(1),
+            start: Some(std::time::Instant::now()),
+            ..Phase::default()
+        };
+        if self.terminal {
+            let bar = ProgressBar::new(units.max(1));
+            bar.set_style(
+                ProgressStyle::with_template(
+                    "{msg:>20} [{bar:40}] {percent:>3}% {elapsed_precise} eta {eta}",
+                )
+                .expect("a valid template")
+                .progress_chars("=> "),
+            );
+            bar.set_message(name.to_string());
+            s.bar = Some(bar);
+        } else {
+            eprintln!("lightprobe: {name}: started");
+        }
+    }
+
+    fn advance(&self, units: u64) {
+        if self.quiet {
+            return;
+        }
+        let mut s = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        s.done = (s.done + units).min(s.total);
+        if let Some(bar) = &s.bar {
+            bar.set_position(s.done);
+            return;
+        }
+        let tenths = s.done * 10 / s.total;
+        if tenths > s.tenths {
+            s.tenths = tenths;
+            let secs = s.start.map_or(0.0, |t| t.elapsed().as_secs_f64());
+            eprintln!("lightprobe: {}: {}% after {secs:.1} s", s.name, tenths * 10);
+        }
+    }
+}

@@ -1,0 +1,227 @@
+//! `render-reference`: path-traced reference images of a scene under its lights.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+
+use lightprobe::envmap::Envmap;
+use lightprobe::estimate::job::Progress;
+use lightprobe::imageio::{self, Image};
+use lightprobe::render::report::{
+    EnvmapReport, ImageSize, LightReport, RenderReport, RenderTimings, ViewRender,
+};
+use lightprobe::render::{Lights, RenderSettings, Renderer, view_stream};
+use lightprobe::scene::{PickError, Scene, sidecar};
+
+use super::{Bars, StrategyArg, check_memory, prepare_out_dir};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// The scene sidecar (.ron), which names the glTF file.
+    scene: PathBuf,
+    /// Output folder (created if missing).
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Samples per pixel (default: the sidecar's).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=sidecar::MAX_SPP as i64))]
+    spp: Option<u32>,
+    /// Random seed (default: the sidecar's).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Scattering events per path, 1 = direct light only (default: the sidecar's).
+    #[arg(long)]
+    max_bounces: Option<u32>,
+    /// Light transport estimator.
+    #[arg(long, value_enum, default_value_t = StrategyArg::Mis)]
+    strategy: StrategyArg,
+    /// Show emitters seen directly by the camera (default: black, like Mitsuba's hide_emitters).
+    #[arg(long)]
+    show_emitters: bool,
+    /// Also light the scene with this ring envmap (envmap.ron); escaping rays see it.
+    #[arg(long)]
+    envmap: Option<PathBuf>,
+    /// Leave out the sidecar's sphere lights (e.g. to light with --envmap alone).
+    #[arg(long)]
+    no_sphere_lights: bool,
+    /// Only these views (comma-separated camera node names; default: the sidecar's).
+    #[arg(long, value_delimiter = ',')]
+    views: Vec<String>,
+    /// Also write geometry buffers at pixel centres: depth (metres), normal (world), albedo.
+    #[arg(long, value_delimiter = ',', value_parser = ["depth", "normal", "albedo"])]
+    aov: Vec<String>,
+    /// Print render.json to stdout instead of a summary.
+    #[arg(long)]
+    json: bool,
+    /// No progress bar.
+    #[arg(long, short)]
+    quiet: bool,
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let t_load = Instant::now();
+    let mut scene = Scene::load(&a.scene)?;
+    let mut settings = RenderSettings::from_scene(&scene.settings);
+    if let Some(spp) = a.spp {
+        settings.spp = spp;
+    }
+    if let Some(b) = a.max_bounces {
+        anyhow::ensure!(
+            (1..=sidecar::MAX_BOUNCES).contains(&b),
+            "--max-bounces must be between 1 and {}",
+            sidecar::MAX_BOUNCES
+        );
+        settings.max_bounces = b;
+    }
+    if let Some(seed) = a.seed {
+        settings.seed = seed;
+    }
+    settings.strategy = a.strategy.into();
+    settings.hide_emitters = !a.show_emitters;
+    if !a.views.is_empty() {
+        scene.keep_views(&a.views).map_err(|e| match e {
+            PickError::Twice(v) => anyhow::anyhow!("--views: {v:?} is listed twice"),
+            PickError::Missing(v) => {
+                anyhow::anyhow!("--views: {v:?} is not a view of {}", a.scene.display())
+            }
+        })?;
+    }
+    let mut lights = Lights::new(if a.no_sphere_lights {
+        Vec::new()
+    } else {
+        scene.lights.clone()
+    });
+    if let Some(p) = &a.envmap {
+        lights.env = Some(Envmap::load(p)?);
+    }
+    anyhow::ensure!(
+        !lights.is_empty(),
+        "{}: nothing lights the scene (no sphere lights and no --envmap)",
+        a.scene.display()
+    );
+    // One view at a time: its image (RGB + coverage), the per-tile results and the encoder.
+    let (w, h) = (scene.settings.width, scene.settings.height);
+    check_memory(w as u64 * h as u64 * 40, || format!("{w}×{h} images"))?;
+    prepare_out_dir(&a.out)?;
+    let load_seconds = t_load.elapsed().as_secs_f64();
+
+    let t_bvh = Instant::now();
+    let renderer = Renderer::new(&scene, &lights);
+    let bvh_seconds = t_bvh.elapsed().as_secs_f64();
+
+    let pixels_per_view = (w * h) as u64;
+    let samples_per_view = pixels_per_view as f64 * settings.spp as f64;
+    let bars = Bars::single(
+        a.quiet,
+        "rendering",
+        pixels_per_view * scene.cameras.len() as u64,
+    );
+    let mut views = Vec::new();
+    let t_all = Instant::now();
+    for cam in &scene.cameras {
+        let t = Instant::now();
+        let img = renderer.render_radiance(cam, view_stream(cam), &settings, &|n| bars.advance(n));
+        let seconds = t.elapsed().as_secs_f64();
+        anyhow::ensure!(
+            img.rgb.iter().all(|c| c.is_finite()),
+            "view {:?}: the render produced non-finite pixels (a bug; please report it)",
+            cam.name
+        );
+        let file = |suffix: &str| a.out.join(format!("{}.{suffix}", cam.name));
+        let (exr, png) = (file("exr"), file("png"));
+        imageio::write_exr(&exr, &img)?;
+        imageio::write_png(&png, &img, imageio::auto_exposure(&img))?;
+        let mut aov = BTreeMap::new();
+        if !a.aov.is_empty() {
+            let aovs = renderer.aovs(cam);
+            for name in &a.aov {
+                let image: &Image = match name.as_str() {
+                    "depth" => &aovs.depth,
+                    "normal" => &aovs.normal,
+                    _ => &aovs.albedo,
+                };
+                let path = file(&format!("{name}.exr"));
+                imageio::write_exr(&path, image)?;
+                aov.insert(name.clone(), path);
+            }
+        }
+        let coverage = img.alpha.as_ref().map_or(1.0, |al| {
+            al.iter().map(|&v| v as f64).sum::<f64>() / al.len() as f64
+        });
+        views.push(ViewRender {
+            view: cam.name.clone(),
+            exr,
+            png,
+            aov,
+            mean_rgb: img.mean().to_array(),
+            coverage,
+            seconds,
+            samples_per_second: samples_per_view / seconds,
+        });
+    }
+    bars.finish();
+    let render_seconds = t_all.elapsed().as_secs_f64();
+    let total_samples = samples_per_view * scene.cameras.len() as f64;
+    let report = RenderReport {
+        lightprobe_version: lightprobe::VERSION.to_string(),
+        scene: a.scene.clone(),
+        triangles: scene.mesh.triangle_count(),
+        image: ImageSize {
+            width: w,
+            height: h,
+        },
+        lights: lights
+            .spheres
+            .iter()
+            .map(|l| LightReport {
+                center: l.center.to_array(),
+                radius: l.radius,
+                radiance: l.radiance.to_array(),
+            })
+            .collect(),
+        envmap: a
+            .envmap
+            .as_ref()
+            .zip(lights.env.as_ref())
+            .map(|(p, e)| EnvmapReport {
+                file: p.clone(),
+                rings: e.grid.rings(),
+            }),
+        settings,
+        threads: rayon::current_num_threads(),
+        timings: RenderTimings {
+            load_seconds,
+            bvh_seconds,
+            render_seconds,
+        },
+        samples_per_second: total_samples / render_seconds,
+        views,
+    };
+    let text = serde_json::to_string_pretty(&report).context("render.json")? + "\n";
+    imageio::write_bytes(&a.out.join("render.json"), text.as_bytes())?;
+    if a.json {
+        print!("{text}");
+        return Ok(());
+    }
+    for v in &report.views {
+        println!(
+            "{:<12} {}  mean {:.4?}  coverage {:.0}%  {:.2} s",
+            v.view,
+            v.exr.display(),
+            v.mean_rgb,
+            100.0 * v.coverage,
+            v.seconds,
+        );
+    }
+    println!(
+        "{} triangles, {} spp, {} bounces: {:.2} s, {:.2} M samples/s on {} threads",
+        report.triangles,
+        settings.spp,
+        settings.max_bounces,
+        render_seconds,
+        report.samples_per_second / 1e6,
+        report.threads
+    );
+    Ok(())
+}

@@ -1,0 +1,780 @@
+//! One estimate, written once: references → geometry masks → (resolution from the data) → the
+//! envmap fit → its re-render, noise floor and representation limit → sphere-light models and
+//! model selection → a typed [`EstimateReport`]. The `estimate` command and every sweep trial
+//! run this job, so a trial is a stand-alone estimate by construction.
+//!
+//! The job writes no files ([`crate::output`] does) and prints nothing; it reports its phases
+//! to a [`Progress`].
+//!
+//! ```no_run
+//! use lightprobe::estimate::job::{self, EstimateSettings, References};
+//! use lightprobe::render::{Lights, RenderSettings, Renderer};
+//! use lightprobe::scene::Scene;
+//! let scene = Scene::load(std::path::Path::new("scenes/tabletop.ron"))?;
+//! let lights = Lights::new(scene.lights.clone());
+//! let renderer = Renderer::new(&scene, &lights);
+//! let render = RenderSettings::from_scene(&scene.settings);
+//! let settings = EstimateSettings::new(&scene.settings);
+//! let seen = job::observe(&renderer, &render, References::Render, &())?;
+//! let estimate = job::run(&job::Job::new(&renderer, &seen, &render, &settings), &mut |_| None, &())?;
+//! println!("relMAE {:?}", estimate.report.rel_mae);
+//! # Ok::<(), lightprobe::Error>(())
+//! ```
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use schemars::JsonSchema;
+use serde::Serialize;
+
+use super::pipeline::{self, EstimateOptions, Outcome, SeenViews, SphereOutcome};
+use super::recovery::{LightRecovery, SphereRecovery};
+use super::select::{self, ModelSelection, Selection};
+use super::spheres::{FittedLight, Observations, PathCache};
+use super::{ChannelFit, FitSettings, Solver, Transport};
+use crate::envmap::MAX_RINGS;
+use crate::error::{Error, Result};
+use crate::imageio::Image;
+use crate::metrics::Metrics;
+use crate::render::{RenderSettings, Renderer};
+use crate::scene::{Camera, SceneSettings};
+
+/// Most samples per pixel a transport may take.
+pub const MAX_SPP: u32 = crate::scene::sidecar::MAX_SPP;
+
+/// The envmap's resolution: given, or chosen from the data among candidates.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Rings {
+    Fixed(u32),
+    /// Each candidate fitted on three quarters of the pixels; the smallest within one
+    /// standard error of the best on the held-out quarter is kept ([`select::select_rings`]).
+    Auto(Vec<u32>),
+}
+
+/// The light model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LightModel {
+    /// The ring envmap alone.
+    Envmap,
+    /// K sphere lights at finite distance; `None`: 1 to 3, chosen on held-out pixels.
+    Spheres(Option<usize>),
+    /// Chosen on held-out pixels among the envmap, 1 to 3 sphere lights and sphere lights with
+    /// an envmap behind them.
+    Auto,
+}
+
+impl LightModel {
+    /// Whether the number of lights (or the model) is chosen from the data, which compares
+    /// re-renders.
+    pub fn chooses(self) -> bool {
+        matches!(self, LightModel::Auto | LightModel::Spheres(None))
+    }
+
+    /// The most sphere lights the model fits.
+    pub fn max_lights(self) -> usize {
+        match self {
+            LightModel::Envmap => 0,
+            LightModel::Spheres(Some(k)) => k,
+            LightModel::Spheres(None) | LightModel::Auto => 3,
+        }
+    }
+}
+
+/// What an estimate fits and measures. [`EstimateSettings::check`] says whether it is valid.
+#[derive(Debug, Clone)]
+pub struct EstimateSettings {
+    pub rings: Rings,
+    pub model: LightModel,
+    pub solver: Solver,
+    /// Transport samples per pixel, over all rounds.
+    pub spp: u32,
+    /// Transport rounds (sequential Monte Carlo).
+    pub rounds: u32,
+    /// Smoothness weight between neighbouring cells (relative; 0 = none).
+    pub smooth: f64,
+    /// Ridge weight toward zero (relative to the mean diagonal of TᵀT).
+    pub ridge: f64,
+    /// Wall-clock budget of each channel's solve.
+    pub time_limit: Duration,
+    /// Re-render the estimate with a seed the fit never saw and measure its error.
+    pub evaluate: bool,
+    /// With `evaluate`, also measure the noise floor: the true lights (if known) rendered
+    /// from the re-render's camera paths against the references.
+    pub noise_floor: bool,
+    /// Also fit the best envmap of this resolution (8× the samples): the representation limit.
+    pub oracle: bool,
+}
+
+impl EstimateSettings {
+    /// The sidecar's rings and samples, the NNLS solver with its default rounds, the envmap
+    /// model, evaluation and noise floor on.
+    pub fn new(scene: &SceneSettings) -> Self {
+        EstimateSettings {
+            rings: Rings::Fixed(scene.rings),
+            model: LightModel::Envmap,
+            solver: Solver::Nnls,
+            spp: scene.spp,
+            rounds: Solver::Nnls.default_rounds(),
+            smooth: 0.0,
+            ridge: 1e-3,
+            time_limit: Duration::from_secs(60),
+            evaluate: true,
+            noise_floor: true,
+            oracle: false,
+        }
+    }
+
+    /// The ring counts the job may fit (for memory estimates): the one, or the candidates.
+    pub fn ring_counts(&self) -> &[u32] {
+        match &self.rings {
+            Rings::Fixed(r) => std::slice::from_ref(r),
+            Rings::Auto(c) => c,
+        }
+    }
+
+    /// Checks every value's range.
+    pub fn check(&self) -> Result<()> {
+        let setting = |name: &'static str, expected: String, got: String| {
+            Err(Error::Setting {
+                name,
+                expected,
+                got,
+            })
+        };
+        if self.ring_counts().is_empty() {
+            return setting("rings", "at least one candidate".into(), "none".into());
+        }
+        if let Some(r) = self
+            .ring_counts()
+            .iter()
+            .find(|r| !(1..=MAX_RINGS).contains(*r))
+        {
+            return setting("rings", format!("between 1 and {MAX_RINGS}"), r.to_string());
+        }
+        if !(1..=MAX_SPP).contains(&self.spp) {
+            return setting(
+                "spp",
+                format!("between 1 and {MAX_SPP}"),
+                self.spp.to_string(),
+            );
+        }
+        if !(1..=100).contains(&self.rounds) {
+            return setting(
+                "rounds",
+                "between 1 and 100".into(),
+                self.rounds.to_string(),
+            );
+        }
+        for (name, v) in [("smooth", self.smooth), ("ridge", self.ridge)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return setting(name, "a finite number >= 0".into(), v.to_string());
+            }
+        }
+        let t = self.time_limit.as_secs_f64();
+        if !(t > 0.0 && t <= 1e6) {
+            return setting(
+                "time limit",
+                "a positive number of seconds, at most 1e6".into(),
+                t.to_string(),
+            );
+        }
+        if let LightModel::Spheres(Some(k)) = self.model
+            && !(1..=8).contains(&k)
+        {
+            return setting("sphere light count", "1 to 8".into(), k.to_string());
+        }
+        if self.model.chooses() && !self.evaluate {
+            return Err(Error::Invalid(
+                "choosing the light model compares the models' re-renders, so it needs the \
+                 evaluation (it cannot be fit-only)"
+                    .into(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The bytes the largest envmap fit needs at `pixels` masked-or-not pixels over all views:
+    /// transport rows, one channel's f64 copy for the Gram product, the per-pixel
+    /// accumulators of one view while it renders, and the Gram matrices.
+    pub fn memory_needed(&self, pixels: u64, pixels_per_view: u64) -> u64 {
+        let rings = self.ring_counts().iter().copied().max().unwrap_or(1);
+        let n = crate::envmap::RingGrid::new(rings).cell_count() as u64;
+        Transport::memory_needed(pixels as usize, n as usize) as u64
+            + pixels * n * 8
+            + pixels_per_view * n * 12
+            + n * n * 16
+    }
+}
+
+/// Where the references come from.
+pub enum References<'p> {
+    /// Rendered from the truth renderer's lights with the scene's settings.
+    Render,
+    /// `<view>.exr` in this folder, each the size of the scene's image.
+    Folder(&'p Path),
+    /// Given, one per view of the scene in order.
+    Images(Vec<Image>),
+}
+
+/// The phases of a long job, for progress bars and logs.
+pub trait Progress: Sync {
+    /// A phase starts: its name and how many units of work it holds.
+    fn phase(&self, _name: &str, _units: u64) {}
+    /// `units` more of the current phase are done.
+    fn advance(&self, _units: u64) {}
+}
+
+/// No progress reporting.
+impl Progress for () {}
+
+/// The references of every view of the truth renderer's scene, their geometry masks (the
+/// references' alpha, or the pixel centres that see geometry), and the views left out
+/// because their mask is empty. Errors when no view has a pixel.
+pub fn observe<'a>(
+    truth: &'a Renderer,
+    render: &RenderSettings,
+    references: References,
+    progress: &dyn Progress,
+) -> Result<SeenViews<'a>> {
+    let scene = truth.scene;
+    let views: Vec<&Camera> = scene.cameras.iter().collect();
+    let (w, h) = (scene.settings.width, scene.settings.height);
+    let why = match &references {
+        References::Render => "it sees no scene geometry".to_string(),
+        References::Folder(dir) => format!(
+            "its reference in {} has zero alpha (coverage) everywhere",
+            dir.display()
+        ),
+        References::Images(_) => "its reference has zero alpha (coverage) everywhere".into(),
+    };
+    let t = Instant::now();
+    let images = match references {
+        References::Folder(dir) => pipeline::load_references(dir, &views, w, h)?,
+        References::Images(images) => images,
+        References::Render => {
+            if truth.lights.is_empty() {
+                return Err(Error::Invalid(
+                    "the scene has no lights to render references from; give references".into(),
+                ));
+            }
+            progress.phase("references", (w * h) as u64 * views.len() as u64);
+            truth.render_views(&views, render, &|k| progress.advance(k))
+        }
+    };
+    let masks = pipeline::geometry_masks(truth, &views, &images);
+    let mut seen = pipeline::seen_views(&views, images, masks);
+    seen.seconds = t.elapsed().as_secs_f64();
+    if seen.views.is_empty() {
+        return Err(Error::Invalid(format!(
+            "no view has a pixel to fit ({}: {why}): there is nothing to fit",
+            seen.blind.join(", ")
+        )));
+    }
+    seen.blind_reason = why;
+    Ok(seen)
+}
+
+/// What one estimate works on.
+pub struct Job<'a> {
+    /// Renders what the fit sees: the scene, or a twin with other albedos (same geometry).
+    /// Its lights play no part.
+    pub fit: &'a Renderer<'a>,
+    /// Judges: re-renders are made in its scene, and its lights are the true ones (empty
+    /// when unknown): the noise floor and the light recovery need them.
+    pub truth: &'a Renderer<'a>,
+    pub seen: &'a SeenViews<'a>,
+    /// The references' render settings (samples, bounces, seed).
+    pub render: &'a RenderSettings,
+    pub settings: &'a EstimateSettings,
+    /// The scene's centre and size (its larger horizontal extent), metres.
+    pub center: Vec3,
+    pub size: f32,
+}
+
+impl<'a> Job<'a> {
+    /// A job that fits and judges in `renderer`'s scene.
+    pub fn new(
+        renderer: &'a Renderer<'a>,
+        seen: &'a SeenViews<'a>,
+        render: &'a RenderSettings,
+        settings: &'a EstimateSettings,
+    ) -> Self {
+        let (lo, hi) = renderer.scene.mesh.bounds();
+        Job {
+            fit: renderer,
+            truth: renderer,
+            seen,
+            render,
+            settings,
+            center: renderer.scene.center(),
+            size: (hi.x - lo.x).max(hi.z - lo.z).max(1e-3),
+        }
+    }
+}
+
+/// An estimate: what was fitted, its images, and the report.
+pub struct Estimate {
+    pub envmap: Outcome,
+    /// The chosen sphere-light model, if any.
+    pub spheres: Option<SphereOutcome>,
+    pub report: EstimateReport,
+}
+
+/// `report.json`: everything an estimate measured. Figures that are not finite (a view whose
+/// reference is black) are `null`.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct EstimateReport {
+    pub lightprobe_version: String,
+    /// The scene file, as given.
+    pub scene: PathBuf,
+    /// Rings of the envmap (the chosen ones with `--rings auto`).
+    pub rings: u32,
+    pub rings_selection: Option<Selection>,
+    pub cells: usize,
+    pub solver: Solver,
+    pub smooth: f64,
+    pub ridge: f64,
+    /// Transport samples per pixel, over all rounds.
+    pub transport_spp: u32,
+    pub rounds: u32,
+    /// The references' render settings.
+    pub settings: RenderSettings,
+    /// Mean relMAE over views of the envmap estimate's re-render.
+    pub rel_mae: Option<f64>,
+    /// Mean relMAE over views of a second render of the true lights.
+    pub noise_floor_rel_mae: Option<f64>,
+    /// Mean relMAE over views of the best envmap of this resolution (`--oracle`).
+    pub representation_limit_rel_mae: Option<f64>,
+    pub views: Vec<ViewReport>,
+    /// Views left out: nothing of their mask to fit or to measure.
+    pub views_without_geometry: Vec<String>,
+    /// The envmap's solve per colour channel.
+    pub channels: Vec<ChannelFit>,
+    /// The envmap's bright clusters matched to the true sphere lights, brightest first.
+    pub light_recovery: Vec<LightRecovery>,
+    /// The model the estimate ends with: `envmap`, `spheres:K` or `envmap+spheres:K`.
+    pub model: String,
+    pub model_selection: Option<ModelSelection>,
+    /// The sphere-light model's estimate (with `--model spheres` or `auto`).
+    pub spheres: Option<SpheresReport>,
+    /// Every sphere model compared, when the model was chosen from the data.
+    pub sphere_candidates: Vec<SpheresReport>,
+    pub timings: Timings,
+    pub memory: Memory,
+    pub threads: usize,
+    pub status: FitStatus,
+}
+
+/// One view's figures.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct ViewReport {
+    pub view: String,
+    pub estimate: Option<Metrics>,
+    pub noise_floor: Option<Metrics>,
+    pub representation_limit: Option<Metrics>,
+    pub rel_mae_over_noise_floor: Option<f64>,
+    pub rel_mae_over_representation_limit: Option<f64>,
+}
+
+/// A sphere-light model's estimate.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct SpheresReport {
+    /// `spheres:K` or `envmap+spheres:K`.
+    pub model: String,
+    /// Rings of the envmap behind the lights, if any.
+    pub background_rings: Option<u32>,
+    pub lights: Vec<FittedLight>,
+    /// Where the refinement started (centre, radius).
+    pub start: Vec<LightStart>,
+    /// Lights asked for.
+    pub requested: usize,
+    /// Mean relMAE over views of its re-render.
+    pub rel_mae: Option<f64>,
+    pub views: Vec<Metrics>,
+    /// relMAE over the binned rows the fit saw.
+    pub fit_rel_mae_binned: f64,
+    pub iterations: usize,
+    /// Binned sum of squared residuals after each accepted step.
+    pub objective_trace: Vec<f64>,
+    /// Renders (of unit-radiance lights) the fit made.
+    pub renders: usize,
+    /// The true lights matched, brightest first.
+    pub recovery: Vec<SphereRecovery>,
+    pub fit_seconds: f64,
+    pub rerender_seconds: f64,
+}
+
+/// A sphere light where a refinement started.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct LightStart {
+    /// World space, metres.
+    pub center: [f32; 3],
+    /// Metres.
+    pub radius: f32,
+}
+
+/// Seconds per phase.
+#[derive(Debug, Clone, Default, Serialize, JsonSchema)]
+pub struct Timings {
+    pub references_seconds: f64,
+    /// The noise floor shares the re-render's camera paths: its cost is in `rerender_seconds`.
+    pub noise_floor_seconds: f64,
+    pub transport_seconds: f64,
+    pub solve_seconds: f64,
+    /// `--rings auto`: choosing the resolution.
+    pub rings_selection_seconds: Option<f64>,
+    /// Transport and solve of the envmap.
+    pub fit_seconds: f64,
+    pub rerender_seconds: f64,
+    /// The representation limit's fit.
+    pub oracle_seconds: f64,
+    /// The sphere models' fits (every candidate count, and the refit of the chosen one).
+    pub sphere_fit_seconds: f64,
+    pub total_seconds: f64,
+}
+
+/// Bytes.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct Memory {
+    /// The envmap fit's transport.
+    pub transport_bytes: usize,
+    /// Peak resident memory of the process so far.
+    pub peak_bytes: u64,
+}
+
+/// Whether every solve met its optimality test.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum FitStatus {
+    Ok,
+    /// A channel's solver stopped at its iteration or time limit first.
+    NotConverged,
+}
+
+/// Runs the job. `first_round` may hand over a shared first-round transport for a fit's
+/// settings ([`super::first_round_transport`]: it does not depend on the lighting, so
+/// scenarios of one scene share it); `|_| None` computes it.
+pub fn run(
+    job: &Job,
+    first_round: &mut dyn FnMut(&FitSettings) -> Option<Arc<Transport>>,
+    progress: &dyn Progress,
+) -> Result<Estimate> {
+    let t_all = Instant::now();
+    let s = job.settings;
+    s.check()?;
+    let seen = job.seen;
+    let (views, references, masks) = (&seen.views[..], &seen.references[..], &seen.masks[..]);
+    let pixels: u64 = views.iter().map(|c| (c.width * c.height) as u64).sum();
+    let truth_lights = &job.truth.lights.spheres;
+    let model_auto = s.model == LightModel::Auto;
+
+    // ---- Resolution from the data ----
+    let template = FitSettings {
+        smooth: s.smooth,
+        ridge: s.ridge,
+        time_limit: s.time_limit,
+        holdout: model_auto,
+        ..FitSettings::new(job.render, 1, s.solver, s.spp, s.rounds)
+    };
+    let (rings, selection) = match &s.rings {
+        Rings::Fixed(r) => (*r, None),
+        Rings::Auto(candidates) => {
+            progress.phase(
+                "choosing rings",
+                pixels * candidates.len() as u64 * s.rounds as u64,
+            );
+            let sel = select::select_rings(
+                job.fit,
+                views,
+                references,
+                masks,
+                candidates,
+                &template,
+                first_round,
+                &|k| progress.advance(k),
+            )
+            .ok_or_else(|| Error::Invalid("no ring count to choose from".into()))?;
+            (sel.rings, Some(sel))
+        }
+    };
+
+    // ---- The envmap: fit, re-render, noise floor, representation limit ----
+    let options = EstimateOptions {
+        fit: FitSettings { rings, ..template },
+        evaluate: s.evaluate,
+        noise_floor: s.noise_floor,
+        oracle: s.oracle,
+    };
+    progress.phase("estimate", pixels * options.passes(0));
+    let first = first_round(&options.fit);
+    let envmap = pipeline::run(
+        job.fit,
+        job.truth,
+        views,
+        references,
+        masks,
+        truth_lights,
+        job.center,
+        &options,
+        job.render,
+        first.as_deref(),
+        &|k| progress.advance(k),
+    )?;
+
+    // ---- Sphere lights, and the model chosen from the data ----
+    let SphereModels {
+        chosen: spheres,
+        candidates,
+        selection: model_selection,
+        seconds: sphere_fit_seconds,
+    } = fit_spheres(job, &envmap, rings, progress)?;
+    let sphere_reports: Vec<SpheresReport> = candidates.iter().map(spheres_report).collect();
+
+    // ---- The report ----
+    let fit = &envmap.fit;
+    let mean = pipeline::mean_rel_mae;
+    let converged = fit.channels.iter().all(|c| c.converged);
+    let report = EstimateReport {
+        lightprobe_version: crate::VERSION.to_string(),
+        scene: PathBuf::new(),
+        rings,
+        cells: fit.envmap.grid.cell_count(),
+        solver: s.solver,
+        smooth: s.smooth,
+        ridge: s.ridge,
+        transport_spp: s.spp,
+        rounds: s.rounds,
+        settings: *job.render,
+        rel_mae: mean(&envmap.errors),
+        noise_floor_rel_mae: mean(&envmap.noise_floor),
+        representation_limit_rel_mae: mean(&envmap.limit),
+        views: views
+            .iter()
+            .enumerate()
+            .map(|(i, cam)| view_report(cam, &envmap, i))
+            .collect(),
+        views_without_geometry: seen.blind.clone(),
+        channels: fit.channels.clone(),
+        light_recovery: envmap.recovery.clone(),
+        model: match (&model_selection, &spheres) {
+            (Some(m), _) => m.chosen.clone(),
+            (None, Some(so)) => so.fit.model_name(),
+            (None, None) => "envmap".to_string(),
+        },
+        model_selection,
+        spheres: spheres.as_ref().map(spheres_report),
+        sphere_candidates: sphere_reports,
+        timings: Timings {
+            references_seconds: seen.seconds,
+            noise_floor_seconds: 0.0,
+            transport_seconds: fit.transport_seconds,
+            solve_seconds: fit.solve_seconds,
+            rings_selection_seconds: selection.as_ref().map(|s| s.seconds),
+            fit_seconds: fit.transport_seconds + fit.solve_seconds,
+            rerender_seconds: envmap.rerender_seconds,
+            oracle_seconds: envmap.oracle_seconds,
+            sphere_fit_seconds,
+            total_seconds: t_all.elapsed().as_secs_f64(),
+        },
+        rings_selection: selection,
+        memory: Memory {
+            transport_bytes: fit.transport_bytes,
+            peak_bytes: crate::memory::peak_bytes(),
+        },
+        threads: rayon::current_num_threads(),
+        status: if converged {
+            FitStatus::Ok
+        } else {
+            FitStatus::NotConverged
+        },
+    };
+    Ok(Estimate {
+        envmap,
+        spheres,
+        report,
+    })
+}
+
+/// The sphere-light models of an estimate.
+#[derive(Default)]
+struct SphereModels {
+    /// The model the estimate ends with, if a sphere model.
+    chosen: Option<SphereOutcome>,
+    /// Every model compared on held-out pixels.
+    candidates: Vec<SphereOutcome>,
+    selection: Option<ModelSelection>,
+    /// Seconds of the sphere fits.
+    seconds: f64,
+}
+
+/// The sphere-light models the settings ask for, started from the envmap estimate.
+fn fit_spheres(
+    job: &Job,
+    envmap: &Outcome,
+    rings: u32,
+    progress: &dyn Progress,
+) -> Result<SphereModels> {
+    let s = job.settings;
+    let max_lights = s.model.max_lights();
+    if max_lights == 0 {
+        return Ok(SphereModels::default());
+    }
+    let (choose, model_auto) = (s.model.chooses(), s.model == LightModel::Auto);
+    let seen = job.seen;
+    let pixels: u64 = seen.views.iter().map(|c| (c.width * c.height) as u64).sum();
+    let truth = &job.truth.lights.spheres;
+    let scene = (job.center, job.size);
+    let paths = PathCache::default();
+    let obs = Observations {
+        cameras: &seen.views,
+        masks: &seen.masks,
+        references: &seen.references,
+        bin: 4,
+        holdout: choose,
+        background: None,
+        paths: Some(&paths),
+    };
+    let in_spheres = |e: Error| Error::Stage {
+        stage: "sphere-light model",
+        inner: Box::new(e),
+    };
+    progress.phase("sphere lights", pixels * max_lights as u64);
+    let mut models = pipeline::run_sphere_models(
+        job.fit,
+        job.truth,
+        &obs,
+        &envmap.fit.envmap,
+        truth,
+        scene,
+        max_lights,
+        choose,
+        job.render,
+        s.evaluate,
+        &|k| progress.advance(k),
+    )
+    .map_err(in_spheres)?;
+    // Nested fits: the last one's time includes the others'.
+    let mut seconds = models.last().map_or(0.0, |m| m.fit.seconds);
+    // --model auto: sphere models again, with an envmap behind their lights.
+    let bases: Vec<_> = if model_auto {
+        pipeline::background_bases(&models, &seen.references, &seen.masks)
+            .into_iter()
+            .map(|b| b.fit.clone())
+            .collect()
+    } else {
+        Vec::new()
+    };
+    for base in &bases {
+        progress.phase(&format!("spheres:{} + envmap", base.requested), pixels);
+        let combined = pipeline::run_with_background(
+            job.fit,
+            job.truth,
+            &obs,
+            base,
+            rings,
+            truth,
+            scene,
+            job.render,
+            true,
+            &|k| progress.advance(k),
+        )
+        .map_err(in_spheres)?;
+        seconds += combined.fit.seconds;
+        models.push(combined);
+    }
+    if !choose {
+        return Ok(SphereModels {
+            chosen: models.pop(),
+            seconds,
+            ..SphereModels::default()
+        });
+    }
+    let sel = pipeline::select_model(
+        model_auto.then_some(envmap),
+        &models,
+        &seen.references,
+        &seen.masks,
+    )
+    .ok_or_else(|| in_spheres(Error::Invalid("no candidate model to choose from".into())))?;
+    let Some(i) = models.iter().position(|m| sel.chosen == m.fit.model_name()) else {
+        // The envmap was chosen.
+        return Ok(SphereModels {
+            chosen: None,
+            candidates: models,
+            selection: Some(sel),
+            seconds,
+        });
+    };
+    // Chosen on held-out pixels: fitted again on all of them.
+    progress.phase("refit on all pixels", pixels);
+    let refit = pipeline::refit_on_all_pixels(
+        job.fit,
+        job.truth,
+        &obs,
+        &models[i].fit,
+        truth,
+        job.center,
+        job.render,
+        true,
+        &|k| progress.advance(k),
+    )
+    .map_err(in_spheres)?;
+    seconds += refit.fit.seconds - models[i].fit.seconds;
+    // The candidates are reported as the estimate ends them: the chosen one refitted.
+    models[i] = refit.clone();
+    Ok(SphereModels {
+        chosen: Some(refit),
+        candidates: models,
+        selection: Some(sel),
+        seconds,
+    })
+}
+
+fn view_report(cam: &Camera, o: &Outcome, i: usize) -> ViewReport {
+    let e = o.errors.get(i).copied();
+    let nf = o.noise_floor.get(i).copied();
+    let limit = o.limit.get(i).copied();
+    ViewReport {
+        view: cam.name.clone(),
+        estimate: e,
+        noise_floor: nf,
+        representation_limit: limit,
+        rel_mae_over_noise_floor: e.zip(nf).map(|(e, n)| e.rel_mae / n.rel_mae),
+        rel_mae_over_representation_limit: e.zip(limit).map(|(e, l)| e.rel_mae / l.rel_mae),
+    }
+}
+
+fn spheres_report(so: &SphereOutcome) -> SpheresReport {
+    SpheresReport {
+        model: so.fit.model_name(),
+        background_rings: so.fit.background.as_ref().map(|b| b.grid.rings()),
+        lights: so.fit.fitted.clone(),
+        start: so
+            .fit
+            .start
+            .iter()
+            .map(|l| LightStart {
+                center: l.center.to_array(),
+                radius: l.radius,
+            })
+            .collect(),
+        requested: so.fit.requested,
+        rel_mae: so.rel_mae(),
+        views: so.errors.clone(),
+        fit_rel_mae_binned: so.fit.fit_rel_mae,
+        iterations: so.fit.iterations,
+        objective_trace: so.fit.history.clone(),
+        renders: so.fit.renders,
+        recovery: so.recovery.clone(),
+        fit_seconds: so.fit.seconds,
+        rerender_seconds: so.rerender_seconds,
+    }
+}
+
+/// The JSON Schema of `report.json`.
+pub fn report_schema() -> String {
+    let schema = schemars::schema_for!(EstimateReport);
+    serde_json::to_string_pretty(&schema).expect("a schema serialises") + "\n"
+}
