@@ -13,7 +13,7 @@ RGB, averaged over the views, of a FRESH full-quality re-render (sidecar spp,
 a seed used nowhere else) of the estimated lighting -- the metric lightprobe's
 report.json calls `rel_mae`.
 
-lightprobe: `estimate --reference REFDIR --rings 9` (the issue's setting),
+lightprobe: `estimate --reference REFDIR --rings 9` (the benchmark's setting),
   timed from outside (process wall, max RSS by wait4) and from report.json
   (timings.fit_seconds = transport + solve; total_seconds; memory.peak_bytes).
   The same at --spp 64/128/256 (the transport's total spp budget, over its
@@ -77,9 +77,9 @@ checkpoint is reported as the lower bound). Ratio = Mitsuba / lightprobe. Same
 evaluator (unless --no-crosscheck): time_to_error_same_evaluator, the same
 rules with lightprobe's errors taken from rel_mae_by_mitsuba (Mitsuba's curve
 is Mitsuba-rendered already), so Mitsuba renders both tools' maps. Goals from
-the issue, each reported as met or not: lightprobe >= 20x faster at equal or
+the project, each reported as met or not: lightprobe >= 20x faster at equal or
 lower error (by own re-renders and by the same evaluator), lightprobe under
-5 s wall clock, peak memory at 25 rings under 1 GiB; and issue 9's for the
+5 s wall clock, peak memory at 25 rings under 1 GiB; and the sphere model's for the
 sphere model: under 15 s (median envmap fit + sphere fit; its first version
 took 34 s).
 
@@ -289,7 +289,7 @@ def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
     return res
 
 
-SPHERE_GOAL_SECONDS = 15.0     # issue 9: the sphere model under 15 s
+SPHERE_GOAL_SECONDS = 15.0     # the sphere model under 15 s
 
 
 def sphere_run(r: dict) -> dict:

@@ -17,7 +17,7 @@ What it does (default: the bundled tabletop, its 2 views, 128x96, 512 spp):
        a blue bright cell low at right-back);
     2. `lightprobe export-envmap --target blender --width W` must equal this
        script's own rasterisation of the grid in Blender's convention, written
-       from the measured mapping (../shared/CRATES.md), bit for bit:
+       from the measured mapping (docs/design.md), bit for bit:
        u = (j+0.5)/W = 0.5 + atan2(g.z, g.x)/2pi, theta = (i+0.5)pi/H from +Y;
     3. `lightprobe import-envmap --target blender` of it gives the cells back.
  B. Blender, no lightprobe rendering involved:
@@ -76,7 +76,7 @@ first); what remains is ~-0.05..-0.1 % against lightprobe, the size of the
 lightprobe-vs-Mitsuba difference recorded in check_mitsuba_envmap.py. With a
 constant envmap (no cell edges) the whole bias is -0.05..-0.08 %.
 
-Cycles settings, each chosen to match lightprobe's model (../shared/DESIGN.md):
+Cycles settings, each chosen to match lightprobe's model (docs/design.md):
   * Materials: every material is replaced by a Diffuse BSDF with Roughness 0
     (Cycles' Lambert, f = albedo/pi; roughness > 0 is Oren-Nayar), colour =
     glTF baseColorFactor x baseColorTexture. Not the importer's Principled
@@ -114,7 +114,7 @@ Cycles settings, each chosen to match lightprobe's model (../shared/DESIGN.md):
   * World: Environment Texture (equirectangular, Linear interpolation) of the
     exported EXR, colour space Linear Rec.709 (Blender's scene-linear), default
     mapping (no rotation: the export must be right as it is); importance map
-    (sampling method Manual) at the image width (CRATES.md pitfall).
+    (sampling method Manual) at the image width (a measured pitfall).
 
 Cost: ~105 s on 2 cores (Blender worker ~85 s: 4 renders at 512 spp ~7.5 s
 each, 16 at 128 spp, the lookup renders; lightprobe ~15 s), install excluded
@@ -503,7 +503,7 @@ def worker_main(job_file: str) -> int:
 def blender_cells(grid, width: int, u_shift: float = 0.0) -> np.ndarray:
     """(H, W) ring-cell index under each pixel centre of a lat-long image in
     Blender's World convention, written from the mapping measured in Blender
-    (CRATES.md): column j at u = (j+0.5)/W = 0.5 + atan2(g.z, g.x)/2pi, row i
+    (measured): column j at u = (j+0.5)/W = 0.5 + atan2(g.z, g.x)/2pi, row i
     at theta = (i+0.5)pi/H from +Y (glTF axes). Directions are rounded to f32
     as lightprobe's export does before the lookup."""
     h = width // 2

@@ -44,7 +44,7 @@ if [ "$what" != paper ]; then
     --rings 3,9,21 --time-limit 3 --allow-failures
 fi
 
-# 5. Finite-distance lights (issue 9): the sphere model (1–3 lights, the count chosen on
+# 5. Finite-distance lights: the sphere model (1–3 lights, the count chosen on
 #    held-out pixels, started from the 9-ring envmap) on the 15 scenarios whose lights all sit
 #    1.5–5 m from the scene centre, beside the 9-ring envmap.
 NEAR=$(for i in 01 02 03 05 12 13 23 25 31 35 36 44 49 50 51; do echo "$S/s$i.ron"; done)

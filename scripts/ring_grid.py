@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """lightprobe's ring environment-map grid, written independently in Python from
-the spec (../shared/DESIGN.md "The ring environment map"), to check the Rust
+the spec (docs/design.md, "The ring environment map"), to check the Rust
 implementation from the outside. Used by check_mitsuba_envmap.py and bench.py.
 
 Grid: N rings of constant polar angle theta from +Y, poles included,

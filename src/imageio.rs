@@ -174,6 +174,16 @@ pub fn read_exr(path: &Path) -> Result<Image> {
     })
 }
 
+/// The sRGB transfer function's inverse (encoded [0, 1] → linear), the inverse of
+/// [`linear_to_srgb`].
+pub fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
 /// The sRGB transfer function (linear [0, 1] → encoded).
 pub fn linear_to_srgb(c: f32) -> f32 {
     if c <= 0.003_130_8 {
@@ -288,7 +298,7 @@ mod tests {
     fn srgb_round_trip() {
         for i in 0..=100 {
             let c = i as f32 / 100.0;
-            assert!((crate::scene::srgb_to_linear(linear_to_srgb(c)) - c).abs() < 1e-5);
+            assert!((srgb_to_linear(linear_to_srgb(c)) - c).abs() < 1e-5);
         }
     }
 }

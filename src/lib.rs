@@ -6,6 +6,7 @@
 //! scene → core → outputs. The command-line tool in `src/main.rs` is a thin layer over this.
 
 pub mod accel;
+mod checked;
 pub mod envmap;
 pub mod error;
 pub mod estimate;

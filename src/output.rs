@@ -36,8 +36,11 @@ pub fn write_estimate(
     if rendered_references {
         let refs = dir.join("reference");
         create_dir(&refs)?;
-        for (img, cam) in seen.references.iter().zip(&seen.views) {
-            imageio::write_exr(&refs.join(format!("{}.exr", cam.name)), img)?;
+        let seen_views = seen.views.iter().map(|c| c.name.as_str());
+        let names = seen_views.chain(seen.blind.iter().map(String::as_str));
+        let images = seen.references.iter().chain(&seen.blind_references);
+        for (img, name) in images.zip(names) {
+            imageio::write_exr(&refs.join(format!("{name}.exr")), img)?;
         }
     }
     write_envmap(dir, "envmap", &estimate.envmap.fit.envmap)?;

@@ -212,7 +212,13 @@ fn help_is_available_for_every_command() {
         &["--help"][..],
         &["render-reference", "--help"],
         &["compare", "--help"],
+        &["estimate", "--help"],
+        &["export-envmap", "--help"],
+        &["import-envmap", "--help"],
         &["info", "--help"],
+        &["scenarios", "--help"],
+        &["sweep", "--help"],
+        &["report", "--help"],
         &["schema", "--help"],
     ] {
         let o = run(cmd);
@@ -1423,5 +1429,177 @@ fn estimate_is_bit_identical_at_one_and_two_threads() {
     assert!(
         outs[0].1 == outs[1].1 && outs[0].2 == outs[1].2,
         "EXR outputs differ between 1 and 2 threads"
+    );
+}
+
+#[test]
+fn committed_report_schema_is_up_to_date() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("schemas/report.schema.json");
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    let o = run(&["schema", "--report"]);
+    assert!(o.status.success());
+    assert!(
+        committed == String::from_utf8(o.stdout).unwrap(),
+        "schemas/report.schema.json is stale: run `cargo run -- schema --report > schemas/report.schema.json`"
+    );
+}
+
+/// Checks `value` against the part of a JSON Schema (draft 2020-12, as schemars writes it)
+/// that `report.json` uses: `$ref` into `$defs`, `type` (one or a list), `properties` with
+/// `required` and no others, `items`, `anyOf`/`oneOf`/`allOf`, `enum`/`const`. Returns the
+/// JSON paths that break it.
+fn schema_errors(
+    root: &serde_json::Value,
+    schema: &serde_json::Value,
+    value: &serde_json::Value,
+    path: &str,
+) -> Vec<String> {
+    check(root, schema, value, path, true)
+}
+
+/// [`schema_errors`]; `strict`: a field the object's schema does not list is an error (JSON
+/// Schema allows it unless `additionalProperties` is false; we want every field documented).
+/// The alternatives of a flattened enum list only their own fields, so they are not strict.
+fn check(
+    root: &serde_json::Value,
+    schema: &serde_json::Value,
+    value: &serde_json::Value,
+    path: &str,
+    strict: bool,
+) -> Vec<String> {
+    use serde_json::Value;
+    let mut errors = Vec::new();
+    if let Some(r) = schema.get("$ref").and_then(Value::as_str) {
+        let name = r.trim_start_matches("#/$defs/");
+        return check(root, &root["$defs"][name], value, path, strict);
+    }
+    let fits = |s: &Value| check(root, s, value, path, false).is_empty();
+    if let Some(any) = schema
+        .get("anyOf")
+        .or_else(|| schema.get("oneOf"))
+        .and_then(Value::as_array)
+        && !any.iter().any(fits)
+    {
+        errors.push(format!("{path}: fits none of its alternatives: {value}"));
+    }
+    for s in schema
+        .get("allOf")
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+    {
+        errors.extend(check(root, s, value, path, false));
+    }
+    if let Some(c) = schema.get("const")
+        && c != value
+    {
+        errors.push(format!("{path}: {value} is not {c}"));
+    }
+    if let Some(e) = schema.get("enum").and_then(Value::as_array)
+        && !e.contains(value)
+    {
+        errors.push(format!("{path}: {value} is not one of {e:?}"));
+    }
+    if let Some(t) = schema.get("type") {
+        let types: Vec<&str> = match t {
+            Value::String(s) => vec![s.as_str()],
+            Value::Array(a) => a.iter().filter_map(Value::as_str).collect(),
+            _ => vec![],
+        };
+        let is = |ty: &str| match ty {
+            "null" => value.is_null(),
+            "boolean" => value.is_boolean(),
+            "string" => value.is_string(),
+            "array" => value.is_array(),
+            "object" => value.is_object(),
+            "number" => value.is_number(),
+            "integer" => value.is_i64() || value.is_u64(),
+            _ => false,
+        };
+        if !types.iter().any(|ty| is(ty)) {
+            errors.push(format!("{path}: {value} is not of type {types:?}"));
+        }
+    }
+    if let (Some(props), Some(obj)) = (
+        schema.get("properties").and_then(Value::as_object),
+        value.as_object(),
+    ) {
+        for (k, v) in obj {
+            match props.get(k) {
+                Some(s) => errors.extend(check(root, s, v, &format!("{path}.{k}"), true)),
+                // A flattened, internally tagged enum (`oneOf` beside) owns its own fields.
+                None if !strict || schema.get("oneOf").is_some() => {}
+                None => errors.push(format!("{path}.{k}: not in the schema")),
+            }
+        }
+        for r in schema
+            .get("required")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+        {
+            if !obj.contains_key(r.as_str().unwrap_or("")) {
+                errors.push(format!("{path}: misses required {r}"));
+            }
+        }
+    }
+    if let (Some(items), Some(arr)) = (schema.get("items"), value.as_array()) {
+        for (i, v) in arr.iter().enumerate() {
+            errors.extend(check(root, items, v, &format!("{path}[{i}]"), true));
+        }
+    }
+    errors
+}
+
+#[test]
+fn report_json_follows_its_committed_schema() {
+    // The envmap alone, and the model chosen from the data (sphere candidates, the
+    // selection, fitted lights with their statuses): every field the report can hold.
+    let schema: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("schemas/report.schema.json"),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path(), "");
+    for (i, extra) in [&["--oracle"][..], &["--model", "spheres"]]
+        .iter()
+        .enumerate()
+    {
+        let out = tmp.path().join(format!("out{i}"));
+        let mut args = vec![
+            "estimate",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--rings",
+            "3",
+            "--spp",
+            "8",
+            "--quiet",
+        ];
+        args.extend_from_slice(extra);
+        let o = run(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let report: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+        let errors = schema_errors(&schema, &schema, &report, "report");
+        assert!(errors.is_empty(), "{extra:?}: {errors:#?}");
+        if i == 1 {
+            assert!(report["spheres"].is_object() && report["model_selection"].is_object());
+        }
+    }
+    // The validator itself must catch a wrong type and an unknown field.
+    let bad = serde_json::json!({ "rings": "nine", "surprise": 1 });
+    let errors = schema_errors(&schema, &schema, &bad, "report");
+    assert!(
+        errors.iter().any(|e| e.contains("report.rings")),
+        "{errors:?}"
+    );
+    assert!(
+        errors.iter().any(|e| e.contains("report.surprise")),
+        "{errors:?}"
     );
 }

@@ -416,7 +416,7 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
 #[test]
 fn sphere_light_radiance_is_recovered_given_its_geometry_and_wrong_geometry_shows() {
     // A light 1.9 m from a 2 m table: no envmap fits it, but with its centre and radius known
-    // the images are linear in its radiance (issue 9's inner solve).
+    // the images are linear in its radiance (the sphere model's inner solve).
     let truth = NEAR_LIGHT;
     let sc = scene(vec![truth]);
     let lights = Lights::new(sc.lights.clone());
@@ -559,7 +559,7 @@ fn levenberg_marquardt_moves_a_misplaced_sphere_light_back() {
     );
     // Measured (4×4 bins, 64-spp residuals, 16-spp Jacobians): centre 1.1 mm off (0.06% of
     // 1.80 m), radius 0.151 (true 0.15), power ×1.001, 61 renders. (Single pixels and one
-    // 64-spp render for both: 11 mm, ×1.011, 101 renders.) The issue asks 2% and 5%.
+    // 64-spp render for both: 11 mm, ×1.011, 101 renders.) The goal is 2% and 5%.
     assert!(off < 0.005 * dist, "{out:?}");
     assert!((power(&got) / power(&truth) - 1.0).abs() < 0.02, "{out:?}");
 }

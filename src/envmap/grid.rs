@@ -86,7 +86,7 @@ impl RingGrid {
                         1
                     } else {
                         let x = 0.5 * (rings - 1) as f64 * (i as f64 * delta).sin();
-                        // Round ties up, identically on both hemispheres (see DESIGN.md).
+                        // Round ties up, identically on both hemispheres (see docs/design.md).
                         4 * (x + 0.5 + 1e-9).floor() as u32
                     }
                 })

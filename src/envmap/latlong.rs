@@ -6,7 +6,7 @@
 //! | `blender` | +Z (after the glTF importer's (x, y, z) → (x, −z, y)) | `u = (j+½)/W = ½ + atan2(z, x)/2π`, θ = (i+½)π/H from +Y |
 //! | `pbrt-v3` | +Z (same axis change) | `u = (j+½)/W`, φ_pbrt = 2πu = atan2(−z, x), θ = (i+½)π/H from +Y |
 //!
-//! The Mitsuba and Blender mappings were measured in those renderers (../shared/CRATES.md);
+//! The Mitsuba and Blender mappings were measured in those renderers (docs/design.md);
 //! the Mitsuba one is checked by a cross-render in `scripts/`. `box` export point-samples the
 //! cell under each pixel centre (so export → import of the same grid is exact); `smooth`
 //! interpolates between the grid points (bilinear in θ and φ along the rings).

@@ -28,11 +28,23 @@ use serde::Deserialize;
 
 pub use grid::RingGrid;
 
+use crate::checked::checked;
 use crate::error::{Error, Result};
 use crate::imageio::{luminance, write_bytes};
 
 /// Largest accepted ring count of the grid (1000 rings hold about 1.3 million cells).
 pub const MAX_RINGS: u32 = 1000;
+
+checked!(
+    /// Ring count of the envmap grid, 1..=1000.
+    Rings(u32), "u32", |v| (1..=MAX_RINGS).contains(&v),
+    "rings must be between 1 and 1000, got {}"
+);
+checked!(
+    /// Linear RGB radiance, each channel finite and ≥ 0.
+    Rgb((f32, f32, f32)), "(f32, f32, f32)", |v| [v.0, v.1, v.2].iter().all(|c| c.is_finite() && *c >= 0.0),
+    "radiance must be finite and >= 0 in every channel, got {:?}"
+);
 
 /// Relative weight floor of the sampling distribution (× the mean luminance).
 const FLOOR: f64 = 1e-3;
@@ -225,9 +237,8 @@ impl Envmap {
         #[derive(Deserialize)]
         #[serde(rename = "Envmap", deny_unknown_fields)]
         struct File {
-            rings: u32,
-            /// Linear RGB per cell.
-            radiance: Vec<(f32, f32, f32)>,
+            rings: Rings,
+            radiance: Vec<Rgb>,
         }
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let f: File = ron::Options::default().from_str(&text).map_err(|e| {
@@ -241,9 +252,9 @@ impl Envmap {
         let radiance = f
             .radiance
             .iter()
-            .map(|&(r, g, b)| Vec3::new(r, g, b))
+            .map(|&Rgb((r, g, b))| Vec3::new(r, g, b))
             .collect();
-        Envmap::new(f.rings, radiance).map_err(|m| Error::file(path, m))
+        Envmap::new(f.rings.0, radiance).map_err(|m| Error::file(path, m))
     }
 
     /// The `envmap.ron` text: exact f32 values, one cell per line.

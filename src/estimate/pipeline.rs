@@ -97,6 +97,8 @@ pub struct SeenViews<'a> {
     pub masks: Vec<Vec<bool>>,
     /// Views whose mask is empty: nothing to fit or to measure there.
     pub blind: Vec<String>,
+    /// Their references, in the same order (written out with the others).
+    pub blind_references: Vec<Image>,
     /// Why a view's mask is empty, for a person ("it sees no scene geometry").
     pub blind_reason: String,
     /// Seconds spent rendering or reading the references.
@@ -115,6 +117,7 @@ pub fn seen_views<'a>(
         references: Vec::new(),
         masks: Vec::new(),
         blind: Vec::new(),
+        blind_references: Vec::new(),
         blind_reason: String::new(),
         seconds: 0.0,
     };
@@ -125,6 +128,7 @@ pub fn seen_views<'a>(
             out.masks.push(m);
         } else {
             out.blind.push(cam.name.clone());
+            out.blind_references.push(r);
         }
     }
     out

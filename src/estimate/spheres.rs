@@ -1,4 +1,4 @@
-//! Sphere lights as the light model (issue 9). With the lights' centres and radii fixed,
+//! Sphere lights as the light model. With the lights' centres and radii fixed,
 //! every pixel is linear in their radiances, `I_α = Σ_k T_kα L_kα`, so the radiances come from
 //! a small exact NNLS on the per-light transport T_k, and only the geometry (4 numbers per
 //! light) is left to a non-linear search: variable projection, by Levenberg–Marquardt.

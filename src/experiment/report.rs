@@ -108,7 +108,7 @@ pub struct Summary {
     pub charts: Vec<PathBuf>,
 }
 
-/// The sphere model against issue 9's bar, on the scenarios whose lights all sit 1.5–5 m from
+/// The sphere model against its goal (every centre within 2% of its distance, every power within 5%), on the scenarios whose lights all sit 1.5–5 m from
 /// the scene centre: relMAE within 2× the noise floor, every centre within 2% of its distance,
 /// every power within 5%.
 #[derive(Debug, Clone, Serialize)]

@@ -973,7 +973,7 @@ fn open_append(path: &Path) -> Result<std::fs::File> {
 /// What a scenario's references depend on: the scene (sidecar minus lights) and the lights.
 fn scenario_fingerprint(key: &str, lights: &[SphereLight]) -> String {
     // `streams=name`: references are rendered with each view's stream from its name
-    // (`render::view_stream`, session 9); folders from before render with other noise.
+    // (`render::view_stream`); folders from before render with other noise.
     let text = format!("{key}|{lights:?}|streams=name");
     let h = text
         .bytes()
@@ -1045,6 +1045,7 @@ fn observe<'a>(
             references,
             masks,
             blind: Vec::new(),
+            blind_references: Vec::new(),
             blind_reason: String::new(),
             seconds: 0.0,
         },

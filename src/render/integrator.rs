@@ -259,7 +259,7 @@ pub(super) struct Tracer<'a> {
 
 impl Tracer<'_> {
     /// Traces camera paths from `pixel`'s origin, one per unit direction of `dirs` (inside
-    /// the pixel's bundle, [`super::pixel_bundle`]) with the sampler of the same index in `s`
+    /// the pixel's bundle, [`crate::accel::Accel::bundle`]) with the sampler of the same index in `s`
     /// (at most [`LANES`]), and hands every emitter they reach to `acc`. Returns how many
     /// camera rays saw scene geometry (for the coverage mask). `lights_ahead` as for
     /// [`Tracer::light`].
@@ -398,7 +398,7 @@ impl Tracer<'_> {
     /// vertices at one depth are drawn together ([`Lights::sample_lanes`]). Returns how many
     /// camera rays saw scene geometry before any emitter. `lights_ahead` false promises that
     /// no camera ray meets a sphere light (the pixel's pyramid misses them all,
-    /// [`super::pyramid_meets_lights`]), which spares each its sphere tests. `added` is
+    /// [`super::pixels::pyramid_meets_lights`]), which spares each its sphere tests. `added` is
     /// scratch space.
     #[allow(clippy::too_many_arguments)]
     pub fn light<A: Accumulator>(
@@ -582,13 +582,6 @@ impl Tracer<'_> {
             1.0
         };
         added[lane].push((ls.emitter, v.throughput_f * (cos_s * w / ls.pdf)));
-    }
-
-    /// True when no camera ray inside `pixel`'s bundle can deliver anything: it meets no
-    /// geometry, and what it may see directly (sphere lights, the envmap) is hidden. Such a
-    /// pixel's samples would each return at the camera ray, adding nothing.
-    pub fn sees_nothing(&self, pixel: &Bundle) -> bool {
-        pixel.meets_nothing() && self.settings.hide_emitters
     }
 
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading

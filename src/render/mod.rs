@@ -16,6 +16,7 @@
 
 mod integrator;
 pub mod lights;
+mod pixels;
 pub mod report;
 
 use glam::{Vec2, Vec3};
@@ -24,18 +25,14 @@ use serde::Serialize;
 
 pub use lights::{Emitter, LightSample, Lights};
 
-use crate::accel::{Accel, Bundle};
+use crate::accel::Accel;
 use crate::imageio::Image;
-use crate::sampling::{Rng, mix64};
+use crate::sampling::mix64;
 use crate::scene::{Camera, Scene, SceneSettings};
-use integrator::{PathSampler, Scratch, Tracer, Vertex, Walked};
-use lights::LANES;
+use integrator::Tracer;
+use pixels::{Done, Light, Tile, TilePaths, Trace, View, Walk, drive, render_key, tiles};
 
-/// Side of the square tiles work is split into. Small enough that the threads finish a view
-/// together: the bundled scene's 16-pixel tiles (48 per view, some ten times the work of
-/// others) left a thread idle at the end of each view, 4–5% of a 2-thread render. Images do
-/// not depend on it (pixels are seeded by their index).
-pub const TILE: u32 = 8;
+pub use pixels::TILE;
 
 /// Which light-transport estimator to use at each surface vertex.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, schemars::JsonSchema)]
@@ -228,54 +225,24 @@ impl<'a> Renderer<'a> {
         acc: &A,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Frame<A::Pixel> {
-        let (w, h) = (camera.width, camera.height);
         let tracer = self.tracer(settings);
-        let tiles = tiles(w, h);
-        let key = render_key(settings, stream);
         let ray_dir = camera.ray_dirs();
-        let done: Vec<Vec<(u32, A::Pixel, f32)>> = tiles
+        let view = View {
+            camera,
+            key: render_key(settings, stream),
+            ray_dir: &ray_dir,
+            settings,
+        };
+        let done: Vec<Vec<Done<A::Pixel>>> = tiles(camera.width, camera.height)
             .par_iter()
-            .map(|&(x0, y0, x1, y1)| {
-                let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
-                let mut scratch = Scratch::default();
-                let (mut dirs, mut samplers) = (Vec::new(), Vec::new());
-                let mut pixel = Bundle::default();
-                for y in y0..y1 {
-                    for x in x0..x1 {
-                        let index = y * w + x;
-                        let mut px = acc.new_pixel();
-                        let mut hits = 0u32;
-                        let corners = pixel_bundle(&self.accel, camera, &ray_dir, x, y, &mut pixel);
-                        if tracer.sees_nothing(&pixel) {
-                            // No sample of this pixel can deliver anything.
-                            acc.finish(&mut px, settings.spp);
-                            out.push((index, px, 0.0));
-                            continue;
-                        }
-                        let lights_ahead =
-                            pyramid_meets_lights(self.lights, camera.origin_world, &corners);
-                        let mut samples = camera_samples(key, index, x, y, &ray_dir, settings);
-                        while next_chunk(&mut samples, &mut dirs, &mut samplers) {
-                            hits += tracer.trace(
-                                &pixel,
-                                lights_ahead,
-                                &dirs,
-                                &mut samplers,
-                                &mut scratch,
-                                acc,
-                                &mut px,
-                            );
-                        }
-                        acc.finish(&mut px, settings.spp);
-                        out.push((index, px, hits as f32 / settings.spp as f32));
-                    }
-                }
-                progress(out.len() as u64);
-                out
+            .map(|&tile| {
+                let mut k = Trace::new(&tracer, camera, acc, tile);
+                drive(&view, tile, &mut k);
+                progress(k.out.len() as u64);
+                k.out
             })
             .collect();
-
-        assemble(w, h, done)
+        assemble(camera.width, camera.height, done)
     }
 
     /// Walks every camera path of a render of `camera` (as [`Renderer::render`] would with
@@ -283,17 +250,21 @@ impl<'a> Renderer<'a> {
     /// [`Renderer::render_paths`], under any lights. Memory: about 64 bytes per vertex, up to
     /// `max_bounces` vertices per sample.
     pub fn trace_paths(&self, camera: &Camera, stream: u64, settings: &RenderSettings) -> Paths {
-        let (w, h) = (camera.width, camera.height);
         let tracer = self.tracer(settings);
-        let key = render_key(settings, stream);
         let ray_dir = camera.ray_dirs();
-        let tiles = tiles(w, h)
+        let view = View {
+            camera,
+            key: render_key(settings, stream),
+            ray_dir: &ray_dir,
+            settings,
+        };
+        let tiles = tiles(camera.width, camera.height)
             .par_iter()
-            .map(|&tile| walk_tile(&tracer, camera, key, &ray_dir, tile))
+            .map(|&tile| walk_tile(&view, &tracer, tile))
             .collect();
         Paths {
-            width: w,
-            height: h,
+            width: camera.width,
+            height: camera.height,
             settings: *settings,
             stream,
             tiles,
@@ -318,12 +289,17 @@ impl<'a> Renderer<'a> {
             ..*settings
         };
         let tracer = self.tracer(&settings);
-        let key = render_key(&settings, paths.stream);
         let ray_dir = camera.ray_dirs();
-        let done: Vec<Vec<(u32, A::Pixel, f32)>> = tiles(w, h)
+        let view = View {
+            camera,
+            key: render_key(&settings, paths.stream),
+            ray_dir: &ray_dir,
+            settings: &settings,
+        };
+        let done: Vec<Vec<Done<A::Pixel>>> = tiles(w, h)
             .par_iter()
             .zip(&paths.tiles)
-            .map(|(&tile, walked)| light_tile(&tracer, camera, key, &ray_dir, tile, walked, acc))
+            .map(|(&tile, walked)| light_tile(&view, &tracer, acc, walked, tile))
             .collect();
         assemble(w, h, done)
     }
@@ -352,18 +328,21 @@ impl<'a> Renderer<'a> {
                 ..self.tracer(settings)
             })
             .collect();
-        let key = render_key(settings, stream);
         let ray_dir = camera.ray_dirs();
-        let done: Vec<Vec<Vec<(u32, Vec3, f32)>>> = tiles(w, h)
+        let view = View {
+            camera,
+            key: render_key(settings, stream),
+            ray_dir: &ray_dir,
+            settings,
+        };
+        let walker = self.tracer(settings);
+        let done: Vec<Vec<Vec<Done<Vec3>>>> = tiles(w, h)
             .par_iter()
             .map(|&tile| {
-                let walked = walk_tile(&self.tracer(settings), camera, key, &ray_dir, tile);
+                let walked = walk_tile(&view, &walker, tile);
                 let lit: Vec<_> = tracers
                     .iter()
-                    .map(|t| {
-                        let acc = RadianceAccumulator(t.lights);
-                        light_tile(t, camera, key, &ray_dir, tile, &walked, &acc)
-                    })
+                    .map(|t| light_tile(&view, t, &RadianceAccumulator(t.lights), &walked, tile))
                     .collect();
                 progress(lit.iter().map(|l| l.len() as u64).sum());
                 lit
@@ -467,150 +446,28 @@ pub struct Paths {
 impl Paths {
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        self.tiles
-            .iter()
-            .map(|t| {
-                t.samples.len() * std::mem::size_of::<(f32, u8)>()
-                    + t.vertices.len() * std::mem::size_of::<Vertex>()
-            })
-            .sum()
+        self.tiles.iter().map(TilePaths::bytes).sum()
     }
 }
 
-/// The paths of one tile: per camera sample (pixels row by row, samples in order), the
-/// distance to its first surface and how many vertices it has, which follow in `vertices`.
-struct TilePaths {
-    samples: Vec<(f32, u8)>,
-    vertices: Vec<Vertex>,
+/// Walks the camera paths of one tile ([`Walk`]).
+fn walk_tile<R: Fn(f32, f32) -> Vec3>(view: &View<R>, tracer: &Tracer, tile: Tile) -> TilePaths {
+    let mut k = Walk::new(tracer, view.camera, tile);
+    drive(view, tile, &mut k);
+    k.out
 }
 
-/// Walks the camera paths of one tile (`x0, y0, x1, y1`), keeping their vertices; the last
-/// segment's geometry is traced too, as the paths are lit more than once.
-fn walk_tile(
+/// Lights one tile's walked paths with the tracer's lights ([`Light`]).
+fn light_tile<R: Fn(f32, f32) -> Vec3, A: Accumulator>(
+    view: &View<R>,
     tracer: &Tracer,
-    camera: &Camera,
-    key: u64,
-    ray_dir: &impl Fn(f32, f32) -> Vec3,
-    (x0, y0, x1, y1): (u32, u32, u32, u32),
-) -> TilePaths {
-    let settings = tracer.settings;
-    let mut tile = TilePaths {
-        samples: Vec::with_capacity(((x1 - x0) * (y1 - y0) * settings.spp) as usize),
-        vertices: Vec::new(),
-    };
-    let mut pixel = Bundle::default();
-    let (mut dirs, mut samplers) = (Vec::with_capacity(LANES), Vec::with_capacity(LANES));
-    let mut verts = Vec::new();
-    let mb = settings.max_bounces as usize;
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let index = y * camera.width + x;
-            pixel_bundle(tracer.accel, camera, ray_dir, x, y, &mut pixel);
-            if pixel.meets_nothing() {
-                // No camera ray of this pixel meets geometry: each walk would be this.
-                let n = tile.samples.len() + settings.spp as usize;
-                tile.samples.resize(n, (f32::INFINITY, 0));
-                continue;
-            }
-            let mut samples = camera_samples(key, index, x, y, ray_dir, settings);
-            while next_chunk(&mut samples, &mut dirs, &mut samplers) {
-                let (t, len) = tracer.walk(&pixel, &dirs, &mut samplers, true, &mut verts);
-                for l in 0..dirs.len() {
-                    tile.vertices
-                        .extend_from_slice(integrator::lane_vertices(&verts, mb, l, len[l]));
-                    tile.samples.push((t[l], len[l] as u8));
-                }
-            }
-        }
-    }
-    tile
-}
-
-/// Lights one tile's walked paths with the tracer's lights: per pixel (index, estimate,
-/// coverage).
-fn light_tile<A: Accumulator>(
-    tracer: &Tracer,
-    camera: &Camera,
-    key: u64,
-    ray_dir: &impl Fn(f32, f32) -> Vec3,
-    (x0, y0, x1, y1): (u32, u32, u32, u32),
-    walked: &TilePaths,
     acc: &A,
-) -> Vec<(u32, A::Pixel, f32)> {
-    let settings = tracer.settings;
-    let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
-    let (mut sample, mut vertex) = (0, 0);
-    let (mut dirs, mut samplers) = (Vec::with_capacity(LANES), Vec::with_capacity(LANES));
-    let mut added = integrator::Added::default();
-    for y in y0..y1 {
-        for x in x0..x1 {
-            let index = y * camera.width + x;
-            let mut px = acc.new_pixel();
-            let mut hits = 0u32;
-            let spp = settings.spp as usize;
-            if settings.hide_emitters
-                && walked.samples[sample..sample + spp]
-                    .iter()
-                    .all(|&(t, _)| t.is_infinite())
-            {
-                // Every camera ray escapes, and what it would see is hidden: nothing to add
-                // ([`Tracer::sees_nothing`] for walked paths).
-                sample += spp;
-                acc.finish(&mut px, settings.spp);
-                out.push((index, px, 0.0));
-                continue;
-            }
-            let corners = pixel_corners(ray_dir, x, y);
-            let lights_ahead = pyramid_meets_lights(tracer.lights, camera.origin_world, &corners);
-            let mut samples = camera_samples(key, index, x, y, ray_dir, settings);
-            while next_chunk(&mut samples, &mut dirs, &mut samplers) {
-                let mut paths = [Walked {
-                    dir: Vec3::Z,
-                    t_first: f32::INFINITY,
-                    verts: &[],
-                }; LANES];
-                for (path, &dir) in paths.iter_mut().zip(&dirs) {
-                    let (t_first, n) = walked.samples[sample];
-                    let verts = &walked.vertices[vertex..vertex + n as usize];
-                    (sample, vertex) = (sample + 1, vertex + n as usize);
-                    *path = Walked {
-                        dir,
-                        t_first,
-                        verts,
-                    };
-                }
-                let paths = &paths[..dirs.len()];
-                hits += tracer.light(
-                    camera.origin_world,
-                    lights_ahead,
-                    paths,
-                    &mut samplers,
-                    &mut added,
-                    acc,
-                    &mut px,
-                );
-            }
-            acc.finish(&mut px, settings.spp);
-            out.push((index, px, hits as f32 / settings.spp as f32));
-        }
-    }
-    out
-}
-
-/// Refills `dirs` and `samplers` with the next (at most [`LANES`]) camera samples of a pixel,
-/// the chunk the tracer takes at once. False when there are none left.
-fn next_chunk(
-    samples: &mut impl Iterator<Item = (Vec3, PathSampler)>,
-    dirs: &mut Vec<Vec3>,
-    samplers: &mut Vec<PathSampler>,
-) -> bool {
-    dirs.clear();
-    samplers.clear();
-    for (dir, s) in samples.by_ref().take(LANES) {
-        dirs.push(dir);
-        samplers.push(s);
-    }
-    !dirs.is_empty()
+    walked: &TilePaths,
+    tile: Tile,
+) -> Vec<Done<A::Pixel>> {
+    let mut k = Light::new(tracer, view.camera, acc, walked, tile);
+    drive(view, tile, &mut k);
+    k.out
 }
 
 /// The random stream of a view's renders, from its name alone: a view renders the same image
@@ -623,78 +480,8 @@ pub fn view_stream(camera: &Camera) -> u64 {
     mix64(fnv)
 }
 
-/// The key every random stream of a render derives from.
-fn render_key(settings: &RenderSettings, stream: u64) -> u64 {
-    mix64(settings.seed ^ mix64(stream.wrapping_add(0xC0FFEE)))
-}
-
-/// The leaves of `accel` the camera rays of pixel (`x`, `y`) can reach, into `out`: the
-/// pyramid through the pixel's corners (its samples' jitter lies in [0, 1)²).
-/// Returns the unit directions through its corners.
-fn pixel_bundle(
-    accel: &Accel,
-    camera: &Camera,
-    ray_dir: &impl Fn(f32, f32) -> Vec3,
-    x: u32,
-    y: u32,
-    out: &mut Bundle,
-) -> [Vec3; 4] {
-    let corners = pixel_corners(ray_dir, x, y);
-    accel.bundle(camera.origin_world, corners, out);
-    corners
-}
-
-/// The unit directions through pixel (`x`, `y`)'s corners, in order around it.
-fn pixel_corners(ray_dir: &impl Fn(f32, f32) -> Vec3, x: u32, y: u32) -> [Vec3; 4] {
-    let (x, y) = (x as f32, y as f32);
-    [
-        ray_dir(x, y),
-        ray_dir(x + 1.0, y),
-        ray_dir(x + 1.0, y + 1.0),
-        ray_dir(x, y + 1.0),
-    ]
-}
-
-/// Whether a ray from `origin` inside the pyramid spanned by unit `corners` can meet one of
-/// the sphere lights. Conservative: the cone around the pyramid against the cone each sphere
-/// subtends (they meet when the angle between their axes is at most the sum of their
-/// half-angles), with a margin for rounding.
-fn pyramid_meets_lights(lights: &Lights, origin: Vec3, corners: &[Vec3; 4]) -> bool {
-    const MARGIN: f32 = 1e-3; // radians
-    let axis = corners.iter().copied().sum::<Vec3>().normalize();
-    let angle = |a: Vec3, b: Vec3| a.dot(b).clamp(-1.0, 1.0).acos();
-    let half = corners.iter().map(|&c| angle(c, axis)).fold(0.0, f32::max);
-    lights.spheres.iter().any(|s| {
-        let to_c = s.center - origin;
-        let d = to_c.length();
-        d <= s.radius * 1.001 || angle(to_c / d, axis) <= half + (s.radius / d).asin() + MARGIN
-    })
-}
-
-/// The camera samples of pixel (`x`, `y`) (`index` = y · width + x): each one's ray direction
-/// and random streams.
-fn camera_samples<'a>(
-    key: u64,
-    index: u32,
-    x: u32,
-    y: u32,
-    ray_dir: &'a (impl Fn(f32, f32) -> Vec3 + 'a),
-    settings: &RenderSettings,
-) -> impl Iterator<Item = (Vec3, PathSampler)> + 'a {
-    let pixel_key = mix64(key ^ index as u64);
-    let mut keys = Rng::new(pixel_key);
-    let pixel_offset = keys.next_2d();
-    let sobol_keys = [(); integrator::KEYS].map(|_| keys.next_u32());
-    let (spp, max_bounces) = (settings.spp, settings.max_bounces);
-    (0..spp).map(move |i| {
-        let s = PathSampler::new(pixel_key, pixel_offset, sobol_keys, i, spp, max_bounces);
-        let j = s.pixel_jitter();
-        (ray_dir(x as f32 + j.x, y as f32 + j.y), s)
-    })
-}
-
 /// Puts tiles' pixels (index, pixel, coverage) in their places.
-fn assemble<P>(w: u32, h: u32, done: Vec<Vec<(u32, P, f32)>>) -> Frame<P> {
+fn assemble<P>(w: u32, h: u32, done: Vec<Vec<Done<P>>>) -> Frame<P> {
     let n = (w * h) as usize;
     let mut slots: Vec<Option<P>> = (0..n).map(|_| None).collect();
     let mut coverage = vec![0.0; n];
@@ -725,21 +512,10 @@ fn transpose<T>(rows: Vec<Vec<T>>, n: usize) -> Vec<Vec<T>> {
     columns
 }
 
-/// Fixed tiles (x0, y0, x1, y1) covering a w × h image, row by row.
-fn tiles(w: u32, h: u32) -> Vec<(u32, u32, u32, u32)> {
-    let mut out = Vec::new();
-    for y0 in (0..h).step_by(TILE as usize) {
-        for x0 in (0..w).step_by(TILE as usize) {
-            out.push((x0, y0, (x0 + TILE).min(w), (y0 + TILE).min(h)));
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sampling;
+    use crate::sampling::{self, Rng};
     use crate::scene::SphereLight;
 
     #[test]
@@ -769,7 +545,7 @@ mod tests {
                 radius: 0.005 + 0.05 * r.next_f32(),
                 radiance: Vec3::ONE,
             }]);
-            let says = pyramid_meets_lights(&lights, o, &corners);
+            let says = pixels::pyramid_meets_lights(&lights, o, &corners);
             let hit = (0..200).any(|_| {
                 let u = r.next_2d();
                 let d = corner(u.x, u.y);

@@ -77,14 +77,7 @@ impl Texture {
     }
 }
 
-/// The sRGB transfer function's inverse (encoded [0, 1] → linear).
-pub fn srgb_to_linear(c: f32) -> f32 {
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
-}
+pub use crate::imageio::srgb_to_linear;
 
 /// Where a material's albedo comes from.
 #[derive(Debug, Clone)]

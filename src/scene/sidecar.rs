@@ -21,7 +21,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use schemars::JsonSchema;
-use serde::{Deserialize, Deserializer, Serialize};
+use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
@@ -31,8 +31,10 @@ pub const MAX_IMAGE_SIDE: u32 = 16384;
 pub const MAX_SPP: u32 = 1 << 20;
 /// Largest accepted bounce count.
 pub const MAX_BOUNCES: u32 = 64;
+use crate::checked::checked;
 /// Largest accepted ring count of the envmap grid.
 pub use crate::envmap::MAX_RINGS;
+pub use crate::envmap::{Rgb, Rings};
 
 /// The sidecar file, as written by a person.
 #[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
@@ -148,26 +150,6 @@ impl Default for RenderDesc {
 
 // ---- Validated values: checked while parsing, so errors carry a position ----
 
-macro_rules! checked {
-    ($(#[$doc:meta])* $name:ident($inner:ty), $schema:literal, |$v:ident| $check:expr, $msg:expr) => {
-        $(#[$doc])*
-        #[derive(Debug, Clone, Copy, PartialEq, Serialize, JsonSchema)]
-        #[serde(transparent)]
-        pub struct $name(#[schemars(with = $schema)] pub $inner);
-
-        impl<'de> Deserialize<'de> for $name {
-            fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
-                let $v = <$inner>::deserialize(d)?;
-                if $check {
-                    Ok($name($v))
-                } else {
-                    Err(serde::de::Error::custom(format!($msg, $v)))
-                }
-            }
-        }
-    };
-}
-
 checked!(
     /// An image side in pixels, 1..=16384.
     Side(u32), "u32", |v| (1..=MAX_IMAGE_SIDE).contains(&v),
@@ -184,11 +166,6 @@ checked!(
     "max_bounces must be between 1 and 64, got {}"
 );
 checked!(
-    /// Ring count of the envmap grid, 1..=1000.
-    Rings(u32), "u32", |v| (1..=MAX_RINGS).contains(&v),
-    "rings must be between 1 and 1000, got {}"
-);
-checked!(
     /// A finite length > 0.
     Positive(f32), "f32", |v| v.is_finite() && v > 0.0,
     "must be a finite number > 0, got {}"
@@ -197,11 +174,6 @@ checked!(
     /// A finite point or vector.
     Point((f32, f32, f32)), "(f32, f32, f32)", |v| v.0.is_finite() && v.1.is_finite() && v.2.is_finite(),
     "coordinates must be finite, got {:?}"
-);
-checked!(
-    /// Linear RGB radiance, each channel finite and ≥ 0.
-    Rgb((f32, f32, f32)), "(f32, f32, f32)", |v| [v.0, v.1, v.2].iter().all(|c| c.is_finite() && *c >= 0.0),
-    "radiance must be finite and >= 0 in every channel, got {:?}"
 );
 checked!(
     /// Linear RGB albedo, each channel in [0, 1].
