@@ -13,7 +13,7 @@ use lightprobe::render::report::{
     EnvmapReport, ImageSize, LightReport, RenderReport, RenderTimings, ViewRender,
 };
 use lightprobe::render::{Lights, RenderSettings, Renderer, view_stream};
-use lightprobe::scene::{PickError, Scene, sidecar};
+use lightprobe::scene::{Camera, PickError, Scene, sidecar};
 
 use super::{Bars, StrategyArg, check_memory, prepare_out_dir};
 
@@ -120,45 +120,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let mut views = Vec::new();
     let t_all = Instant::now();
     for cam in &scene.cameras {
-        let t = Instant::now();
-        let img = renderer.render_radiance(cam, view_stream(cam), &settings, &|n| bars.advance(n));
-        let seconds = t.elapsed().as_secs_f64();
-        anyhow::ensure!(
-            img.rgb.iter().all(|c| c.is_finite()),
-            "view {:?}: the render produced non-finite pixels (a bug; please report it)",
-            cam.name
-        );
-        let file = |suffix: &str| a.out.join(format!("{}.{suffix}", cam.name));
-        let (exr, png) = (file("exr"), file("png"));
-        imageio::write_exr(&exr, &img)?;
-        imageio::write_png(&png, &img, imageio::auto_exposure(&img))?;
-        let mut aov = BTreeMap::new();
-        if !a.aov.is_empty() {
-            let aovs = renderer.aovs(cam);
-            for name in &a.aov {
-                let image: &Image = match name.as_str() {
-                    "depth" => &aovs.depth,
-                    "normal" => &aovs.normal,
-                    _ => &aovs.albedo,
-                };
-                let path = file(&format!("{name}.exr"));
-                imageio::write_exr(&path, image)?;
-                aov.insert(name.clone(), path);
-            }
-        }
-        let coverage = img.alpha.as_ref().map_or(1.0, |al| {
-            al.iter().map(|&v| v as f64).sum::<f64>() / al.len() as f64
-        });
-        views.push(ViewRender {
-            view: cam.name.clone(),
-            exr,
-            png,
-            aov,
-            mean_rgb: img.mean().to_array(),
-            coverage,
-            seconds,
-            samples_per_second: samples_per_view / seconds,
-        });
+        views.push(render_view(&renderer, cam, &settings, &a, &bars)?);
     }
     bars.finish();
     let render_seconds = t_all.elapsed().as_secs_f64();
@@ -224,4 +186,53 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         report.threads
     );
     Ok(())
+}
+
+/// Renders one view and writes its EXR, PNG preview and geometry buffers into `--out`.
+fn render_view(
+    renderer: &Renderer,
+    cam: &Camera,
+    settings: &RenderSettings,
+    a: &Args,
+    bars: &Bars,
+) -> anyhow::Result<ViewRender> {
+    let t = Instant::now();
+    let img = renderer.render_radiance(cam, view_stream(cam), settings, &|n| bars.advance(n));
+    let seconds = t.elapsed().as_secs_f64();
+    anyhow::ensure!(
+        img.rgb.iter().all(|c| c.is_finite()),
+        "view {:?}: the render produced non-finite pixels (a bug; please report it)",
+        cam.name
+    );
+    let file = |suffix: &str| a.out.join(format!("{}.{suffix}", cam.name));
+    let (exr, png) = (file("exr"), file("png"));
+    imageio::write_exr(&exr, &img)?;
+    imageio::write_png(&png, &img, imageio::auto_exposure(&img))?;
+    let mut aov = BTreeMap::new();
+    if !a.aov.is_empty() {
+        let aovs = renderer.aovs(cam);
+        for name in &a.aov {
+            let image: &Image = match name.as_str() {
+                "depth" => &aovs.depth,
+                "normal" => &aovs.normal,
+                _ => &aovs.albedo,
+            };
+            let path = file(&format!("{name}.exr"));
+            imageio::write_exr(&path, image)?;
+            aov.insert(name.clone(), path);
+        }
+    }
+    let coverage = img.alpha.as_ref().map_or(1.0, |al| {
+        al.iter().map(|&v| v as f64).sum::<f64>() / al.len() as f64
+    });
+    Ok(ViewRender {
+        view: cam.name.clone(),
+        exr,
+        png,
+        aov,
+        mean_rgb: img.mean().to_array(),
+        coverage,
+        seconds,
+        samples_per_second: (cam.width * cam.height) as f64 * settings.spp as f64 / seconds,
+    })
 }

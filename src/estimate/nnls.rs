@@ -4,6 +4,7 @@
 //! conditions to a stated tolerance. Also the paper's baseline: projected gradient descent
 //! with a backtracking (Armijo) line search.
 
+use faer::linalg::solvers::Solve;
 use std::time::{Duration, Instant};
 
 /// The outcome of a solve.
@@ -56,58 +57,21 @@ pub fn kkt_violation(g: &[f64], b: &[f64], x: &[f64]) -> f64 {
     worst / scale
 }
 
-/// In-place Cholesky solve of the SPD `k × k` system `a x = rhs` (row-major); false if `a` is
-/// not numerically positive definite.
-fn cholesky_solve(a: &mut [f64], rhs: &mut [f64], k: usize) -> bool {
-    for j in 0..k {
-        let mut d = a[j * k + j];
-        for p in 0..j {
-            d -= a[j * k + p] * a[j * k + p];
-        }
-        if d <= 0.0 || !d.is_finite() {
-            return false;
-        }
-        let d = d.sqrt();
-        a[j * k + j] = d;
-        for i in j + 1..k {
-            let mut s = a[i * k + j];
-            for p in 0..j {
-                s -= a[i * k + p] * a[j * k + p];
-            }
-            a[i * k + j] = s / d;
-        }
-    }
-    for i in 0..k {
-        let mut s = rhs[i];
-        for p in 0..i {
-            s -= a[i * k + p] * rhs[p];
-        }
-        rhs[i] = s / a[i * k + i];
-    }
-    for i in (0..k).rev() {
-        let mut s = rhs[i];
-        for p in i + 1..k {
-            s -= a[p * k + i] * rhs[p];
-        }
-        rhs[i] = s / a[i * k + i];
-    }
-    true
-}
-
 /// Least squares on the passive set `p`: solves `G_PP s = b_P` (with a tiny ridge for
 /// numerical safety).
 fn solve_passive(g: &[f64], b: &[f64], n: usize, p: &[usize]) -> Option<Vec<f64>> {
     let k = p.len();
     let max_diag = p.iter().map(|&i| g[i * n + i]).fold(0.0, f64::max);
     let ridge = 1e-13 * max_diag;
-    let mut a = vec![0.0; k * k];
-    for (r, &i) in p.iter().enumerate() {
-        for (c, &j) in p.iter().enumerate() {
-            a[r * k + c] = g[i * n + j] + if r == c { ridge } else { 0.0 };
-        }
-    }
-    let mut s: Vec<f64> = p.iter().map(|&i| b[i]).collect();
-    cholesky_solve(&mut a, &mut s, k).then_some(s)
+    let a = faer::Mat::<f64>::from_fn(k, k, |r, c| {
+        g[p[r] * n + p[c]] + if r == c { ridge } else { 0.0 }
+    });
+    let rhs = faer::Mat::<f64>::from_fn(k, 1, |r, _| b[p[r]]);
+    // Not numerically positive definite: the caller drops a variable and tries again.
+    let llt = a.llt(faer::Side::Lower).ok()?;
+    let s = llt.solve(&rhs);
+    let s: Vec<f64> = (0..k).map(|r| s[(r, 0)]).collect();
+    s.iter().all(|v| v.is_finite()).then_some(s)
 }
 
 /// FNNLS: exact NNLS by active sets. `tol` is relative to `max|b|`; stops after `max_iter`

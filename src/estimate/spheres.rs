@@ -328,32 +328,15 @@ fn residuals(p: &SphereProblem) -> (Vec<f64>, Vec<Vec3>, f64) {
     (r, radiance, rel)
 }
 
-/// Solves the small dense system `a x = b` (Gaussian elimination with partial pivoting);
-/// None when singular.
-fn solve_dense(mut a: Vec<f64>, mut b: Vec<f64>) -> Option<Vec<f64>> {
+/// Solves the small dense system `a x = b` (row-major; LU with partial pivoting); None when
+/// singular.
+fn solve_dense(a: Vec<f64>, b: Vec<f64>) -> Option<Vec<f64>> {
+    use faer::linalg::solvers::Solve;
     let n = b.len();
-    for c in 0..n {
-        let p = (c..n).max_by(|&i, &j| a[i * n + c].abs().total_cmp(&a[j * n + c].abs()))?;
-        if a[p * n + c].abs() < 1e-300 {
-            return None;
-        }
-        for k in 0..n {
-            a.swap(c * n + k, p * n + k);
-        }
-        b.swap(c, p);
-        for r in c + 1..n {
-            let f = a[r * n + c] / a[c * n + c];
-            for k in c..n {
-                a[r * n + k] -= f * a[c * n + k];
-            }
-            b[r] -= f * b[c];
-        }
-    }
-    let mut x = vec![0.0; n];
-    for c in (0..n).rev() {
-        let s: f64 = (c + 1..n).map(|k| a[c * n + k] * x[k]).sum();
-        x[c] = (b[c] - s) / a[c * n + c];
-    }
+    let m = faer::Mat::<f64>::from_fn(n, n, |i, j| a[i * n + j]);
+    let rhs = faer::Mat::<f64>::from_fn(n, 1, |i, _| b[i]);
+    let x = m.partial_piv_lu().solve(&rhs);
+    let x: Vec<f64> = (0..n).map(|i| x[(i, 0)]).collect();
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 

@@ -364,7 +364,58 @@ pub fn report(dir: &Path) -> Result<Summary> {
         .filter(|r| r.status == Status::NotConverged)
         .count();
 
-    // ---- Aggregate per (series, rings) ----
+    let cells = aggregate(&ok);
+    let series: Vec<SeriesKey> = {
+        let mut v: Vec<SeriesKey> = cells.iter().map(|c| c.series).collect();
+        v.dedup();
+        v
+    };
+    let best = best_per_scenario(&ok, series.first());
+    let auto = auto_against_best(&ok);
+    let mut charts = vec![
+        chart_error_vs_rings(dir, &cells, &series)?,
+        chart_speed_vs_accuracy(dir, &cells, &series)?,
+        chart_error_vs_distance(dir, &best, &sphere_trials, series.first())?,
+    ];
+    if !auto.is_empty() {
+        charts.push(chart_auto_vs_best(dir, &auto)?);
+    }
+
+    // ---- Markdown and JSON ----
+    let sweep_wall_seconds = read_run_seconds(dir);
+    let summary = Summary {
+        trials: records.len(),
+        failed,
+        not_converged,
+        scenarios: records
+            .iter()
+            .map(|r| r.scenario.as_str())
+            .collect::<std::collections::BTreeSet<_>>()
+            .len(),
+        cells,
+        trial_seconds: records.iter().map(|r| r.timings.trial_seconds).sum(),
+        sweep_wall_seconds,
+        auto_within_10_percent: (!auto.is_empty()).then(|| {
+            auto.iter()
+                .filter(|a| a.auto_rel_mae <= 1.1 * a.best_rel_mae)
+                .count() as f64
+                / auto.len() as f64
+        }),
+        auto,
+        spheres: sphere_summary(&sphere_trials),
+        charts,
+    };
+    let md = markdown(&summary, &best);
+    crate::imageio::write_bytes(&dir.join("report.md"), md.as_bytes())?;
+    let json =
+        serde_json::to_string_pretty(&summary).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
+    crate::imageio::write_bytes(&dir.join("summary.json"), json.as_bytes())?;
+    Ok(summary)
+}
+
+/// Per (series, rings): the mean and spread of the error over scenarios, and whether the
+/// setting is on the Pareto front of fit time against error.
+fn aggregate(ok: &[&TrialRecord]) -> Vec<Cell> {
     let mut groups: BTreeMap<(SeriesKey, u32), Vec<&TrialRecord>> = BTreeMap::new();
     for r in ok.iter().filter(|r| r.auto.is_none()) {
         let key = SeriesKey::of(r);
@@ -408,14 +459,11 @@ pub fn report(dir: &Path) -> Result<Summary> {
             .enumerate()
             .any(|(j, &(t, e, a))| j != i && a == ai && t <= ti && e <= ei && (t < ti || e < ei));
     }
-    let series: Vec<SeriesKey> = {
-        let mut v: Vec<SeriesKey> = cells.iter().map(|c| c.series).collect();
-        v.dedup();
-        v
-    };
-    let mut charts = Vec::new();
+    cells
+}
 
-    // ---- Fig. 4: error against rings ----
+/// The paper's Fig. 4: error against rings, mean ± std over scenarios, per series.
+fn chart_error_vs_rings(dir: &Path, cells: &[Cell], series: &[SeriesKey]) -> Result<PathBuf> {
     let path = dir.join("error_vs_rings.png");
     let max_rings = cells.iter().map(|c| c.rings).max().unwrap_or(1);
     let y_max = cells
@@ -482,9 +530,12 @@ pub fn report(dir: &Path) -> Result<Summary> {
         legend(&mut ch, SeriesLabelPosition::UpperRight, &path)?;
         Ok(())
     })?;
-    charts.push(path);
 
-    // ---- Speed against accuracy ----
+    Ok(path)
+}
+
+/// Fit time against error for every setting, with the Pareto front.
+fn chart_speed_vs_accuracy(dir: &Path, cells: &[Cell], series: &[SeriesKey]) -> Result<PathBuf> {
     let path = dir.join("speed_vs_accuracy.png");
     // x is log10(seconds) on a linear axis, labelled in seconds: plotters' log axis shows no
     // labels over less than a decade.
@@ -550,12 +601,17 @@ pub fn report(dir: &Path) -> Result<Summary> {
         legend(&mut ch, SeriesLabelPosition::LowerLeft, &path)?;
         Ok(())
     })?;
-    charts.push(path);
 
-    // ---- Error against light distance (first series: best over rings, per scenario) ----
-    let path = dir.join("error_vs_distance.png");
+    Ok(path)
+}
+
+/// Per scenario, its best trial over rings in `series` (fixed resolutions only).
+fn best_per_scenario<'a>(
+    ok: &[&'a TrialRecord],
+    series: Option<&SeriesKey>,
+) -> BTreeMap<&'a str, &'a TrialRecord> {
     let mut best: BTreeMap<&str, &TrialRecord> = BTreeMap::new();
-    if let Some(s0) = series.first() {
+    if let Some(s0) = series {
         for r in ok
             .iter()
             .filter(|r| r.auto.is_none() && SeriesKey::of(r) == *s0)
@@ -566,6 +622,18 @@ pub fn report(dir: &Path) -> Result<Summary> {
             }
         }
     }
+    best
+}
+
+/// Best error over rings (first series) and the sphere model's error against the nearest
+/// light's distance.
+fn chart_error_vs_distance(
+    dir: &Path,
+    best: &BTreeMap<&str, &TrialRecord>,
+    sphere_trials: &[&TrialRecord],
+    first_series: Option<&SeriesKey>,
+) -> Result<PathBuf> {
+    let path = dir.join("error_vs_distance.png");
     let nearest = |r: &TrialRecord| {
         r.lights
             .iter()
@@ -574,13 +642,13 @@ pub fn report(dir: &Path) -> Result<Summary> {
     };
     let x_max = best
         .values()
-        .chain(&sphere_trials)
+        .chain(sphere_trials)
         .map(|r| nearest(r))
         .fold(1.0, f64::max)
         * 1.2;
     let y_max = best
         .values()
-        .chain(&sphere_trials)
+        .chain(sphere_trials)
         .filter_map(|r| r.rel_mae)
         .fold(0.01, f64::max)
         * 110.0;
@@ -589,7 +657,7 @@ pub fn report(dir: &Path) -> Result<Summary> {
             .caption(
                 format!(
                     "Best error over rings against the nearest light's distance ({})",
-                    series.first().map(|s| s.label()).unwrap_or_default()
+                    first_series.map(|s| s.label()).unwrap_or_default()
                 ),
                 ("sans-serif", 20),
             )
@@ -629,7 +697,7 @@ pub fn report(dir: &Path) -> Result<Summary> {
             .label("sphere model")
             .legend(move |(x, y)| TriangleMarker::new((x + 10, y), 5, col.filled()));
         }
-        ch.draw_series(best.values().chain(&sphere_trials).map(|r| {
+        ch.draw_series(best.values().chain(sphere_trials).map(|r| {
             Cross::new(
                 (nearest(r), 100.0 * r.noise_floor_rel_mae.unwrap_or(0.0)),
                 3,
@@ -642,90 +710,60 @@ pub fn report(dir: &Path) -> Result<Summary> {
         legend(&mut ch, SeriesLabelPosition::UpperRight, &path)?;
         Ok(())
     })?;
-    charts.push(path);
 
-    // ---- `--rings auto` against each scenario's best fixed resolution ----
-    let auto = auto_against_best(&ok);
-    if !auto.is_empty() {
-        let path = dir.join("auto_vs_best.png");
-        let top = auto
-            .iter()
-            .map(|a| a.auto_rel_mae.max(a.best_rel_mae))
-            .fold(0.01, f64::max)
-            * 110.0;
-        chart(&path, |root| {
-            let mut ch = ChartBuilder::on(root)
-                .caption(
-                    "--rings auto against the best fixed resolution, per scenario",
-                    ("sans-serif", 20),
-                )
-                .margin(15)
-                .x_label_area_size(45)
-                .y_label_area_size(60)
-                .build_cartesian_2d(0f64..top, 0f64..top)
-                .map_err(plot_err(&path))?;
-            ch.configure_mesh()
-                .x_desc("best relMAE over the fixed resolutions (%)")
-                .y_desc("relMAE with --rings auto (%)")
-                .label_style(("sans-serif", 15))
-                .draw()
-                .map_err(plot_err(&path))?;
-            for (k, style, label) in [
-                (1.0, BLACK.stroke_width(1), "equal"),
-                (1.1, RED.stroke_width(1), "10% worse"),
-            ] {
-                ch.draw_series(LineSeries::new([(0.0, 0.0), (top / k, top)], style))
-                    .map_err(plot_err(&path))?
-                    .label(label)
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
-            }
-            let col = colour(0);
-            ch.draw_series(auto.iter().map(|a| {
-                Circle::new(
-                    (100.0 * a.best_rel_mae, 100.0 * a.auto_rel_mae),
-                    4,
-                    col.filled(),
-                )
-            }))
-            .map_err(plot_err(&path))?
-            .label("scenario")
-            .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
-            legend(&mut ch, SeriesLabelPosition::UpperLeft, &path)?;
-            Ok(())
-        })?;
-        charts.push(path);
-    }
+    Ok(path)
+}
 
-    // ---- Markdown and JSON ----
-    let sweep_wall_seconds = read_run_seconds(dir);
-    let summary = Summary {
-        trials: records.len(),
-        failed,
-        not_converged,
-        scenarios: records
-            .iter()
-            .map(|r| r.scenario.as_str())
-            .collect::<std::collections::BTreeSet<_>>()
-            .len(),
-        cells,
-        trial_seconds: records.iter().map(|r| r.timings.trial_seconds).sum(),
-        sweep_wall_seconds,
-        auto_within_10_percent: (!auto.is_empty()).then(|| {
-            auto.iter()
-                .filter(|a| a.auto_rel_mae <= 1.1 * a.best_rel_mae)
-                .count() as f64
-                / auto.len() as f64
-        }),
-        auto,
-        spheres: sphere_summary(&sphere_trials),
-        charts,
-    };
-    let md = markdown(&summary, &best);
-    crate::imageio::write_bytes(&dir.join("report.md"), md.as_bytes())?;
-    let json =
-        serde_json::to_string_pretty(&summary).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
-    crate::imageio::write_bytes(&dir.join("summary.json"), json.as_bytes())?;
-    Ok(summary)
+/// `--rings auto` against each scenario's best fixed resolution.
+fn chart_auto_vs_best(dir: &Path, auto: &[AutoFigures]) -> Result<PathBuf> {
+    let path = dir.join("auto_vs_best.png");
+    let top = auto
+        .iter()
+        .map(|a| a.auto_rel_mae.max(a.best_rel_mae))
+        .fold(0.01, f64::max)
+        * 110.0;
+    chart(&path, |root| {
+        let mut ch = ChartBuilder::on(root)
+            .caption(
+                "--rings auto against the best fixed resolution, per scenario",
+                ("sans-serif", 20),
+            )
+            .margin(15)
+            .x_label_area_size(45)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0f64..top, 0f64..top)
+            .map_err(plot_err(&path))?;
+        ch.configure_mesh()
+            .x_desc("best relMAE over the fixed resolutions (%)")
+            .y_desc("relMAE with --rings auto (%)")
+            .label_style(("sans-serif", 15))
+            .draw()
+            .map_err(plot_err(&path))?;
+        for (k, style, label) in [
+            (1.0, BLACK.stroke_width(1), "equal"),
+            (1.1, RED.stroke_width(1), "10% worse"),
+        ] {
+            ch.draw_series(LineSeries::new([(0.0, 0.0), (top / k, top)], style))
+                .map_err(plot_err(&path))?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
+        }
+        let col = colour(0);
+        ch.draw_series(auto.iter().map(|a| {
+            Circle::new(
+                (100.0 * a.best_rel_mae, 100.0 * a.auto_rel_mae),
+                4,
+                col.filled(),
+            )
+        }))
+        .map_err(plot_err(&path))?
+        .label("scenario")
+        .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+        legend(&mut ch, SeriesLabelPosition::UpperLeft, &path)?;
+        Ok(())
+    })?;
+
+    Ok(path)
 }
 
 /// Total wall time of the sweep runs logged in `runs*.jsonl` (all shards, summed).

@@ -367,7 +367,170 @@ pub fn run(
     progress: &mut dyn FnMut(Progress),
 ) -> Result<Summary> {
     let t_all = Instant::now();
-    // ---- The scenarios and their scene groups ----
+    let (scenarios, group_files) = load_scenarios(files)?;
+    let axes = Axes::of(settings)?;
+    let plan = plan(&scenarios, &axes, settings);
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let fingerprint = |s: usize, solver: Solver| {
+        format!(
+            "{} smooth={} ridge={} time_limit={}s rounds={}",
+            scenarios[s].fingerprint,
+            settings.smooth,
+            settings.ridge,
+            settings.time_limit.as_secs_f64(),
+            solver.default_rounds()
+        )
+    };
+    let id = |t: &Trial| {
+        trial_id(
+            &scenarios[t.scenario].name,
+            t.spp,
+            t.rings,
+            t.solver,
+            axes.albedo_errors[t.albedo],
+            t.spheres,
+        )
+    };
+    let done: HashMap<String, TrialRecord> = read_records(out)?
+        .into_iter()
+        .map(|r| (r.id.clone(), r))
+        .collect();
+    let mut todo = Vec::new();
+    let (mut failed_before, mut not_converged_before) = (0, 0);
+    for &trial in &plan {
+        let id = id(&trial);
+        let want = fingerprint(trial.scenario, trial.solver);
+        match done.get(&id) {
+            None => todo.push(trial),
+            // Records from before fingerprints ("") are taken as they are.
+            Some(r) if !r.fingerprint.is_empty() && r.fingerprint != want => {
+                return Err(Error::file(
+                    out,
+                    format!(
+                        "holds trial {id} run with other settings or another scenario file \
+                         ({} ≠ {want}); use another output folder, or remove its lines to rerun it",
+                        r.fingerprint
+                    ),
+                ));
+            }
+            Some(r) => {
+                failed_before += (r.status == Status::Failed) as usize;
+                not_converged_before += (r.status == Status::NotConverged) as usize;
+            }
+        }
+    }
+    let skipped = plan.len() - todo.len();
+    let trials_file = out.join(settings.shard.file_name());
+    let mut summary = Summary {
+        planned: plan.len(),
+        skipped,
+        ran: 0,
+        failed: failed_before,
+        not_converged: not_converged_before,
+        wall_seconds: 0.0,
+        trials_file: trials_file.clone(),
+    };
+    progress(Progress {
+        done: skipped,
+        total: plan.len(),
+        skipped,
+        record: None,
+        phase: "loading",
+    });
+    if todo.is_empty() {
+        summary.wall_seconds = t_all.elapsed().as_secs_f64();
+        return Ok(summary);
+    }
+    let mut sink = open_append(&trials_file)?;
+
+    // ---- Scenes: loaded and BVH-built once per group ----
+    let needed: HashSet<usize> = todo.iter().map(|t| scenarios[t.scenario].group).collect();
+    let scenes: Vec<Option<Scene>> = (0..group_files.len())
+        .map(|g| {
+            needed
+                .contains(&g)
+                .then(|| Scene::load(&group_files[g]))
+                .transpose()
+        })
+        .collect::<Result<_>>()?;
+    let no_lights = Lights::new(Vec::new());
+    let renderers: Vec<Option<Renderer>> = scenes
+        .iter()
+        .map(|s| s.as_ref().map(|s| Renderer::new(s, &no_lights)))
+        .collect();
+    // The scenes the fits see: per group and albedo error (index 0 of a zero error: the scene).
+    let perturbed: Vec<Vec<Option<Scene>>> = scenes
+        .iter()
+        .map(|s| {
+            axes.albedo_errors
+                .iter()
+                .map(|&e| {
+                    s.as_ref()
+                        .filter(|_| e > 0.0)
+                        .map(|s| super::with_albedo_error(s, e, ALBEDO_SEED))
+                })
+                .collect()
+        })
+        .collect();
+    let ctx = Context {
+        scenarios: &scenarios,
+        scenes: &scenes,
+        renderers: &renderers,
+        perturbed: &perturbed,
+        no_lights: &no_lights,
+        axes: &axes,
+        settings,
+        out,
+    };
+    let mut caches = Caches::default();
+    for (k, &trial) in todo.iter().enumerate() {
+        let t_trial = Instant::now();
+        let mut phase = |phase: &str| {
+            progress(Progress {
+                done: skipped + k,
+                total: plan.len(),
+                skipped,
+                record: None,
+                phase,
+            })
+        };
+        let mut record = run_trial(&ctx, &mut caches, trial, &mut phase)?;
+        record.fingerprint = fingerprint(trial.scenario, trial.solver);
+        summary.failed += (record.status == Status::Failed) as usize;
+        summary.not_converged += (record.status == Status::NotConverged) as usize;
+        record.timings.trial_seconds = t_trial.elapsed().as_secs_f64();
+        record.peak_bytes = crate::memory::peak_bytes();
+        let line =
+            serde_json::to_string(&record).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
+        sink.write_all(line.as_bytes())
+            .and_then(|_| sink.flush())
+            .map_err(|e| Error::io(&trials_file, e))?;
+        summary.ran += 1;
+        progress(Progress {
+            done: skipped + k + 1,
+            total: plan.len(),
+            skipped,
+            record: Some(&record),
+            phase: "",
+        });
+    }
+    summary.wall_seconds = t_all.elapsed().as_secs_f64();
+    // The run's wall time (references included), for the report's total.
+    let run = serde_json::json!({
+        "shard": settings.shard.file_name(),
+        "ran": summary.ran,
+        "wall_seconds": summary.wall_seconds,
+        "threads": rayon::current_num_threads(),
+    });
+    let log_path = out.join(settings.shard.file_name().replacen("trials", "runs", 1));
+    let mut log = open_append(&log_path)?;
+    writeln!(log, "{run}").map_err(|e| Error::io(&log_path, e))?;
+    Ok(summary)
+}
+
+/// The scenario sidecars, each with its scene group (same sidecar apart from the lights),
+/// and one sidecar file per group.
+fn load_scenarios(files: &[PathBuf]) -> Result<(Vec<ScenarioFile>, Vec<PathBuf>)> {
     let mut keys: Vec<String> = Vec::new();
     let mut group_files: Vec<PathBuf> = Vec::new();
     let mut scenarios: Vec<ScenarioFile> = Vec::new();
@@ -409,58 +572,78 @@ pub fn run(
             group,
         });
     }
-    for &r in settings.rings.iter().chain(&settings.spheres) {
-        if !(1..=crate::envmap::MAX_RINGS).contains(&r) {
-            return Err(Error::Setting {
-                name: "rings",
-                expected: format!("between 1 and {}", crate::envmap::MAX_RINGS),
-                got: r.to_string(),
-            });
-        }
-    }
-    for &s in &settings.spp {
-        if !(1..=sidecar::MAX_SPP).contains(&s) {
-            return Err(Error::Setting {
-                name: "spp",
-                expected: format!("between 1 and {}", sidecar::MAX_SPP),
-                got: s.to_string(),
-            });
-        }
-    }
+    Ok((scenarios, group_files))
+}
 
-    // ---- The plan: this shard's trials, ordered so one shared transport serves a block ----
+/// The sweep's axes, checked, repeats removed.
+struct Axes {
+    rings: Vec<u32>,
+    spp: Vec<u32>,
+    solvers: Vec<Solver>,
+    /// At least one (0: the true albedos).
+    albedo_errors: Vec<f32>,
+}
+
+impl Axes {
+    fn of(settings: &SweepSettings) -> Result<Axes> {
+        for &r in settings.rings.iter().chain(&settings.spheres) {
+            if !(1..=crate::envmap::MAX_RINGS).contains(&r) {
+                return Err(Error::Setting {
+                    name: "rings",
+                    expected: format!("between 1 and {}", crate::envmap::MAX_RINGS),
+                    got: r.to_string(),
+                });
+            }
+        }
+        for &s in &settings.spp {
+            if !(1..=sidecar::MAX_SPP).contains(&s) {
+                return Err(Error::Setting {
+                    name: "spp",
+                    expected: format!("between 1 and {}", sidecar::MAX_SPP),
+                    got: s.to_string(),
+                });
+            }
+        }
+        let albedo_errors = if settings.albedo_errors.is_empty() {
+            vec![0.0]
+        } else {
+            dedup(&settings.albedo_errors)
+        };
+        if let Some(e) = albedo_errors.iter().find(|e| {
+            !(e.is_finite()
+                && (0.0..1.0).contains(*e)
+                && (**e * 100.0 - (**e * 100.0).round()).abs() < 1e-3)
+        }) {
+            return Err(Error::Setting {
+                name: "albedo error",
+                expected: "a whole percentage in [0, 1) (e.g. 0.05)".into(),
+                got: e.to_string(),
+            });
+        }
+        Ok(Axes {
+            rings: dedup(&settings.rings),
+            spp: dedup(&settings.spp),
+            solvers: dedup(&settings.solvers),
+            albedo_errors,
+        })
+    }
+}
+
+/// This shard's trials, ordered so that one shared first-round transport serves a block:
+/// per spp and albedo error, the fixed resolutions, then the `--rings auto` trial, then the
+/// sphere model; within each, every solver over every scenario.
+fn plan(scenarios: &[ScenarioFile], axes: &Axes, settings: &SweepSettings) -> Vec<Trial> {
     let mine: Vec<usize> = (0..scenarios.len())
         .filter(|i| *i as u32 % settings.shard.count == settings.shard.index)
         .collect();
-    // `None` rings: the `--rings auto` trial, after the fixed resolutions.
     let mut plan = Vec::new();
-    let albedo_errors = if settings.albedo_errors.is_empty() {
-        vec![0.0]
-    } else {
-        dedup(&settings.albedo_errors)
-    };
-    if let Some(e) = albedo_errors.iter().find(|e| {
-        !(e.is_finite()
-            && (0.0..1.0).contains(*e)
-            && (**e * 100.0 - (**e * 100.0).round()).abs() < 1e-3)
-    }) {
-        return Err(Error::Setting {
-            name: "albedo error",
-            expected: "a whole percentage in [0, 1) (e.g. 0.05)".into(),
-            got: e.to_string(),
-        });
-    }
-    let (rings_list, spp_list, solvers) = (
-        dedup(&settings.rings),
-        dedup(&settings.spp),
-        dedup(&settings.solvers),
-    );
-    for &spp in &spp_list {
-        for a in 0..albedo_errors.len() {
-            let fixed = rings_list.iter().map(|&r| Some(r));
-            let auto = settings.auto.then_some(None);
-            for rings in fixed.chain(auto) {
-                for &solver in &solvers {
+    for &spp in &axes.spp {
+        for a in 0..axes.albedo_errors.len() {
+            let fixed = axes.rings.iter().map(|&r| (Some(r), false));
+            let auto = settings.auto.then_some((None, false));
+            let spheres = settings.spheres.map(|r| (Some(r), true));
+            for (rings, spheres) in fixed.chain(auto).chain(spheres) {
+                for &solver in &axes.solvers {
                     for &s in &mine {
                         plan.push(Trial {
                             scenario: s,
@@ -468,333 +651,205 @@ pub fn run(
                             rings,
                             solver,
                             albedo: a,
-                            spheres: false,
-                        });
-                    }
-                }
-            }
-            if let Some(r) = settings.spheres {
-                for &solver in &solvers {
-                    for &s in &mine {
-                        plan.push(Trial {
-                            scenario: s,
-                            spp,
-                            rings: Some(r),
-                            solver,
-                            albedo: a,
-                            spheres: true,
+                            spheres,
                         });
                     }
                 }
             }
         }
     }
-    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
-    let done: HashMap<String, TrialRecord> = read_records(out)?
-        .into_iter()
-        .map(|r| (r.id.clone(), r))
-        .collect();
-    let fingerprint = |s: usize, solver: Solver| {
-        format!(
-            "{} smooth={} ridge={} time_limit={}s rounds={}",
-            scenarios[s].fingerprint,
-            settings.smooth,
-            settings.ridge,
-            settings.time_limit.as_secs_f64(),
-            solver.default_rounds()
-        )
+    plan
+}
+
+/// What every trial of a run shares.
+struct Context<'a> {
+    scenarios: &'a [ScenarioFile],
+    /// Per scene group: loaded where a pending trial needs it.
+    scenes: &'a [Option<Scene>],
+    /// Per scene group: its BVH (no lights).
+    renderers: &'a [Option<Renderer<'a>>],
+    /// Per scene group and albedo error: the scene the fits see, if perturbed.
+    perturbed: &'a [Vec<Option<Scene>>],
+    no_lights: &'a Lights,
+    axes: &'a Axes,
+    settings: &'a SweepSettings,
+    out: &'a Path,
+}
+
+/// What trials hand on to later ones: each scenario's references, and the first-round
+/// transports of the current block of (spp, albedo, rings, solver).
+#[derive(Default)]
+struct Caches<'a> {
+    observed: HashMap<usize, Arc<Observed<'a>>>,
+    shared: HashMap<SharedKey, (Arc<Transport>, f64)>,
+    block: Option<(u32, usize, Option<u32>, Solver)>,
+}
+
+/// Runs one trial: its scenario's references (once, kept on disk), then one estimate job
+/// with the shared first rounds; a failed estimate is a failed record, not an error. The
+/// record's `fingerprint` is the caller's to fill.
+fn run_trial<'a>(
+    ctx: &Context<'a>,
+    caches: &mut Caches<'a>,
+    trial: Trial,
+    phase: &mut dyn FnMut(&str),
+) -> Result<TrialRecord> {
+    let Trial {
+        scenario: s,
+        spp,
+        rings: rings_plan,
+        solver,
+        albedo: a,
+        spheres,
+    } = trial;
+    let (settings, out) = (ctx.settings, ctx.out);
+    let sf = &ctx.scenarios[s];
+    let scene = ctx.scenes[sf.group].as_ref().expect("loaded above");
+    let base = ctx.renderers[sf.group].as_ref().expect("built above");
+    let views: Vec<&Camera> = scene.cameras.iter().collect();
+    let render = RenderSettings::from_scene(&scene.settings);
+    let lights = Lights::new(sf.lights.clone());
+    let renderer = base.with_lights(&lights);
+    // What the fit sees: the scene, or its albedo-perturbed twin (same BVH).
+    let fit_renderer = match &ctx.perturbed[sf.group][a] {
+        Some(p) => base.with_scene(p, ctx.no_lights),
+        None => base.with_lights(ctx.no_lights),
     };
-    let mut todo = Vec::new();
-    let (mut failed_before, mut not_converged_before) = (0, 0);
-    for &trial in &plan {
-        let Trial {
-            scenario: s,
-            spp,
-            rings,
+    // References, masks and noise floor: once per scenario, kept on disk.
+    let obs = match caches.observed.get(&s) {
+        Some(o) => o.clone(),
+        None => {
+            phase(&format!("{} references", sf.name));
+            let o = Arc::new(observe(
+                &renderer,
+                &views,
+                &render,
+                &out.join("references").join(&sf.name),
+                &sf.fingerprint,
+            )?);
+            caches.observed.insert(s, o.clone());
+            o
+        }
+    };
+
+    // A new block of (spp, rings, solver): the previous shared transports are done with.
+    if caches.block != Some((spp, a, rings_plan, solver)) {
+        caches.shared.clear();
+        caches.block = Some((spp, a, rings_plan, solver));
+    }
+    let estimate = EstimateSettings {
+        rings: match rings_plan {
+            Some(r) => Rings::Fixed(r),
+            None => Rings::Auto(ctx.axes.rings.clone()),
+        },
+        model: if spheres {
+            LightModel::Spheres(None)
+        } else {
+            LightModel::Envmap
+        },
+        solver,
+        spp,
+        rounds: solver.default_rounds(),
+        smooth: settings.smooth,
+        ridge: settings.ridge,
+        time_limit: settings.time_limit,
+        evaluate: true,
+        // Measured once per scenario (`observe`).
+        noise_floor: false,
+        oracle: false,
+    };
+    // The shared first round of a resolution: per call, (seconds it took, was cached).
+    let mut first_rounds: Vec<(f64, bool)> = Vec::new();
+    let mut first_of = |fit: &FitSettings| {
+        let key = (
+            sf.group,
+            a,
+            fit.rings,
+            fit.transport.spp,
+            fit.transport.max_bounces,
+            obs.mask_hash,
+            fit.transport.seed,
             solver,
-            albedo: a,
-            spheres,
-        } = trial;
-        let id = trial_id(
-            &scenarios[s].name,
-            spp,
-            rings,
-            solver,
-            albedo_errors[a],
-            spheres,
         );
-        match done.get(&id) {
-            None => todo.push(trial),
-            // Records from before fingerprints ("") are taken as they are.
-            Some(r) if !r.fingerprint.is_empty() && r.fingerprint != fingerprint(s, solver) => {
-                return Err(Error::file(
-                    out,
-                    format!(
-                        "holds trial {id} run with other settings or another scenario file \
-                         ({} ≠ {}); use another --out folder, or remove its lines to rerun it",
-                        r.fingerprint,
-                        fingerprint(s, solver)
-                    ),
-                ));
-            }
-            Some(r) => {
-                failed_before += (r.status == Status::Failed) as usize;
-                not_converged_before += (r.status == Status::NotConverged) as usize;
-            }
-        }
-    }
-    let skipped = plan.len() - todo.len();
-    let trials_file = out.join(settings.shard.file_name());
-    let mut summary = Summary {
-        planned: plan.len(),
-        skipped,
-        ran: 0,
-        failed: failed_before,
-        not_converged: not_converged_before,
-        wall_seconds: 0.0,
-        trials_file: trials_file.clone(),
-    };
-    progress(Progress {
-        done: skipped,
-        total: plan.len(),
-        skipped,
-        record: None,
-        phase: "loading",
-    });
-    if todo.is_empty() {
-        summary.wall_seconds = t_all.elapsed().as_secs_f64();
-        return Ok(summary);
-    }
-    let mut sink = open_append(&trials_file)?;
-
-    // ---- Scenes: loaded and BVH-built once per group ----
-    let needed: HashSet<usize> = todo.iter().map(|t| scenarios[t.scenario].group).collect();
-    let scenes: Vec<Option<Scene>> = (0..keys.len())
-        .map(|g| {
-            needed
-                .contains(&g)
-                .then(|| Scene::load(&group_files[g]))
-                .transpose()
-        })
-        .collect::<Result<_>>()?;
-    let no_lights = Lights::new(Vec::new());
-    let renderers: Vec<Option<Renderer>> = scenes
-        .iter()
-        .map(|s| s.as_ref().map(|s| Renderer::new(s, &no_lights)))
-        .collect();
-    // The scenes the fits see: per group and albedo error (index 0 of a zero error: the scene).
-    let perturbed: Vec<Vec<Option<Scene>>> = scenes
-        .iter()
-        .map(|s| {
-            albedo_errors
-                .iter()
-                .map(|&e| {
-                    s.as_ref()
-                        .filter(|_| e > 0.0)
-                        .map(|s| super::with_albedo_error(s, e, ALBEDO_SEED))
-                })
-                .collect()
-        })
-        .collect();
-
-    let mut observed: HashMap<usize, Arc<Observed>> = HashMap::new();
-    let mut shared: HashMap<SharedKey, (Arc<Transport>, f64)> = HashMap::new();
-    let mut block = None;
-    for (k, &trial) in todo.iter().enumerate() {
-        let Trial {
-            scenario: s,
-            spp,
-            rings: rings_plan,
-            solver,
-            albedo: a,
-            spheres,
-        } = trial;
-        let t_trial = Instant::now();
-        let sf = &scenarios[s];
-        let scene = scenes[sf.group].as_ref().expect("loaded above");
-        let base = renderers[sf.group].as_ref().expect("built above");
-        let views: Vec<&Camera> = scene.cameras.iter().collect();
-        let render = RenderSettings::from_scene(&scene.settings);
-        let lights = Lights::new(sf.lights.clone());
-        let renderer = base.with_lights(&lights);
-        // What the fit sees: the scene, or its albedo-perturbed twin (same BVH).
-        let fit_renderer = match &perturbed[sf.group][a] {
-            Some(p) => base.with_scene(p, &no_lights),
-            None => base.with_lights(&no_lights),
-        };
-        let report = |phase: &str, p: &mut dyn FnMut(Progress)| {
-            p(Progress {
-                done: skipped + k,
-                total: plan.len(),
-                skipped,
-                record: None,
-                phase,
-            })
-        };
-
-        // References, masks and noise floor: once per scenario, kept on disk.
-        let obs = match observed.get(&s) {
-            Some(o) => o.clone(),
+        let (tr, secs, cached) = match caches.shared.get(&key) {
+            Some((t, secs)) => (t.clone(), *secs, true),
             None => {
-                report(&format!("{} references", sf.name), progress);
-                let o = Arc::new(observe(
-                    &renderer,
+                let t = Instant::now();
+                let tr = Arc::new(first_round_transport(
+                    &fit_renderer,
                     &views,
-                    &render,
-                    &out.join("references").join(&sf.name),
-                    &sf.fingerprint,
-                )?);
-                observed.insert(s, o.clone());
-                o
+                    &obs.seen.masks,
+                    fit,
+                    &|_| {},
+                ));
+                let secs = t.elapsed().as_secs_f64();
+                caches.shared.insert(key, (tr.clone(), secs));
+                (tr, secs, false)
             }
         };
-
-        // A new block of (spp, rings, solver): the previous shared transports are done with.
-        if block != Some((spp, a, rings_plan, solver)) {
-            shared.clear();
-            block = Some((spp, a, rings_plan, solver));
+        first_rounds.push((secs, cached));
+        Some(tr)
+    };
+    let id = trial_id(
+        &sf.name,
+        spp,
+        rings_plan,
+        solver,
+        ctx.axes.albedo_errors[a],
+        spheres,
+    );
+    phase(&id);
+    let (lo, hi) = scene.mesh.bounds();
+    let job = Job {
+        fit: &fit_renderer,
+        truth: &renderer,
+        seen: &obs.seen,
+        render: &render,
+        settings: &estimate,
+        center: scene.center(),
+        size: (hi.x - lo.x).max(hi.z - lo.z).max(1e-3),
+    };
+    let result = job::run(&job, &mut first_of, &());
+    let mut record = TrialRecord {
+        id,
+        scenario: sf.name.clone(),
+        file: sf.path.clone(),
+        rings: rings_plan.unwrap_or(0),
+        cells: 0,
+        solver,
+        spp,
+        rounds: estimate.rounds,
+        status: Status::Ok,
+        error: None,
+        rel_mae: None,
+        noise_floor_rel_mae: pipeline_mean(&obs.noise_floor),
+        views: Vec::new(),
+        lights: light_figures(&sf.lights, job.center, job.size),
+        iterations: 0,
+        kkt_violation: 0.0,
+        timings: Timings::default(),
+        auto: None,
+        spheres: None,
+        albedo_error: ctx.axes.albedo_errors[a],
+        fingerprint: String::new(),
+        transport_bytes: 0,
+        peak_bytes: 0,
+        threads: rayon::current_num_threads(),
+    };
+    match result {
+        Err(e) => {
+            record.status = Status::Failed;
+            record.error = Some(e.to_string());
         }
-        let estimate = EstimateSettings {
-            rings: match rings_plan {
-                Some(r) => Rings::Fixed(r),
-                None => Rings::Auto(rings_list.clone()),
-            },
-            model: if spheres {
-                LightModel::Spheres(None)
-            } else {
-                LightModel::Envmap
-            },
-            solver,
-            spp,
-            rounds: solver.default_rounds(),
-            smooth: settings.smooth,
-            ridge: settings.ridge,
-            time_limit: settings.time_limit,
-            evaluate: true,
-            // Measured once per scenario (`observe`).
-            noise_floor: false,
-            oracle: false,
-        };
-        // The shared first round of a resolution: per call, (seconds it took, was cached).
-        let mut first_rounds: Vec<(f64, bool)> = Vec::new();
-        let mut first_of = |fit: &FitSettings| {
-            let key = (
-                sf.group,
-                a,
-                fit.rings,
-                fit.transport.spp,
-                fit.transport.max_bounces,
-                obs.mask_hash,
-                fit.transport.seed,
-                solver,
-            );
-            let (tr, secs, cached) = match shared.get(&key) {
-                Some((t, secs)) => (t.clone(), *secs, true),
-                None => {
-                    let t = Instant::now();
-                    let tr = Arc::new(first_round_transport(
-                        &fit_renderer,
-                        &views,
-                        &obs.seen.masks,
-                        fit,
-                        &|_| {},
-                    ));
-                    let secs = t.elapsed().as_secs_f64();
-                    shared.insert(key, (tr.clone(), secs));
-                    (tr, secs, false)
-                }
-            };
-            first_rounds.push((secs, cached));
-            Some(tr)
-        };
-        report(
-            &format!(
-                "{} {}",
-                sf.name,
-                trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a], spheres)
-            ),
-            progress,
-        );
-        let (lo, hi) = scene.mesh.bounds();
-        let job = Job {
-            fit: &fit_renderer,
-            truth: &renderer,
-            seen: &obs.seen,
-            render: &render,
-            settings: &estimate,
-            center: scene.center(),
-            size: (hi.x - lo.x).max(hi.z - lo.z).max(1e-3),
-        };
-        let result = job::run(&job, &mut first_of, &());
-        let mut record = TrialRecord {
-            id: trial_id(&sf.name, spp, rings_plan, solver, albedo_errors[a], spheres),
-            scenario: sf.name.clone(),
-            file: sf.path.clone(),
-            rings: rings_plan.unwrap_or(0),
-            cells: 0,
-            solver,
-            spp,
-            rounds: estimate.rounds,
-            status: Status::Ok,
-            error: None,
-            rel_mae: None,
-            noise_floor_rel_mae: pipeline_mean(&obs.noise_floor),
-            views: Vec::new(),
-            lights: light_figures(&sf.lights, job.center, job.size),
-            iterations: 0,
-            kkt_violation: 0.0,
-            timings: Timings::default(),
-            auto: None,
-            spheres: None,
-            albedo_error: albedo_errors[a],
-            fingerprint: fingerprint(s, solver),
-            transport_bytes: 0,
-            peak_bytes: 0,
-            threads: rayon::current_num_threads(),
-        };
-        match result {
-            Err(e) => {
-                record.status = Status::Failed;
-                record.error = Some(e.to_string());
-            }
-            Ok(est) => fill_record(
-                &mut record,
-                est.report,
-                &first_rounds,
-                &obs.noise_floor,
-                (&sf.lights, job.center),
-            ),
-        }
-        summary.failed += (record.status == Status::Failed) as usize;
-        summary.not_converged += (record.status == Status::NotConverged) as usize;
-        record.timings.trial_seconds = t_trial.elapsed().as_secs_f64();
-        record.peak_bytes = crate::memory::peak_bytes();
-        let line =
-            serde_json::to_string(&record).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
-        sink.write_all(line.as_bytes())
-            .and_then(|_| sink.flush())
-            .map_err(|e| Error::io(&trials_file, e))?;
-        summary.ran += 1;
-        progress(Progress {
-            done: skipped + k + 1,
-            total: plan.len(),
-            skipped,
-            record: Some(&record),
-            phase: "",
-        });
+        Ok(est) => fill_record(
+            &mut record,
+            est.report,
+            &first_rounds,
+            &obs.noise_floor,
+            (&sf.lights, job.center),
+        ),
     }
-    summary.wall_seconds = t_all.elapsed().as_secs_f64();
-    // The run's wall time (references included), for the report's total.
-    let run = serde_json::json!({
-        "shard": settings.shard.file_name(),
-        "ran": summary.ran,
-        "wall_seconds": summary.wall_seconds,
-        "threads": rayon::current_num_threads(),
-    });
-    let log_path = out.join(settings.shard.file_name().replacen("trials", "runs", 1));
-    let mut log = open_append(&log_path)?;
-    writeln!(log, "{run}").map_err(|e| Error::io(&log_path, e))?;
-    Ok(summary)
+    Ok(record)
 }
 
 /// Key of a shared first-round transport: (scene group, albedo error, rings, spp, bounces,
