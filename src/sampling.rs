@@ -81,8 +81,8 @@ impl Rng {
 pub fn r2(i: u32, offset: Vec2) -> Vec2 {
     const A1: f64 = 0.754_877_666_246_692_8;
     const A2: f64 = 0.569_840_290_998_053_3;
-    let x = (offset.x as f64 + i as f64 * A1).fract();
-    let y = (offset.y as f64 + i as f64 * A2).fract();
+    let x = crate::math::fract_nonnegative(offset.x as f64 + i as f64 * A1);
+    let y = crate::math::fract_nonnegative(offset.y as f64 + i as f64 * A2);
     Vec2::new((x as f32).min(ONE_MINUS_EPS), (y as f32).min(ONE_MINUS_EPS))
 }
 

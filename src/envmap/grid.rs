@@ -176,9 +176,10 @@ impl RingGrid {
         if phi < 0.0 {
             phi += TAU;
         }
-        // Nearest sector centre; φ ≥ 0, so rounding is a floor of x + ½ (f64::round is a
-        // library call) and the wrap past the last sector a comparison (not a division).
-        let j = (phi * n as f64 / TAU + 0.5).floor() as u32;
+        // Nearest sector centre; φ ≥ 0, so rounding is the truncation of x + ½ (f64::round
+        // and, on the baseline x86-64 target, f64::floor are library calls) and the wrap past
+        // the last sector a comparison (not a division).
+        let j = (phi * n as f64 / TAU + 0.5) as u32;
         self.first[ring] + if j >= n { j - n } else { j }
     }
 

@@ -344,6 +344,11 @@ fn solve_dense(a: Vec<f64>, b: Vec<f64>) -> Option<Vec<f64>> {
 /// variable-projection residual (radiances re-solved exactly at every evaluation), with
 /// forward-difference derivatives over renders that share their random numbers. The
 /// coordinates are [`Polar`] about `center`, re-based on the current directions every step.
+///
+/// One function of about 180 lines on purpose: it is one Levenberg–Marquardt loop (Jacobian,
+/// damped step, acceptance, damping update, stopping tests) whose state every part reads and
+/// writes; cut into pieces it would pass that state around instead of reading as the
+/// algorithm does.
 pub fn refine(
     renderer: &Renderer,
     obs: &Observations,

@@ -222,6 +222,7 @@ impl SurfacePoint {
     };
 }
 
+#[inline(always)]
 fn surface_point(scene: &Scene, hit: &Hit, d: Vec3) -> SurfacePoint {
     let mesh = &scene.mesh;
     let t = hit.triangle as usize;
@@ -264,6 +265,7 @@ impl Tracer<'_> {
     /// camera rays saw scene geometry (for the coverage mask). `lights_ahead` as for
     /// [`Tracer::light`].
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     pub fn trace<A: Accumulator>(
         &self,
         pixel: &Bundle,
@@ -304,6 +306,7 @@ impl Tracer<'_> {
     /// The lanes advance together, a segment at a time: the surface lookups of their hits
     /// (triangle, then its corners' attributes: cache misses, mostly) then do not wait on
     /// each other, where one path after another would wait on every one in turn.
+    #[inline(always)]
     pub fn walk(
         &self,
         pixel: &Bundle,
@@ -401,6 +404,7 @@ impl Tracer<'_> {
     /// [`super::pixels::pyramid_meets_lights`]), which spares each its sphere tests. `added` is
     /// scratch space.
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     pub fn light<A: Accumulator>(
         &self,
         origin: Vec3,

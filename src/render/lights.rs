@@ -184,6 +184,7 @@ impl Lights {
     /// light `i` (`only: Some(i)`, `u_light.y` picking the envmap cell). Lanes past `q.len`
     /// get `None`. The arithmetic runs on all lanes at once, in loops over lanes the compiler
     /// vectorises; only the envmap's cell search is done lane by lane.
+    #[inline(always)]
     pub fn sample_lanes(
         &self,
         q: &LightQuery,
@@ -251,7 +252,7 @@ impl Lights {
     /// So the samples that pick a sphere keep that pair's stratification; the other pair's
     /// points would be a random subset. Not for a light picked rarely: its share of the f32
     /// `u_light.x` holds too few distinct values.
-    #[inline]
+    #[inline(always)]
     fn pick_lanes(
         &self,
         q: &LightQuery,

@@ -232,6 +232,7 @@ impl<'a> Renderer<'a> {
             key: render_key(settings, stream),
             ray_dir: &ray_dir,
             settings,
+            isa: self.accel.isa(),
         };
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(camera.width, camera.height)
             .par_iter()
@@ -257,6 +258,7 @@ impl<'a> Renderer<'a> {
             key: render_key(settings, stream),
             ray_dir: &ray_dir,
             settings,
+            isa: self.accel.isa(),
         };
         let tiles = tiles(camera.width, camera.height)
             .par_iter()
@@ -295,6 +297,7 @@ impl<'a> Renderer<'a> {
             key: render_key(&settings, paths.stream),
             ray_dir: &ray_dir,
             settings: &settings,
+            isa: self.accel.isa(),
         };
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(w, h)
             .par_iter()
@@ -334,6 +337,7 @@ impl<'a> Renderer<'a> {
             key: render_key(settings, stream),
             ray_dir: &ray_dir,
             settings,
+            isa: self.accel.isa(),
         };
         let walker = self.tracer(settings);
         let done: Vec<Vec<Vec<Done<Vec3>>>> = tiles(w, h)

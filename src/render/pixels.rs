@@ -13,7 +13,7 @@ use glam::{Vec2, Vec3};
 use super::integrator::{self, PathSampler, Scratch, Tracer, Vertex, Walked};
 use super::lights::LANES;
 use super::{Accumulator, Lights, RenderSettings};
-use crate::accel::Bundle;
+use crate::accel::{Bundle, Isa};
 use crate::sampling::{Rng, mix64};
 use crate::scene::Camera;
 
@@ -72,11 +72,46 @@ pub struct View<'a, R: Fn(f32, f32) -> Vec3> {
     /// The camera's ray direction through an image point.
     pub ray_dir: &'a R,
     pub settings: &'a RenderSettings,
+    /// The instruction set the BVH runs ([`crate::accel::Accel::isa`]); the pixel loop
+    /// follows it.
+    pub isa: Isa,
 }
 
-/// Visits the pixels of `tile` with `kernel`.
+/// Visits the pixels of `tile` with `kernel`: compiled twice, for the baseline target and for
+/// AVX2 (the tracer's eight-lane loops run 8 wide, not 4, and rounding is an instruction, not
+/// a library call); the AVX2 copy runs where the CPU has it and the BVH runs its AVX kernels
+/// ([`Isa`]). Rust contracts no floating-point operations, so both compute the same bits.
 #[inline]
 pub fn drive<R: Fn(f32, f32) -> Vec3, K: Kernel>(view: &View<R>, tile: Tile, kernel: &mut K) {
+    #[cfg(target_arch = "x86_64")]
+    if view.isa == Isa::Avx && wide_cpu() {
+        // SAFETY: the CPU has every feature `drive_avx2` is compiled with (`wide_cpu`).
+        unsafe { drive_avx2(view, tile, kernel) };
+        return;
+    }
+    drive_on(view, tile, kernel)
+}
+
+/// Whether the CPU runs [`drive_avx2`].
+#[cfg(target_arch = "x86_64")]
+fn wide_cpu() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+        && std::arch::is_x86_feature_detected!("bmi1")
+        && std::arch::is_x86_feature_detected!("bmi2")
+        && std::arch::is_x86_feature_detected!("lzcnt")
+        && std::arch::is_x86_feature_detected!("popcnt")
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+fn drive_avx2<R: Fn(f32, f32) -> Vec3, K: Kernel>(view: &View<R>, tile: Tile, kernel: &mut K) {
+    drive_on(view, tile, kernel)
+}
+
+/// [`drive`]'s loop, inlined into each of its copies.
+#[inline(always)]
+fn drive_on<R: Fn(f32, f32) -> Vec3, K: Kernel>(view: &View<R>, tile: Tile, kernel: &mut K) {
     let (x0, y0, x1, y1) = tile;
     let (mut dirs, mut samplers) = (Vec::with_capacity(LANES), Vec::with_capacity(LANES));
     for y in y0..y1 {
@@ -107,6 +142,7 @@ pub fn render_key(settings: &RenderSettings, stream: u64) -> u64 {
 }
 
 /// The unit directions through pixel (`x`, `y`)'s corners, in order around it.
+#[inline(always)]
 fn pixel_corners(ray_dir: &impl Fn(f32, f32) -> Vec3, x: u32, y: u32) -> [Vec3; 4] {
     let (x, y) = (x as f32, y as f32);
     [
@@ -134,6 +170,7 @@ pub fn pyramid_meets_lights(lights: &Lights, origin: Vec3, corners: &[Vec3; 4]) 
 }
 
 /// The camera samples of a pixel: each one's ray direction and random streams.
+#[inline(always)]
 fn camera_samples<'a, R: Fn(f32, f32) -> Vec3>(
     view: &View<'a, R>,
     p: &Pixel,
@@ -153,6 +190,7 @@ fn camera_samples<'a, R: Fn(f32, f32) -> Vec3>(
 
 /// Refills `dirs` and `samplers` with the next (at most [`LANES`]) camera samples of a pixel,
 /// the chunk a kernel takes at once. False when there are none left.
+#[inline(always)]
 fn next_chunk(
     samples: &mut impl Iterator<Item = (Vec3, PathSampler)>,
     dirs: &mut Vec<Vec3>,
@@ -206,7 +244,7 @@ impl<'a, A: Accumulator> Trace<'a, A> {
 }
 
 impl<A: Accumulator> Kernel for Trace<'_, A> {
-    #[inline]
+    #[inline(always)]
     fn blind(&mut self, p: &Pixel) -> bool {
         let origin = self.camera.origin_world;
         self.tracer
@@ -214,17 +252,17 @@ impl<A: Accumulator> Kernel for Trace<'_, A> {
             .bundle(origin, p.corners, &mut self.bundle);
         self.bundle.meets_nothing()
     }
-    #[inline]
+    #[inline(always)]
     fn hides_emitters(&self) -> bool {
         self.tracer.settings.hide_emitters
     }
-    #[inline]
+    #[inline(always)]
     fn skip(&mut self, p: &Pixel) {
         let mut px = self.acc.new_pixel();
         self.acc.finish(&mut px, self.tracer.settings.spp);
         self.out.push((p.index, px, 0.0));
     }
-    #[inline]
+    #[inline(always)]
     fn start(&mut self, p: &Pixel) {
         let origin = self.camera.origin_world;
         self.lights_ahead = pyramid_meets_lights(self.tracer.lights, origin, &p.corners);
@@ -233,7 +271,7 @@ impl<A: Accumulator> Kernel for Trace<'_, A> {
             hits: 0,
         });
     }
-    #[inline]
+    #[inline(always)]
     fn chunk(&mut self, dirs: &[Vec3], samplers: &mut [PathSampler]) {
         let open = self.open.as_mut().expect("a started pixel");
         open.hits += self.tracer.trace(
@@ -246,7 +284,7 @@ impl<A: Accumulator> Kernel for Trace<'_, A> {
             &mut open.px,
         );
     }
-    #[inline]
+    #[inline(always)]
     fn end(&mut self, p: &Pixel) {
         let mut open = self.open.take().expect("a started pixel");
         let spp = self.tracer.settings.spp;
@@ -303,7 +341,7 @@ impl<'a> Walk<'a> {
 }
 
 impl Kernel for Walk<'_> {
-    #[inline]
+    #[inline(always)]
     fn blind(&mut self, p: &Pixel) -> bool {
         let origin = self.camera.origin_world;
         self.tracer
@@ -314,18 +352,18 @@ impl Kernel for Walk<'_> {
         blind
     }
     /// A walk sees no emitter: a blind pixel's walks would each end at the camera ray.
-    #[inline]
+    #[inline(always)]
     fn hides_emitters(&self) -> bool {
         true
     }
-    #[inline]
+    #[inline(always)]
     fn skip(&mut self, _: &Pixel) {
         let n = self.out.samples.len() + self.tracer.settings.spp as usize;
         self.out.samples.resize(n, (f32::INFINITY, 0));
     }
-    #[inline]
+    #[inline(always)]
     fn start(&mut self, _: &Pixel) {}
-    #[inline]
+    #[inline(always)]
     fn chunk(&mut self, dirs: &[Vec3], samplers: &mut [PathSampler]) {
         let mb = self.tracer.settings.max_bounces as usize;
         let (t, len) = self
@@ -338,7 +376,7 @@ impl Kernel for Walk<'_> {
             self.out.samples.push((t[l], len[l] as u8));
         }
     }
-    #[inline]
+    #[inline(always)]
     fn end(&mut self, _: &Pixel) {}
 }
 
@@ -383,16 +421,16 @@ impl<'a, A: Accumulator> Light<'a, A> {
 }
 
 impl<A: Accumulator> Kernel for Light<'_, A> {
-    #[inline]
+    #[inline(always)]
     fn blind(&mut self, _: &Pixel) -> bool {
         self.pixel += 1;
         self.walked.blind[self.pixel - 1]
     }
-    #[inline]
+    #[inline(always)]
     fn hides_emitters(&self) -> bool {
         self.tracer.settings.hide_emitters
     }
-    #[inline]
+    #[inline(always)]
     fn skip(&mut self, p: &Pixel) {
         // Its walks were recorded as escapes, with no vertices.
         let spp = self.tracer.settings.spp;
@@ -401,7 +439,7 @@ impl<A: Accumulator> Kernel for Light<'_, A> {
         self.acc.finish(&mut px, spp);
         self.out.push((p.index, px, 0.0));
     }
-    #[inline]
+    #[inline(always)]
     fn start(&mut self, p: &Pixel) {
         let origin = self.camera.origin_world;
         self.lights_ahead = pyramid_meets_lights(self.tracer.lights, origin, &p.corners);
@@ -410,7 +448,7 @@ impl<A: Accumulator> Kernel for Light<'_, A> {
             hits: 0,
         });
     }
-    #[inline]
+    #[inline(always)]
     fn chunk(&mut self, dirs: &[Vec3], samplers: &mut [PathSampler]) {
         let mut paths = [Walked {
             dir: Vec3::Z,
@@ -438,7 +476,7 @@ impl<A: Accumulator> Kernel for Light<'_, A> {
             &mut open.px,
         );
     }
-    #[inline]
+    #[inline(always)]
     fn end(&mut self, p: &Pixel) {
         let mut open = self.open.take().expect("a started pixel");
         let spp = self.tracer.settings.spp;

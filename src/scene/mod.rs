@@ -59,7 +59,7 @@ impl Texture {
         if !(x.is_finite() && y.is_finite()) {
             return self.texels[0];
         }
-        let (x0, y0) = (x.floor(), y.floor());
+        let (x0, y0) = (crate::math::floor(x), crate::math::floor(y));
         let (fx, fy) = (x - x0, y - y0);
         // Wrap once per axis (an integer division each); the next texel wraps by comparison.
         let (i0, j0) = ((x0 as i64).rem_euclid(w), (y0 as i64).rem_euclid(h));
