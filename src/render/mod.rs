@@ -205,6 +205,23 @@ impl<'a> Renderer<'a> {
         }
     }
 
+    /// What every tile of a render of `camera` shares.
+    fn view<'v, R: Fn(f32, f32) -> Vec3>(
+        &self,
+        camera: &'v Camera,
+        settings: &'v RenderSettings,
+        stream: u64,
+        ray_dir: &'v R,
+    ) -> View<'v, R> {
+        View {
+            camera,
+            key: render_key(settings, stream),
+            ray_dir,
+            settings,
+            isa: self.accel.isa(),
+        }
+    }
+
     fn tracer<'s>(&'s self, settings: &'s RenderSettings) -> Tracer<'s> {
         Tracer {
             scene: self.scene,
@@ -227,20 +244,15 @@ impl<'a> Renderer<'a> {
     ) -> Frame<A::Pixel> {
         let tracer = self.tracer(settings);
         let ray_dir = camera.ray_dirs();
-        let view = View {
-            camera,
-            key: render_key(settings, stream),
-            ray_dir: &ray_dir,
-            settings,
-            isa: self.accel.isa(),
-        };
+        let view = self.view(camera, settings, stream, &ray_dir);
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(camera.width, camera.height)
             .par_iter()
             .map(|&tile| {
                 let mut k = Trace::new(&tracer, camera, acc, tile);
                 drive(&view, tile, &mut k);
-                progress(k.out.len() as u64);
-                k.out
+                let pixels = k.into_pixels();
+                progress(pixels.len() as u64);
+                pixels
             })
             .collect();
         assemble(camera.width, camera.height, done)
@@ -253,13 +265,7 @@ impl<'a> Renderer<'a> {
     pub fn trace_paths(&self, camera: &Camera, stream: u64, settings: &RenderSettings) -> Paths {
         let tracer = self.tracer(settings);
         let ray_dir = camera.ray_dirs();
-        let view = View {
-            camera,
-            key: render_key(settings, stream),
-            ray_dir: &ray_dir,
-            settings,
-            isa: self.accel.isa(),
-        };
+        let view = self.view(camera, settings, stream, &ray_dir);
         let tiles = tiles(camera.width, camera.height)
             .par_iter()
             .map(|&tile| walk_tile(&view, &tracer, tile))
@@ -292,13 +298,7 @@ impl<'a> Renderer<'a> {
         };
         let tracer = self.tracer(&settings);
         let ray_dir = camera.ray_dirs();
-        let view = View {
-            camera,
-            key: render_key(&settings, paths.stream),
-            ray_dir: &ray_dir,
-            settings: &settings,
-            isa: self.accel.isa(),
-        };
+        let view = self.view(camera, &settings, paths.stream, &ray_dir);
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(w, h)
             .par_iter()
             .zip(&paths.tiles)
@@ -332,13 +332,7 @@ impl<'a> Renderer<'a> {
             })
             .collect();
         let ray_dir = camera.ray_dirs();
-        let view = View {
-            camera,
-            key: render_key(settings, stream),
-            ray_dir: &ray_dir,
-            settings,
-            isa: self.accel.isa(),
-        };
+        let view = self.view(camera, settings, stream, &ray_dir);
         let walker = self.tracer(settings);
         let done: Vec<Vec<Vec<Done<Vec3>>>> = tiles(w, h)
             .par_iter()
@@ -458,7 +452,7 @@ impl Paths {
 fn walk_tile<R: Fn(f32, f32) -> Vec3>(view: &View<R>, tracer: &Tracer, tile: Tile) -> TilePaths {
     let mut k = Walk::new(tracer, view.camera, tile);
     drive(view, tile, &mut k);
-    k.out
+    k.into_paths()
 }
 
 /// Lights one tile's walked paths with the tracer's lights ([`Light`]).
@@ -471,7 +465,7 @@ fn light_tile<R: Fn(f32, f32) -> Vec3, A: Accumulator>(
 ) -> Vec<Done<A::Pixel>> {
     let mut k = Light::new(tracer, view.camera, acc, walked, tile);
     drive(view, tile, &mut k);
-    k.out
+    k.into_pixels()
 }
 
 /// The random stream of a view's renders, from its name alone: a view renders the same image

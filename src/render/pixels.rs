@@ -216,16 +216,67 @@ struct Open<P> {
     hits: u32,
 }
 
-/// Traces and lights each camera path in one go: a fresh render with `acc`.
-pub struct Trace<'a, A: Accumulator> {
-    pub tracer: &'a Tracer<'a>,
-    pub camera: &'a Camera,
-    pub acc: &'a A,
-    bundle: Bundle,
-    scratch: Scratch,
+/// The accumulation the two lighting kernels share: pixels opened, summed into and finished
+/// in `acc`, in visiting order.
+struct Pixels<'a, A: Accumulator> {
+    acc: &'a A,
+    spp: u32,
+    /// Whether a camera ray of the open pixel can meet a sphere light
+    /// ([`pyramid_meets_lights`]).
     lights_ahead: bool,
     open: Option<Open<A::Pixel>>,
-    pub out: Vec<Done<A::Pixel>>,
+    out: Vec<Done<A::Pixel>>,
+}
+
+impl<'a, A: Accumulator> Pixels<'a, A> {
+    fn new(acc: &'a A, spp: u32, tile: Tile) -> Self {
+        Pixels {
+            acc,
+            spp,
+            lights_ahead: false,
+            open: None,
+            out: Vec::with_capacity(tile_pixels(tile)),
+        }
+    }
+
+    /// A pixel none of whose samples can deliver anything.
+    #[inline(always)]
+    fn skip(&mut self, p: &Pixel) {
+        let mut px = self.acc.new_pixel();
+        self.acc.finish(&mut px, self.spp);
+        self.out.push((p.index, px, 0.0));
+    }
+
+    #[inline(always)]
+    fn start(&mut self, p: &Pixel, lights: &Lights, origin: Vec3) {
+        self.lights_ahead = pyramid_meets_lights(lights, origin, &p.corners);
+        self.open = Some(Open {
+            px: self.acc.new_pixel(),
+            hits: 0,
+        });
+    }
+
+    #[inline(always)]
+    fn open(&mut self) -> &mut Open<A::Pixel> {
+        self.open.as_mut().expect("a started pixel")
+    }
+
+    #[inline(always)]
+    fn end(&mut self, p: &Pixel) {
+        let mut open = self.open.take().expect("a started pixel");
+        self.acc.finish(&mut open.px, self.spp);
+        let coverage = open.hits as f32 / self.spp as f32;
+        self.out.push((p.index, open.px, coverage));
+    }
+}
+
+/// Traces and lights each camera path in one go: a fresh render with `acc`.
+pub struct Trace<'a, A: Accumulator> {
+    tracer: &'a Tracer<'a>,
+    camera: &'a Camera,
+    bundle: Bundle,
+    scratch: Scratch,
+    pixels: Pixels<'a, A>,
 }
 
 impl<'a, A: Accumulator> Trace<'a, A> {
@@ -233,13 +284,15 @@ impl<'a, A: Accumulator> Trace<'a, A> {
         Trace {
             tracer,
             camera,
-            acc,
             bundle: Bundle::default(),
             scratch: Scratch::default(),
-            lights_ahead: false,
-            open: None,
-            out: Vec::with_capacity(tile_pixels(tile)),
+            pixels: Pixels::new(acc, tracer.settings.spp, tile),
         }
+    }
+
+    /// Each visited pixel: (index, estimate, coverage).
+    pub fn into_pixels(self) -> Vec<Done<A::Pixel>> {
+        self.pixels.out
     }
 }
 
@@ -258,39 +311,31 @@ impl<A: Accumulator> Kernel for Trace<'_, A> {
     }
     #[inline(always)]
     fn skip(&mut self, p: &Pixel) {
-        let mut px = self.acc.new_pixel();
-        self.acc.finish(&mut px, self.tracer.settings.spp);
-        self.out.push((p.index, px, 0.0));
+        self.pixels.skip(p);
     }
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
-        let origin = self.camera.origin_world;
-        self.lights_ahead = pyramid_meets_lights(self.tracer.lights, origin, &p.corners);
-        self.open = Some(Open {
-            px: self.acc.new_pixel(),
-            hits: 0,
-        });
+        self.pixels
+            .start(p, self.tracer.lights, self.camera.origin_world);
     }
     #[inline(always)]
     fn chunk(&mut self, dirs: &[Vec3], samplers: &mut [PathSampler]) {
-        let open = self.open.as_mut().expect("a started pixel");
+        let lights_ahead = self.pixels.lights_ahead;
+        let acc = self.pixels.acc;
+        let open = self.pixels.open();
         open.hits += self.tracer.trace(
             &self.bundle,
-            self.lights_ahead,
+            lights_ahead,
             dirs,
             samplers,
             &mut self.scratch,
-            self.acc,
+            acc,
             &mut open.px,
         );
     }
     #[inline(always)]
     fn end(&mut self, p: &Pixel) {
-        let mut open = self.open.take().expect("a started pixel");
-        let spp = self.tracer.settings.spp;
-        self.acc.finish(&mut open.px, spp);
-        self.out
-            .push((p.index, open.px, open.hits as f32 / spp as f32));
+        self.pixels.end(p);
     }
 }
 
@@ -316,11 +361,11 @@ impl TilePaths {
 /// Walks camera paths and keeps their vertices (the last segment's geometry traced too, as
 /// the paths are lit more than once), to be lit by [`Light`].
 pub struct Walk<'a> {
-    pub tracer: &'a Tracer<'a>,
-    pub camera: &'a Camera,
+    tracer: &'a Tracer<'a>,
+    camera: &'a Camera,
     bundle: Bundle,
     verts: Vec<Vertex>,
-    pub out: TilePaths,
+    out: TilePaths,
 }
 
 impl<'a> Walk<'a> {
@@ -337,6 +382,11 @@ impl<'a> Walk<'a> {
                 blind: Vec::with_capacity(pixels),
             },
         }
+    }
+
+    /// The tile's walked paths.
+    pub fn into_paths(self) -> TilePaths {
+        self.out
     }
 }
 
@@ -382,18 +432,15 @@ impl Kernel for Walk<'_> {
 
 /// Lights a tile's walked paths with the tracer's lights into `acc`.
 pub struct Light<'a, A: Accumulator> {
-    pub tracer: &'a Tracer<'a>,
-    pub camera: &'a Camera,
-    pub acc: &'a A,
+    tracer: &'a Tracer<'a>,
+    camera: &'a Camera,
     walked: &'a TilePaths,
     /// Cursors into `walked`: the next pixel, sample and vertex.
     pixel: usize,
     sample: usize,
     vertex: usize,
     added: integrator::Added,
-    lights_ahead: bool,
-    open: Option<Open<A::Pixel>>,
-    pub out: Vec<Done<A::Pixel>>,
+    pixels: Pixels<'a, A>,
 }
 
 impl<'a, A: Accumulator> Light<'a, A> {
@@ -407,16 +454,18 @@ impl<'a, A: Accumulator> Light<'a, A> {
         Light {
             tracer,
             camera,
-            acc,
             walked,
             pixel: 0,
             sample: 0,
             vertex: 0,
             added: integrator::Added::default(),
-            lights_ahead: false,
-            open: None,
-            out: Vec::with_capacity(tile_pixels(tile)),
+            pixels: Pixels::new(acc, tracer.settings.spp, tile),
         }
+    }
+
+    /// Each visited pixel: (index, estimate, coverage).
+    pub fn into_pixels(self) -> Vec<Done<A::Pixel>> {
+        self.pixels.out
     }
 }
 
@@ -433,20 +482,13 @@ impl<A: Accumulator> Kernel for Light<'_, A> {
     #[inline(always)]
     fn skip(&mut self, p: &Pixel) {
         // Its walks were recorded as escapes, with no vertices.
-        let spp = self.tracer.settings.spp;
-        self.sample += spp as usize;
-        let mut px = self.acc.new_pixel();
-        self.acc.finish(&mut px, spp);
-        self.out.push((p.index, px, 0.0));
+        self.sample += self.tracer.settings.spp as usize;
+        self.pixels.skip(p);
     }
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
-        let origin = self.camera.origin_world;
-        self.lights_ahead = pyramid_meets_lights(self.tracer.lights, origin, &p.corners);
-        self.open = Some(Open {
-            px: self.acc.new_pixel(),
-            hits: 0,
-        });
+        self.pixels
+            .start(p, self.tracer.lights, self.camera.origin_world);
     }
     #[inline(always)]
     fn chunk(&mut self, dirs: &[Vec3], samplers: &mut [PathSampler]) {
@@ -465,24 +507,22 @@ impl<A: Accumulator> Kernel for Light<'_, A> {
                 verts,
             };
         }
-        let open = self.open.as_mut().expect("a started pixel");
+        let lights_ahead = self.pixels.lights_ahead;
+        let acc = self.pixels.acc;
+        let open = self.pixels.open();
         open.hits += self.tracer.light(
             self.camera.origin_world,
-            self.lights_ahead,
+            lights_ahead,
             &paths[..dirs.len()],
             samplers,
             &mut self.added,
-            self.acc,
+            acc,
             &mut open.px,
         );
     }
     #[inline(always)]
     fn end(&mut self, p: &Pixel) {
-        let mut open = self.open.take().expect("a started pixel");
-        let spp = self.tracer.settings.spp;
-        self.acc.finish(&mut open.px, spp);
-        self.out
-            .push((p.index, open.px, open.hits as f32 / spp as f32));
+        self.pixels.end(p);
     }
 }
 
