@@ -82,6 +82,13 @@ fn main() -> ExitCode {
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
+    if let Some(v) = std::env::var_os("LIGHTPROBE_ISA")
+        && v != "portable"
+    {
+        anyhow::bail!(
+            "LIGHTPROBE_ISA={v:?}: the one value is `portable` (unset it to use the CPU's vector units)"
+        );
+    }
     if let Some(n) = cli.threads {
         anyhow::ensure!(n >= 1, "--threads must be at least 1");
         rayon::ThreadPoolBuilder::new()

@@ -26,12 +26,16 @@ use crate::metrics;
 pub const LATLONG_WIDTH: u32 = 4096;
 
 /// Writes every file of an estimate into `dir`, which must exist; `rendered_references`
-/// when the references were rendered here (not given).
+/// when the references were rendered here (not given). The report, written last, gets
+/// `timings.total_seconds` from `started` (the whole command, its other files included).
+/// Files are written when the estimate is complete: a run that fails or is stopped before
+/// leaves none of them.
 pub fn write_estimate(
     dir: &Path,
-    estimate: &Estimate,
+    estimate: &mut Estimate,
     seen: &SeenViews,
     rendered_references: bool,
+    started: std::time::Instant,
 ) -> Result<()> {
     if rendered_references {
         let refs = dir.join("reference");
@@ -50,20 +54,24 @@ pub fn write_estimate(
     if let Some(so) = &estimate.spheres {
         write_spheres(&dir.join("spheres"), so, seen)?;
     }
+    estimate.report.timings.total_seconds = started.elapsed().as_secs_f64();
     write_report(dir, &estimate.report)?;
     Ok(())
 }
 
 /// `report.json`, pretty-printed; returns its text.
 pub fn write_report(dir: &Path, report: &EstimateReport) -> Result<String> {
-    let text = report_json(report);
+    let text = report_json(report).map_err(|e| Error::file(dir.join("report.json"), e))?;
     imageio::write_bytes(&dir.join("report.json"), text.as_bytes())?;
     Ok(text)
 }
 
-/// The report as pretty-printed JSON with a final newline.
-pub fn report_json(report: &EstimateReport) -> String {
-    serde_json::to_string_pretty(report).expect("a report serialises") + "\n"
+/// The report as pretty-printed JSON with a final newline (an error for a path that is not
+/// UTF-8, which JSON cannot hold).
+pub fn report_json(report: &EstimateReport) -> std::result::Result<String, String> {
+    serde_json::to_string_pretty(report)
+        .map(|t| t + "\n")
+        .map_err(|e| format!("cannot write the report: {e}"))
 }
 
 /// Writes `NAME.ron` and its lat-long `NAME.exr` (Mitsuba's convention) into `dir`.

@@ -835,6 +835,21 @@ fn cases() -> Vec<Case> {
             "refs: is not a folder",
         ),
         c(
+            "time limit not a number",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--time-limit",
+                "nan",
+                "--quiet",
+            ]
+            .to_vec(),
+            "--time-limit must be a positive number of seconds",
+        ),
+        c(
             "--rings-candidates out of range",
             vec![("scene.ron", sidecar("", LIGHT))],
             &[

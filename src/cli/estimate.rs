@@ -143,7 +143,8 @@ impl Args {
             rounds: self.rounds.unwrap_or(solver.default_rounds()),
             smooth: self.smooth,
             ridge: self.ridge,
-            time_limit: Duration::from_secs_f64(self.time_limit.clamp(0.0, 1e9)),
+            // Checked by `EstimateSettings::check`; NaN and negatives become zero, which fails it.
+            time_limit: Duration::try_from_secs_f64(self.time_limit).unwrap_or(Duration::ZERO),
             evaluate: !self.fit_only,
             noise_floor: true,
             oracle: self.oracle,
@@ -165,17 +166,16 @@ impl Args {
             }
             return e.into();
         };
-        let flag = match *name {
-            "rings" if matches!(self.rings, Some(RingsArg::Auto)) => "--rings-candidates",
-            "time limit" => {
-                return anyhow::anyhow!(
-                    "--time-limit must be a positive number of seconds, at most 1e6"
-                );
+        match *name {
+            "rings" if matches!(self.rings, Some(RingsArg::Auto)) => {
+                anyhow::anyhow!("--rings-candidates must be {expected}, got {got}")
             }
-            "sphere light count" => "--model spheres:K",
-            other => return anyhow::anyhow!("--{other} must be {expected}, got {got}"),
-        };
-        anyhow::anyhow!("{flag} must be {expected}, got {got}")
+            "time limit" => anyhow::anyhow!(
+                "--time-limit must be a positive number of seconds, at most 1e6, got {}",
+                self.time_limit
+            ),
+            _ => super::flag_error(e),
+        }
     }
 }
 
@@ -183,9 +183,6 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let t_all = Instant::now();
     let scene = Scene::load(&a.scene)?;
     let settings = a.settings(&scene);
-    if !(a.time_limit.is_finite() && a.time_limit > 0.0 && a.time_limit <= 1e6) {
-        anyhow::bail!("--time-limit must be a positive number of seconds, at most 1e6");
-    }
     settings.check().map_err(|e| a.flag_error(e))?;
     anyhow::ensure!(
         a.reference.is_some() || !scene.lights.is_empty(),
@@ -195,9 +192,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let (w, h) = (scene.settings.width as u64, scene.settings.height as u64);
     let views = scene.cameras.len() as u64;
     let rings = settings.ring_counts().iter().copied().max().unwrap_or(1);
-    check_memory(settings.memory_needed(w * h * views, w * h), || {
-        format!("{rings} rings at {w}×{h} × {views} views (use fewer rings)")
-    })?;
+    check_memory(
+        settings.memory_needed(w * h * views, w * h),
+        || format!("{rings} rings at {w}×{h} × {views} views"),
+        "; use fewer rings",
+    )?;
     prepare_out_dir(&a.out)?;
     let render = RenderSettings::from_scene(&scene.settings);
     let true_lights = Lights::new(scene.lights.clone());
@@ -233,11 +232,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             );
         }
     }
-    report.timings.total_seconds = t_all.elapsed().as_secs_f64();
-    output::write_estimate(&a.out, &estimate, &seen, a.reference.is_none())?;
+    output::write_estimate(&a.out, &mut estimate, &seen, a.reference.is_none(), t_all)?;
     let report = &estimate.report;
     if a.json {
-        print!("{}", output::report_json(report));
+        print!(
+            "{}",
+            output::report_json(report).map_err(anyhow::Error::msg)?
+        );
     } else {
         for line in summary(report) {
             println!("{line}");

@@ -86,13 +86,14 @@ pub fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
     Ok(lightprobe::output::prepare_dir(dir)?)
 }
 
-/// Refuses a job that needs more than nine tenths of the memory available.
-pub fn check_memory(need: u64, what: impl FnOnce() -> String) -> anyhow::Result<()> {
+/// Refuses a job that needs more than nine tenths of the memory available; `hint` ends the
+/// message (what to do instead).
+pub fn check_memory(need: u64, what: impl FnOnce() -> String, hint: &str) -> anyhow::Result<()> {
     if let Some(avail) = lightprobe::memory::available_bytes()
         && need > avail / 10 * 9
     {
         anyhow::bail!(
-            "{} would need about {:.1} GiB, but only {:.1} GiB is available",
+            "{} would need about {:.1} GiB, but only {:.1} GiB is available{hint}",
             what(),
             need as f64 / (1u64 << 30) as f64,
             avail as f64 / (1u64 << 30) as f64

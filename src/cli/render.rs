@@ -102,7 +102,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     );
     // One view at a time: its image (RGB + coverage), the per-tile results and the encoder.
     let (w, h) = (scene.settings.width, scene.settings.height);
-    check_memory(w as u64 * h as u64 * 40, || format!("{w}×{h} images"))?;
+    check_memory(w as u64 * h as u64 * 40, || format!("{w}×{h} images"), "")?;
     prepare_out_dir(&a.out)?;
     let load_seconds = t_load.elapsed().as_secs_f64();
 

@@ -10,7 +10,7 @@
 //! use lightprobe::estimate::job::{self, EstimateSettings, References};
 //! use lightprobe::render::{Lights, RenderSettings, Renderer};
 //! use lightprobe::scene::Scene;
-//! let scene = Scene::load(std::path::Path::new("scenes/tabletop.ron"))?;
+//! let scene = Scene::load(std::path::Path::new("scenes/tabletop/tabletop.ron"))?;
 //! let lights = Lights::new(scene.lights.clone());
 //! let renderer = Renderer::new(&scene, &lights);
 //! let render = RenderSettings::from_scene(&scene.settings);
@@ -144,7 +144,7 @@ impl EstimateSettings {
             })
         };
         if self.ring_counts().is_empty() {
-            return setting("rings", "at least one candidate".into(), "none".into());
+            return Err(Error::Invalid("no ring count to choose from".into()));
         }
         if let Some(r) = self
             .ring_counts()
@@ -173,7 +173,7 @@ impl EstimateSettings {
             }
         }
         let t = self.time_limit.as_secs_f64();
-        if !(t > 0.0 && t <= 1e6) {
+        if t <= 0.0 || t > 1e6 {
             return setting(
                 "time limit",
                 "a positive number of seconds, at most 1e6".into(),
@@ -233,13 +233,13 @@ impl Progress for () {}
 /// references' alpha, or the pixel centres that see geometry), and the views left out
 /// because their mask is empty. Errors when no view has a pixel.
 pub fn observe<'a>(
-    truth: &'a Renderer,
+    truth: &Renderer<'a>,
     render: &RenderSettings,
     references: References,
     progress: &dyn Progress,
 ) -> Result<SeenViews<'a>> {
-    let scene = truth.scene;
-    let views: Vec<&Camera> = scene.cameras.iter().collect();
+    let scene: &'a crate::scene::Scene = truth.scene;
+    let views: Vec<&'a Camera> = scene.cameras.iter().collect();
     let (w, h) = (scene.settings.width, scene.settings.height);
     let why = match &references {
         References::Render => "it sees no scene geometry".to_string(),
@@ -252,7 +252,18 @@ pub fn observe<'a>(
     let t = Instant::now();
     let images = match references {
         References::Folder(dir) => pipeline::load_references(dir, &views, w, h)?,
-        References::Images(images) => images,
+        References::Images(images) => {
+            let size = |i: &Image| (i.width, i.height);
+            if images.len() != views.len() || images.iter().any(|i| size(i) != (w, h)) {
+                return Err(Error::Invalid(format!(
+                    "{} references of {:?} for {} views of {w}×{h}",
+                    images.len(),
+                    images.iter().map(size).collect::<Vec<_>>(),
+                    views.len()
+                )));
+            }
+            images
+        }
         References::Render => {
             if truth.lights.is_empty() {
                 return Err(Error::Invalid(
@@ -432,6 +443,8 @@ pub struct Timings {
     pub oracle_seconds: f64,
     /// The sphere models' fits (every candidate count, and the refit of the chosen one).
     pub sphere_fit_seconds: f64,
+    /// The job's wall time; `estimate` writes its whole command's (loading, references and
+    /// the output files included).
     pub total_seconds: f64,
 }
 
@@ -538,7 +551,7 @@ pub fn run(
     let converged = fit.channels.iter().all(|c| c.converged);
     let report = EstimateReport {
         lightprobe_version: crate::VERSION.to_string(),
-        scene: PathBuf::new(),
+        scene: job.truth.scene.source.clone(),
         rings,
         cells: fit.envmap.grid.cell_count(),
         solver: s.solver,
@@ -576,7 +589,7 @@ pub fn run(
             rerender_seconds: envmap.rerender_seconds,
             oracle_seconds: envmap.oracle_seconds,
             sphere_fit_seconds,
-            total_seconds: t_all.elapsed().as_secs_f64(),
+            total_seconds: seen.seconds + t_all.elapsed().as_secs_f64(),
         },
         rings_selection: selection,
         memory: Memory {

@@ -620,6 +620,24 @@ impl Axes {
                 got: e.to_string(),
             });
         }
+        // What every trial's estimate checks, once for the sweep (a bad value would otherwise
+        // fail every trial, and the failures would count as done).
+        for &solver in &settings.solvers {
+            EstimateSettings {
+                rings: Rings::Auto(settings.rings.clone()),
+                model: LightModel::Envmap,
+                solver,
+                spp: settings.spp.first().copied().unwrap_or(1),
+                rounds: solver.default_rounds(),
+                smooth: settings.smooth,
+                ridge: settings.ridge,
+                time_limit: settings.time_limit,
+                evaluate: true,
+                noise_floor: false,
+                oracle: false,
+            }
+            .check()?;
+        }
         Ok(Axes {
             rings: dedup(&settings.rings),
             spp: dedup(&settings.spp),
@@ -815,7 +833,7 @@ fn run_trial<'a>(
         scenario: sf.name.clone(),
         file: sf.path.clone(),
         rings: rings_plan.unwrap_or(0),
-        cells: 0,
+        cells: rings_plan.map_or(0, |r| crate::envmap::RingGrid::new(r).cell_count()),
         solver,
         spp,
         rounds: estimate.rounds,
@@ -1062,7 +1080,7 @@ fn observe<'a>(
         .and_then(|t| serde_json::from_str::<NoiseFile>(&t).ok())
         .filter(|n| n.views == names && (n.scenario.is_empty() || n.scenario == fingerprint));
     let (w, h) = (views[0].width, views[0].height);
-    let (references, noise_floor) = match cached {
+    let (references, noise_floor): (Vec<_>, Vec<f64>) = match cached {
         Some(n) => (
             pipeline::load_references(dir, views, w, h)?,
             n.noise_floor_rel_mae
@@ -1089,21 +1107,32 @@ fn observe<'a>(
             (refs, nf.iter().map(|m| m.rel_mae).collect())
         }
     };
-    let masks = pipeline::geometry_masks(renderer, views, &references);
-    let mask_hash = masks
+    // The masks, and the views kept, exactly as a stand-alone estimate makes them.
+    let seen = job::observe(renderer, render, job::References::Images(references), &())?;
+    // The views kept, in order, as this scene's cameras (`renderer` lives for one trial).
+    let kept: Vec<usize> = views
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| seen.views.iter().any(|v| v.name == c.name))
+        .map(|(i, _)| i)
+        .collect();
+    let noise_floor: Vec<f64> = kept.iter().map(|&i| noise_floor[i]).collect();
+    let seen = SeenViews {
+        views: kept.iter().map(|&i| views[i]).collect(),
+        references: seen.references,
+        masks: seen.masks,
+        blind: seen.blind,
+        blind_references: seen.blind_references,
+        blind_reason: seen.blind_reason,
+        seconds: seen.seconds,
+    };
+    let mask_hash = seen
+        .masks
         .iter()
         .flatten()
         .fold(0x1234_5678u64, |h, &b| mix64(h ^ b as u64));
     Ok(Observed {
-        seen: SeenViews {
-            views: views.to_vec(),
-            references,
-            masks,
-            blind: Vec::new(),
-            blind_references: Vec::new(),
-            blind_reason: String::new(),
-            seconds: 0.0,
-        },
+        seen,
         noise_floor,
         mask_hash,
     })
