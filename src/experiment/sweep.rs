@@ -391,34 +391,7 @@ pub fn run(
             t.spheres,
         )
     };
-    let done: HashMap<String, TrialRecord> = read_records(out)?
-        .into_iter()
-        .map(|r| (r.id.clone(), r))
-        .collect();
-    let mut todo = Vec::new();
-    let (mut failed_before, mut not_converged_before) = (0, 0);
-    for &trial in &plan {
-        let id = id(&trial);
-        let want = fingerprint(trial.scenario, trial.solver);
-        match done.get(&id) {
-            None => todo.push(trial),
-            // Records from before fingerprints ("") are taken as they are.
-            Some(r) if !r.fingerprint.is_empty() && r.fingerprint != want => {
-                return Err(Error::file(
-                    out,
-                    format!(
-                        "holds trial {id} run with other settings or another scenario file \
-                         ({} ≠ {want}); use another output folder, or remove its lines to rerun it",
-                        r.fingerprint
-                    ),
-                ));
-            }
-            Some(r) => {
-                failed_before += (r.status == Status::Failed) as usize;
-                not_converged_before += (r.status == Status::NotConverged) as usize;
-            }
-        }
-    }
+    let (todo, failed_before, not_converged_before) = pending(&plan, out, &id, &fingerprint)?;
     let skipped = plan.len() - todo.len();
     let trials_file = out.join(settings.shard.file_name());
     let mut summary = Summary {
@@ -528,6 +501,46 @@ pub fn run(
     Ok(summary)
 }
 
+/// The trials of `plan` that `out` does not hold yet, and how many of those it holds failed
+/// or did not converge. A trial recorded with another fingerprint (other settings or another
+/// scenario file) is an error: resuming must not mix two sweeps.
+fn pending(
+    plan: &[Trial],
+    out: &Path,
+    id: &dyn Fn(&Trial) -> String,
+    fingerprint: &dyn Fn(usize, Solver) -> String,
+) -> Result<(Vec<Trial>, usize, usize)> {
+    let done: HashMap<String, TrialRecord> = read_records(out)?
+        .into_iter()
+        .map(|r| (r.id.clone(), r))
+        .collect();
+    let mut todo = Vec::new();
+    let (mut failed_before, mut not_converged_before) = (0, 0);
+    for &trial in plan {
+        let id = id(&trial);
+        let want = fingerprint(trial.scenario, trial.solver);
+        match done.get(&id) {
+            None => todo.push(trial),
+            // Records from before fingerprints ("") are taken as they are.
+            Some(r) if !r.fingerprint.is_empty() && r.fingerprint != want => {
+                return Err(Error::file(
+                    out,
+                    format!(
+                        "holds trial {id} run with other settings or another scenario file \
+                         ({} ≠ {want}); use another output folder, or remove its lines to rerun it",
+                        r.fingerprint
+                    ),
+                ));
+            }
+            Some(r) => {
+                failed_before += (r.status == Status::Failed) as usize;
+                not_converged_before += (r.status == Status::NotConverged) as usize;
+            }
+        }
+    }
+    Ok((todo, failed_before, not_converged_before))
+}
+
 /// The scenario sidecars, each with its scene group (same sidecar apart from the lights),
 /// and one sidecar file per group.
 fn load_scenarios(files: &[PathBuf]) -> Result<(Vec<ScenarioFile>, Vec<PathBuf>)> {
@@ -623,20 +636,9 @@ impl Axes {
         // What every trial's estimate checks, once for the sweep (a bad value would otherwise
         // fail every trial, and the failures would count as done).
         for &solver in &settings.solvers {
-            EstimateSettings {
-                rings: Rings::Auto(settings.rings.clone()),
-                model: LightModel::Envmap,
-                solver,
-                spp: settings.spp.first().copied().unwrap_or(1),
-                rounds: solver.default_rounds(),
-                smooth: settings.smooth,
-                ridge: settings.ridge,
-                time_limit: settings.time_limit,
-                evaluate: true,
-                noise_floor: false,
-                oracle: false,
-            }
-            .check()?;
+            let spp = settings.spp.first().copied().unwrap_or(1);
+            let rings = Rings::Auto(settings.rings.clone());
+            trial_settings(settings, solver, spp, rings, false).check()?;
         }
         Ok(Axes {
             rings: dedup(&settings.rings),
@@ -755,27 +757,11 @@ fn run_trial<'a>(
         caches.shared.clear();
         caches.block = Some((spp, a, rings_plan, solver));
     }
-    let estimate = EstimateSettings {
-        rings: match rings_plan {
-            Some(r) => Rings::Fixed(r),
-            None => Rings::Auto(ctx.axes.rings.clone()),
-        },
-        model: if spheres {
-            LightModel::Spheres(None)
-        } else {
-            LightModel::Envmap
-        },
-        solver,
-        spp,
-        rounds: solver.default_rounds(),
-        smooth: settings.smooth,
-        ridge: settings.ridge,
-        time_limit: settings.time_limit,
-        evaluate: true,
-        // Measured once per scenario (`observe`).
-        noise_floor: false,
-        oracle: false,
+    let rings = match rings_plan {
+        Some(r) => Rings::Fixed(r),
+        None => Rings::Auto(ctx.axes.rings.clone()),
     };
+    let estimate = trial_settings(settings, solver, spp, rings, spheres);
     // The shared first round of a resolution: per call, (seconds it took, was cached).
     let mut first_rounds: Vec<(f64, bool)> = Vec::new();
     let mut first_of = |fit: &FitSettings| {
@@ -828,32 +814,15 @@ fn run_trial<'a>(
         size: (hi.x - lo.x).max(hi.z - lo.z).max(1e-3),
     };
     let result = job::run(&job, &mut first_of, &());
-    let mut record = TrialRecord {
+    let mut record = blank_record(
         id,
-        scenario: sf.name.clone(),
-        file: sf.path.clone(),
-        rings: rings_plan.unwrap_or(0),
-        cells: rings_plan.map_or(0, |r| crate::envmap::RingGrid::new(r).cell_count()),
-        solver,
-        spp,
-        rounds: estimate.rounds,
-        status: Status::Ok,
-        error: None,
-        rel_mae: None,
-        noise_floor_rel_mae: pipeline_mean(&obs.noise_floor),
-        views: Vec::new(),
-        lights: light_figures(&sf.lights, job.center, job.size),
-        iterations: 0,
-        kkt_violation: 0.0,
-        timings: Timings::default(),
-        auto: None,
-        spheres: None,
-        albedo_error: ctx.axes.albedo_errors[a],
-        fingerprint: String::new(),
-        transport_bytes: 0,
-        peak_bytes: 0,
-        threads: rayon::current_num_threads(),
-    };
+        sf,
+        trial,
+        &estimate,
+        pipeline_mean(&obs.noise_floor),
+        light_figures(&sf.lights, job.center, job.size),
+        ctx.axes.albedo_errors[a],
+    );
     match result {
         Err(e) => {
             record.status = Status::Failed;
@@ -868,6 +837,75 @@ fn run_trial<'a>(
         ),
     }
     Ok(record)
+}
+
+/// A trial's record before its estimate: what it is, its scenario's figures, no results yet.
+fn blank_record(
+    id: String,
+    sf: &ScenarioFile,
+    trial: Trial,
+    estimate: &EstimateSettings,
+    noise_floor_rel_mae: Option<f64>,
+    lights: Vec<LightFigures>,
+    albedo_error: f32,
+) -> TrialRecord {
+    TrialRecord {
+        id,
+        scenario: sf.name.clone(),
+        file: sf.path.clone(),
+        rings: trial.rings.unwrap_or(0),
+        cells: trial
+            .rings
+            .map_or(0, |r| crate::envmap::RingGrid::new(r).cell_count()),
+        solver: trial.solver,
+        spp: trial.spp,
+        rounds: estimate.rounds,
+        status: Status::Ok,
+        error: None,
+        rel_mae: None,
+        noise_floor_rel_mae,
+        views: Vec::new(),
+        lights,
+        iterations: 0,
+        kkt_violation: 0.0,
+        timings: Timings::default(),
+        auto: None,
+        spheres: None,
+        albedo_error,
+        fingerprint: String::new(),
+        transport_bytes: 0,
+        peak_bytes: 0,
+        threads: rayon::current_num_threads(),
+    }
+}
+
+/// The estimate a trial runs: as `estimate` would with these settings, evaluated, with the
+/// sphere model (1 to 3 lights, chosen on held-out pixels) or the envmap alone. The noise
+/// floor is measured once per scenario (`observe`), not per trial.
+fn trial_settings(
+    settings: &SweepSettings,
+    solver: Solver,
+    spp: u32,
+    rings: Rings,
+    spheres: bool,
+) -> EstimateSettings {
+    EstimateSettings {
+        rings,
+        model: if spheres {
+            LightModel::Spheres(None)
+        } else {
+            LightModel::Envmap
+        },
+        solver,
+        spp,
+        rounds: solver.default_rounds(),
+        smooth: settings.smooth,
+        ridge: settings.ridge,
+        time_limit: settings.time_limit,
+        evaluate: true,
+        noise_floor: false,
+        oracle: false,
+    }
 }
 
 /// Key of a shared first-round transport: (scene group, albedo error, rings, spp, bounces,
