@@ -83,12 +83,4 @@ impl Error {
             source,
         }
     }
-
-    /// The error under any [`Error::Stage`] wrappers.
-    pub fn innermost(&self) -> &Error {
-        match self {
-            Error::Stage { inner, .. } => inner.innermost(),
-            e => e,
-        }
-    }
 }

@@ -169,6 +169,14 @@ pub fn pyramid_meets_lights(lights: &Lights, origin: Vec3, corners: &[Vec3; 4]) 
     })
 }
 
+/// Fills `bundle` with the BVH leaves pixel `p`'s pyramid reaches; true when it reaches none
+/// (no camera ray of the pixel can meet geometry).
+#[inline(always)]
+fn pyramid_is_blind(tracer: &Tracer, camera: &Camera, p: &Pixel, bundle: &mut Bundle) -> bool {
+    tracer.accel.bundle(camera.origin_world, p.corners, bundle);
+    bundle.meets_nothing()
+}
+
 /// The camera samples of a pixel: each one's ray direction and random streams.
 #[inline(always)]
 fn camera_samples<'a, R: Fn(f32, f32) -> Vec3>(
@@ -221,6 +229,9 @@ struct Open<P> {
 struct Pixels<'a, A: Accumulator> {
     acc: &'a A,
     spp: u32,
+    /// The lights and the camera origin, for [`pyramid_meets_lights`].
+    lights: &'a Lights,
+    origin: Vec3,
     /// Whether a camera ray of the open pixel can meet a sphere light
     /// ([`pyramid_meets_lights`]).
     lights_ahead: bool,
@@ -229,10 +240,12 @@ struct Pixels<'a, A: Accumulator> {
 }
 
 impl<'a, A: Accumulator> Pixels<'a, A> {
-    fn new(acc: &'a A, spp: u32, tile: Tile) -> Self {
+    fn new(acc: &'a A, tracer: &'a Tracer<'a>, camera: &Camera, tile: Tile) -> Self {
         Pixels {
             acc,
-            spp,
+            spp: tracer.settings.spp,
+            lights: tracer.lights,
+            origin: camera.origin_world,
             lights_ahead: false,
             open: None,
             out: Vec::with_capacity(tile_pixels(tile)),
@@ -248,8 +261,8 @@ impl<'a, A: Accumulator> Pixels<'a, A> {
     }
 
     #[inline(always)]
-    fn start(&mut self, p: &Pixel, lights: &Lights, origin: Vec3) {
-        self.lights_ahead = pyramid_meets_lights(lights, origin, &p.corners);
+    fn start(&mut self, p: &Pixel) {
+        self.lights_ahead = pyramid_meets_lights(self.lights, self.origin, &p.corners);
         self.open = Some(Open {
             px: self.acc.new_pixel(),
             hits: 0,
@@ -286,7 +299,7 @@ impl<'a, A: Accumulator> Trace<'a, A> {
             camera,
             bundle: Bundle::default(),
             scratch: Scratch::default(),
-            pixels: Pixels::new(acc, tracer.settings.spp, tile),
+            pixels: Pixels::new(acc, tracer, camera, tile),
         }
     }
 
@@ -299,11 +312,7 @@ impl<'a, A: Accumulator> Trace<'a, A> {
 impl<A: Accumulator> Kernel for Trace<'_, A> {
     #[inline(always)]
     fn blind(&mut self, p: &Pixel) -> bool {
-        let origin = self.camera.origin_world;
-        self.tracer
-            .accel
-            .bundle(origin, p.corners, &mut self.bundle);
-        self.bundle.meets_nothing()
+        pyramid_is_blind(self.tracer, self.camera, p, &mut self.bundle)
     }
     #[inline(always)]
     fn hides_emitters(&self) -> bool {
@@ -315,8 +324,7 @@ impl<A: Accumulator> Kernel for Trace<'_, A> {
     }
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
-        self.pixels
-            .start(p, self.tracer.lights, self.camera.origin_world);
+        self.pixels.start(p);
     }
     #[inline(always)]
     fn chunk(&mut self, dirs: &[Vec3], samplers: &mut [PathSampler]) {
@@ -393,11 +401,7 @@ impl<'a> Walk<'a> {
 impl Kernel for Walk<'_> {
     #[inline(always)]
     fn blind(&mut self, p: &Pixel) -> bool {
-        let origin = self.camera.origin_world;
-        self.tracer
-            .accel
-            .bundle(origin, p.corners, &mut self.bundle);
-        let blind = self.bundle.meets_nothing();
+        let blind = pyramid_is_blind(self.tracer, self.camera, p, &mut self.bundle);
         self.out.blind.push(blind);
         blind
     }
@@ -459,7 +463,7 @@ impl<'a, A: Accumulator> Light<'a, A> {
             sample: 0,
             vertex: 0,
             added: integrator::Added::default(),
-            pixels: Pixels::new(acc, tracer.settings.spp, tile),
+            pixels: Pixels::new(acc, tracer, camera, tile),
         }
     }
 
@@ -487,8 +491,7 @@ impl<A: Accumulator> Kernel for Light<'_, A> {
     }
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
-        self.pixels
-            .start(p, self.tracer.lights, self.camera.origin_world);
+        self.pixels.start(p);
     }
     #[inline(always)]
     fn chunk(&mut self, dirs: &[Vec3], samplers: &mut [PathSampler]) {
