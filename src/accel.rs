@@ -173,28 +173,36 @@ pub struct Accel {
     isa: Isa,
 }
 
-/// The instruction set the traversal kernels are compiled for, chosen at run time: the binary
-/// is built for the baseline x86-64 (or any other target), and the AVX kernels run where the
-/// CPU has AVX. Both compute the same arithmetic in the same order, so they give the same
-/// answers bit for bit (a test compares them).
+/// The instruction set the hot loops (BVH traversal, the pixel loop) are compiled for,
+/// chosen at run time: the binary is built for the baseline x86-64 (or any other target), and
+/// the x86-64-v3 copies run where the CPU has that level. Both compute the same arithmetic in
+/// the same order, so they give the same answers bit for bit (tests compare them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Isa {
     /// Plain Rust, for any target.
     Portable,
-    /// 256-bit AVX (x86-64 only).
-    Avx,
+    /// x86-64-v3 (AVX2, FMA, BMI1/2, LZCNT, POPCNT; x86-64 only): 256-bit node tests, and
+    /// bit scans and rounding as single instructions. Functions compiled for it carry
+    /// `#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]`.
+    Avx2,
 }
 
 impl Isa {
-    /// AVX where this CPU has it, unless the environment variable `LIGHTPROBE_ISA` is
-    /// `portable` (to test or compare the portable kernels on an AVX machine).
+    /// x86-64-v3 where this CPU has it, unless the environment variable `LIGHTPROBE_ISA` is
+    /// `portable` (to test or compare the portable kernels on such a machine).
     pub fn detect() -> Isa {
         if std::env::var_os("LIGHTPROBE_ISA").is_some_and(|v| v == "portable") {
             return Isa::Portable;
         }
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx") {
-            return Isa::Avx;
+        if std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+            && std::arch::is_x86_feature_detected!("bmi1")
+            && std::arch::is_x86_feature_detected!("bmi2")
+            && std::arch::is_x86_feature_detected!("lzcnt")
+            && std::arch::is_x86_feature_detected!("popcnt")
+        {
+            return Isa::Avx2;
         }
         Isa::Portable
     }
@@ -333,6 +341,42 @@ impl Accel {
     /// The closest hit with `t` in (0, `t_max`], for a unit `dir`.
     #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
+        #[cfg(target_arch = "x86_64")]
+        if self.isa == Isa::Avx2 {
+            // SAFETY: `isa` is `Avx2` only where the CPU has x86-64-v3 (`Isa::detect`).
+            return unsafe { self.intersect_avx2(origin, dir, t_max) };
+        }
+        self.intersect_on::<false>(origin, dir, t_max)
+    }
+
+    /// True if anything lies on the segment from `origin` along unit `dir` up to `t_max`.
+    #[inline]
+    pub fn occluded(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if self.isa == Isa::Avx2 {
+            // SAFETY: as in `intersect`.
+            return unsafe { self.occluded_avx2(origin, dir, t_max) };
+        }
+        self.occluded_on::<false>(origin, dir, t_max)
+    }
+
+    // The whole query, ray set-up and stack included, is compiled in each kernel: a
+    // baseline-compiled wrapper around the vector kernel costs a few percent of a render.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn intersect_avx2(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
+        self.intersect_on::<true>(origin, dir, t_max)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn occluded_avx2(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
+        self.occluded_on::<true>(origin, dir, t_max)
+    }
+
+    /// [`Accel::intersect`] with the kernels of `AVX`.
+    #[inline(always)]
+    fn intersect_on<const AVX: bool>(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
         if self.nodes.is_empty() {
             return None;
         }
@@ -341,18 +385,13 @@ impl Accel {
             if stack.len() < self.stack_len {
                 stack.resize(self.stack_len, (0, 0.0));
             }
-            #[cfg(target_arch = "x86_64")]
-            if self.isa == Isa::Avx {
-                // SAFETY: `isa` is `Avx` only where the CPU has AVX (`Isa::detect`).
-                return unsafe { self.closest_avx(&ray, t_max, stack) };
-            }
-            self.closest::<false>(&ray, t_max, stack)
+            self.closest::<AVX>(&ray, t_max, stack)
         })
     }
 
-    /// True if anything lies on the segment from `origin` along unit `dir` up to `t_max`.
-    #[inline]
-    pub fn occluded(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
+    /// [`Accel::occluded`] with the kernels of `AVX`.
+    #[inline(always)]
+    fn occluded_on<const AVX: bool>(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
         if self.nodes.is_empty() {
             return false;
         }
@@ -361,12 +400,7 @@ impl Accel {
             if stack.len() < self.stack_len {
                 stack.resize(self.stack_len, 0);
             }
-            #[cfg(target_arch = "x86_64")]
-            if self.isa == Isa::Avx {
-                // SAFETY: as in `intersect`.
-                return unsafe { self.any_avx(&ray, t_max, stack) };
-            }
-            self.any::<false>(&ray, t_max, stack)
+            self.any::<AVX>(&ray, t_max, stack)
         })
     }
 
@@ -378,8 +412,8 @@ impl Accel {
     /// The same BVH with traversal on `isa` (which this CPU must support; tests compare the
     /// kernels with it).
     pub fn with_isa(mut self, isa: Isa) -> Accel {
-        if isa == Isa::Avx {
-            assert_eq!(Isa::detect(), Isa::Avx, "this CPU has no AVX");
+        if isa == Isa::Avx2 {
+            assert_eq!(Isa::detect(), Isa::Avx2, "this CPU lacks x86-64-v3");
         }
         self.isa = isa;
         self
@@ -483,29 +517,17 @@ impl Accel {
             return self.intersect(bundle.origin, dir, t_max);
         }
         #[cfg(target_arch = "x86_64")]
-        if self.isa == Isa::Avx {
+        if self.isa == Isa::Avx2 {
             // SAFETY: as in `intersect`.
-            return unsafe { self.bundle_hit_avx(bundle, dir, t_max) };
+            return unsafe { self.bundle_hit_avx2(bundle, dir, t_max) };
         }
         self.bundle_hit::<false>(bundle, dir, t_max)
     }
 
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
-    fn bundle_hit_avx(&self, bundle: &Bundle, dir: Vec3, t_max: f32) -> Option<Hit> {
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn bundle_hit_avx2(&self, bundle: &Bundle, dir: Vec3, t_max: f32) -> Option<Hit> {
         self.bundle_hit::<true>(bundle, dir, t_max)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
-    fn closest_avx(&self, ray: &RayData, t_max: f32, stack: &mut [(u32, f32)]) -> Option<Hit> {
-        self.closest::<true>(ray, t_max, stack)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx")]
-    fn any_avx(&self, ray: &RayData, t_max: f32, stack: &mut [u32]) -> bool {
-        self.any::<true>(ray, t_max, stack)
     }
 
     /// [`Accel::intersect_bundle`] on a usable bundle, with the kernels of `AVX`.
@@ -1115,7 +1137,7 @@ mod tests {
     #[test]
     #[cfg(target_arch = "x86_64")]
     fn vector_tests_answer_as_the_portable_ones() {
-        if Isa::detect() != Isa::Avx {
+        if Isa::detect() != Isa::Avx2 {
             eprintln!("skipped: this CPU runs no AVX kernel, so there is nothing to compare");
             return;
         }

@@ -145,7 +145,7 @@ const fn sobol2_tables() -> [[u32; 256]; 4] {
 /// "Correlated multi-jittered sampling": a hash on the next power of two, cycle-walked into
 /// range). Giving each pair of sample dimensions its own permutation of the sample index
 /// decorrelates the pairs (the padding of pbrt-v4's padded Sobol sampler).
-#[inline]
+#[inline(always)]
 pub fn permute(i: u32, n: u32, key: u32) -> u32 {
     if n <= 1 {
         return 0;

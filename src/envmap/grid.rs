@@ -163,7 +163,7 @@ impl RingGrid {
     /// The cell containing unit direction `d`: the same cell as [`Self::lookup_angles`] (up to
     /// rounding at cell edges), without an inverse cosine and with an inline f32 arctangent
     /// (this is on the tracer's path for every ray that escapes).
-    #[inline]
+    #[inline(always)]
     pub fn lookup(&self, d: Vec3) -> u32 {
         // Ring: how many band edges lie at or above d (θ ≥ edge, i.e. cos θ ≤ cos edge).
         let y = d.y as f64;

@@ -96,7 +96,7 @@ impl PathSampler {
     /// per-pixel permutation of the sample index and digital shift, so pairs are independent
     /// of each other and of the pixel jitter, and every point is uniform (each pixel's
     /// estimate stays unbiased).
-    #[inline]
+    #[inline(always)]
     fn pair(&self, vertex: usize, pair: usize) -> Vec2 {
         let k = &self.keys[9 * vertex + 3 * pair..];
         sobol2(permute(self.index, self.spp, k[0]), [k[1], k[2]])
@@ -105,7 +105,7 @@ impl PathSampler {
     /// Vertex `k`'s light sample: (light and cell pick, direction), stratified over the
     /// pixel's samples for the first [`STRATIFIED`] vertices (the light samples of the first
     /// bounces are most of a diffuse image's noise), from the light stream after them.
-    #[inline]
+    #[inline(always)]
     pub fn light_sample(&mut self, k: usize) -> (Vec2, Vec2) {
         if k < STRATIFIED {
             (self.pair(k, 0), self.pair(k, 1))
@@ -557,7 +557,7 @@ impl Tracer<'_> {
 
     /// Next-event estimation of one light sample at vertex `v` of path `lane`: a shadow ray,
     /// and if the light is visible its contribution, into `added`.
-    #[inline]
+    #[inline(always)]
     fn shadow_ray(&self, lane: usize, v: &Vertex, ls: &LightSample, mis: bool, added: &mut Added) {
         let cos_s = ls.wi.dot(v.ns);
         if cos_s <= 0.0 || ls.wi.dot(v.ng) <= 0.0 {

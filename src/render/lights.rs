@@ -328,7 +328,7 @@ impl Lights {
 
     /// The pdf [`Lights::sample`] has for reaching `emitter` (in a direction that does reach
     /// it) from `p`.
-    #[inline]
+    #[inline(always)]
     pub fn pdf(&self, emitter: Emitter, p: Vec3, n: Vec3) -> f32 {
         let i = match emitter {
             Emitter::Sphere(i) => i as usize,

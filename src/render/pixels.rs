@@ -84,23 +84,13 @@ pub struct View<'a, R: Fn(f32, f32) -> Vec3> {
 #[inline]
 pub fn drive<R: Fn(f32, f32) -> Vec3, K: Kernel>(view: &View<R>, tile: Tile, kernel: &mut K) {
     #[cfg(target_arch = "x86_64")]
-    if view.isa == Isa::Avx && wide_cpu() {
-        // SAFETY: the CPU has every feature `drive_avx2` is compiled with (`wide_cpu`).
+    if view.isa == Isa::Avx2 {
+        // SAFETY: `Isa::Avx2` is chosen only where the CPU has every feature `drive_avx2` is
+        // compiled with (`Isa::detect`).
         unsafe { drive_avx2(view, tile, kernel) };
         return;
     }
     drive_on(view, tile, kernel)
-}
-
-/// Whether the CPU runs [`drive_avx2`].
-#[cfg(target_arch = "x86_64")]
-fn wide_cpu() -> bool {
-    std::arch::is_x86_feature_detected!("avx2")
-        && std::arch::is_x86_feature_detected!("fma")
-        && std::arch::is_x86_feature_detected!("bmi1")
-        && std::arch::is_x86_feature_detected!("bmi2")
-        && std::arch::is_x86_feature_detected!("lzcnt")
-        && std::arch::is_x86_feature_detected!("popcnt")
 }
 
 #[cfg(target_arch = "x86_64")]

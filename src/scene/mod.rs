@@ -52,6 +52,7 @@ impl Texture {
     }
 
     /// Bilinear lookup at glTF texture coordinates, repeat wrapping.
+    #[inline(always)]
     pub fn sample(&self, uv: Vec2) -> Vec3 {
         let (w, h) = (self.width as i64, self.height as i64);
         let x = uv.x * self.width as f32 - 0.5;
@@ -101,7 +102,7 @@ pub struct Material {
 
 impl Material {
     /// The albedo at texture coordinates `uv`, clamped to [0, 1].
-    #[inline]
+    #[inline(always)]
     pub fn albedo_at(&self, uv: Vec2) -> Vec3 {
         match &self.albedo {
             Albedo::Constant(c) => *c,
