@@ -38,9 +38,24 @@ pub enum Error {
         stage: &'static str,
         inner: Box<Error>,
     },
+    /// Work refused before it allocated: `what` would need `need` bytes, more than the
+    /// `left` bytes of the memory budget (`crate::memory::budget`) allow; `bound` says which
+    /// limit that is.
+    #[error("{what} would need about {}, but only {} is left {bound}", gib(*need), gib(*left))]
+    Memory {
+        what: String,
+        need: u64,
+        left: u64,
+        bound: String,
+    },
     /// A request that is invalid whatever the files say (a job too large, nothing to fit).
     #[error("{0}")]
     Invalid(String),
+}
+
+/// Bytes in GiB, for messages.
+fn gib(bytes: u64) -> String {
+    format!("{:.1} GiB", bytes as f64 / (1u64 << 30) as f64)
 }
 
 /// An I/O error worded for a person (the operating system's text without "(os error N)").

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use exr::prelude::{self as x, WritableImage};
 use glam::Vec3;
 
+use crate::cleanup;
 use crate::error::{Error, Result};
 
 /// A linear RGB image, row-major, row 0 at the top, with an optional alpha channel (lightprobe
@@ -61,16 +62,14 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Res
             format!("cannot be written: {} {what}", dir.display()),
         ));
     }
-    let tmp: PathBuf = path.with_file_name(format!(
-        ".{}.{}.tmp",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
+    let tmp: PathBuf = path.with_file_name(cleanup::temporary_name(&name.to_string_lossy()));
+    cleanup::register(&tmp);
     let result =
         write(&tmp).and_then(|()| std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e)));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
+    cleanup::unregister(&tmp);
     result
 }
 
@@ -138,11 +137,18 @@ fn write_exr_encoded(
     })
 }
 
+/// The largest image side read or written, pixels.
+pub const MAX_SIDE: usize = 16384;
+
 /// Reads the first RGB(A) layer of an EXR as f32. Alpha is kept only if the file has it.
+/// The header is checked first (sides, the chunk table against the file's size, the memory
+/// the pixels need against [`crate::memory::budget`]), so a few bytes declaring a huge image
+/// are refused before anything is allocated for it.
 pub fn read_exr(path: &Path) -> Result<Image> {
     if !path.exists() {
         return Err(Error::file(path, "no such file"));
     }
+    check_exr_header(path)?;
     struct Buf {
         w: usize,
         rgb: Vec<Vec3>,
@@ -172,6 +178,116 @@ pub fn read_exr(path: &Path) -> Result<Image> {
         rgb: buf.rgb,
         alpha: buf.alpha,
     })
+}
+
+/// The largest radiance value read from an image: beyond any exposure a camera records, and
+/// low enough that sums of squares over 10^7 pixels stay finite in f32.
+pub const MAX_RADIANCE: f32 = 1e15;
+
+/// Checks an image's pixels as radiance: colour finite, within ±[`MAX_RADIANCE`] and, unless
+/// `negative_ok`, not negative; alpha (coverage) finite and in [0, 1]. The error names the
+/// file, the first bad pixel and how many others there are.
+pub fn check_radiance(path: &Path, img: &Image, negative_ok: bool) -> Result<()> {
+    let colour = |c: &Vec3| -> Option<&'static str> {
+        if !c.is_finite() {
+            Some("is not finite")
+        } else if c.abs().max_element() > MAX_RADIANCE {
+            Some("exceeds 1e15 (beyond any radiance; sums over it would overflow)")
+        } else if !negative_ok && c.min_element() < 0.0 {
+            Some("is negative (radiance cannot be; clamp it to 0 if it is noise)")
+        } else {
+            None
+        }
+    };
+    let mut bad = img
+        .rgb
+        .iter()
+        .enumerate()
+        .filter_map(|(i, c)| Some((i, colour(c)?, *c)));
+    if let Some((i, what, c)) = bad.next() {
+        let more = bad.count();
+        return Err(Error::file(
+            path,
+            format!(
+                "pixel ({}, {}) {what}: {c}{}",
+                i as u32 % img.width.max(1),
+                i as u32 / img.width.max(1),
+                if more > 0 {
+                    format!(" ({more} more pixels are invalid)")
+                } else {
+                    String::new()
+                }
+            ),
+        ));
+    }
+    if let Some(alpha) = &img.alpha {
+        let mut bad = alpha
+            .iter()
+            .enumerate()
+            .filter(|(_, a)| !(0.0..=1.0).contains(*a));
+        if let Some((i, a)) = bad.next() {
+            let more = bad.count();
+            return Err(Error::file(
+                path,
+                format!(
+                    "pixel ({}, {}) has alpha {a}, outside [0, 1]{}",
+                    i as u32 % img.width.max(1),
+                    i as u32 / img.width.max(1),
+                    if more > 0 {
+                        format!(" ({more} more pixels too)")
+                    } else {
+                        String::new()
+                    }
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Checks every layer an EXR declares before any pixel is decoded.
+fn check_exr_header(path: &Path) -> Result<()> {
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
+    let meta = exr::meta::MetaData::read_from_file(path, false)
+        .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
+    for header in meta.headers.iter() {
+        let size = header.layer_size;
+        if size.width() > MAX_SIDE || size.height() > MAX_SIDE {
+            return Err(Error::file(
+                path,
+                format!(
+                    "declares a {}×{} image; at most {MAX_SIDE}×{MAX_SIDE} is read",
+                    size.width(),
+                    size.height()
+                ),
+            ));
+        }
+        // Each chunk has an 8-byte entry in the offset table, so a file shorter than its
+        // table cannot hold the image it declares.
+        let table = header.chunk_count as u64 * 8;
+        if table > len {
+            return Err(Error::file(
+                path,
+                format!(
+                    "truncated: its header declares {} chunks of pixels, more than a {len}-byte file holds",
+                    header.chunk_count
+                ),
+            ));
+        }
+        // Read as f32 RGB and alpha, plus the decoder's copy of the file's chunks.
+        let need = size.area() as u64 * 16 + len;
+        crate::memory::reserve(need, || {
+            format!(
+                "{}: reading its {}×{} image",
+                path.display(),
+                size.width(),
+                size.height()
+            )
+        })?;
+    }
+    Ok(())
 }
 
 /// The sRGB transfer function's inverse (encoded [0, 1] → linear), the inverse of

@@ -7,6 +7,7 @@
 
 pub mod accel;
 mod checked;
+pub mod cleanup;
 pub mod envmap;
 pub mod error;
 pub mod estimate;

@@ -8,6 +8,9 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+#[global_allocator]
+static ALLOCATOR: cli::alloc::Guarded = cli::alloc::Guarded;
+
 #[derive(Parser)]
 #[command(name = "lightprobe", version, about = "Estimate the lighting of a 3D scene from images of it.", long_about = None)]
 struct Cli {
@@ -15,6 +18,12 @@ struct Cli {
     /// depend on it.
     #[arg(long, global = true)]
     threads: Option<usize>,
+    /// Most memory this run may use, e.g. 4G, 512M or 2.5GiB (default: no limit of its own).
+    /// Whatever the setting, the process's own limits (ulimit -v, a container's or batch
+    /// job's cgroup) and the machine's free memory also bound it; work that would exceed
+    /// the tightest is refused before it starts.
+    #[arg(long, global = true, value_name = "SIZE", value_parser = cli::parse_size)]
+    memory_limit: Option<u64>,
     #[command(subcommand)]
     command: Command,
 }
@@ -72,10 +81,13 @@ fn main() -> ExitCode {
         Ok(cli) => cli,
         Err(e) => return usage_error(e),
     };
+    cli::on_interrupt();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
+        // A reader that stopped reading (`| head`) is no error, as for other Unix tools.
+        Err(e) if cli::is_broken_pipe(&e) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("lightprobe: error: {}", one_line(&e));
+            cli::say(&format!("lightprobe: error: {}", one_line(&e)));
             ExitCode::FAILURE
         }
     }
@@ -89,8 +101,15 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             "LIGHTPROBE_ISA={v:?}: the one value is `portable` (unset it to use the CPU's vector units)"
         );
     }
+    lightprobe::memory::set_limit(cli.memory_limit);
     if let Some(n) = cli.threads {
-        anyhow::ensure!(n >= 1, "--threads must be at least 1");
+        // Beyond a few threads per core there is nothing to gain, and each costs a stack.
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        anyhow::ensure!(
+            (1..=4 * cores).contains(&n),
+            "--threads must be between 1 and {} (4 × this machine's {cores} cores), got {n}",
+            4 * cores
+        );
         rayon::ThreadPoolBuilder::new()
             .num_threads(n)
             .build_global()
@@ -106,17 +125,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Scenarios(a) => cli::experiment::scenarios(a),
         Command::Sweep(a) => cli::experiment::sweep(a),
         Command::Report { dir, json } => cli::experiment::report(&dir, json),
-        Command::Schema { report } => {
-            print!(
-                "{}",
-                if report {
-                    lightprobe::estimate::job::report_schema()
-                } else {
-                    lightprobe::scene::sidecar::json_schema()
-                }
-            );
-            Ok(())
-        }
+        Command::Schema { report } => cli::print(&if report {
+            lightprobe::estimate::job::report_schema()
+        } else {
+            lightprobe::scene::sidecar::json_schema()
+        }),
     }
 }
 
@@ -164,9 +177,9 @@ fn usage_error(e: clap::Error) -> ExitCode {
         .filter(|l| l.starts_with("tip:"));
     let message = std::iter::once(message.join(" ")).chain(tips.map(str::to_string));
     let message = message.collect::<Vec<_>>().join("; ");
-    eprintln!(
+    cli::say(&format!(
         "lightprobe: error: {} (see --help)",
         message.trim_start_matches("error: ")
-    );
+    ));
     ExitCode::from(2)
 }

@@ -10,7 +10,7 @@
 //!                             and background.ron/.exr when an envmap is behind the lights
 //! ```
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::envmap::Envmap;
 use crate::envmap::latlong::{self, Filter, Target};
@@ -117,18 +117,103 @@ pub fn write_spheres(dir: &Path, so: &SphereOutcome, seen: &SeenViews) -> Result
     Ok(())
 }
 
-/// Creates `dir` and proves it writable before any long work starts; refuses a path that
-/// is not a folder.
-pub fn prepare_dir(dir: &Path) -> Result<()> {
+/// The name of the lock file [`prepare_dir`] holds in an output folder.
+pub const LOCK_FILE: &str = ".lightprobe.lock";
+
+/// An output folder held by this process: an advisory lock (`flock`) on a file in it that
+/// holds the process id, so that a second run can say who holds the folder. The operating
+/// system releases the lock when the process ends, however it ends; the file is removed when
+/// the run ends normally or is interrupted.
+#[derive(Debug)]
+pub struct DirLock {
+    path: PathBuf,
+    file: std::fs::File,
+}
+
+impl Drop for DirLock {
+    fn drop(&mut self) {
+        // Removed while still locked: a run that opened the file meanwhile finds, once it
+        // gets the lock, that the name no longer leads to it, and starts over.
+        let _ = std::fs::remove_file(&self.path);
+        crate::cleanup::unregister(&self.path);
+    }
+}
+
+/// Creates the output folder `dir`, proves it writable, locks it for this run (`lock_name`,
+/// a file in it; see [`DirLock`]) and removes the temporaries that runs which died left in it.
+/// A folder another live run holds is refused, naming that run's process.
+pub fn prepare_dir(dir: &Path, lock_name: &str) -> Result<DirLock> {
     if dir.exists() && !dir.is_dir() {
         return Err(Error::file(dir, "exists and is not a folder"));
     }
     create_dir(dir)?;
-    let probe = dir.join(format!(".lightprobe-write-test.{}", std::process::id()));
-    std::fs::write(&probe, b"")
-        .map_err(|e| Error::file(dir, format!("output folder is not writable: {e}")))?;
-    let _ = std::fs::remove_file(&probe);
-    Ok(())
+    let path = dir.join(lock_name);
+    let not_writable =
+        |e: std::io::Error| Error::file(dir, format!("output folder is not writable: {e}"));
+    let file = loop {
+        let mut file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(not_writable)?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                let mut holder = String::new();
+                let _ = std::io::Read::read_to_string(&mut file, &mut holder);
+                let who = match holder.trim() {
+                    "" => "another lightprobe run".to_string(),
+                    pid => format!("another lightprobe run (process {pid})"),
+                };
+                return Err(Error::file(
+                    dir,
+                    format!("is in use by {who}; wait for it to end or write elsewhere"),
+                ));
+            }
+            // Filesystems without locks (some network mounts): run unlocked.
+            Err(std::fs::TryLockError::Error(e)) if e.kind() == std::io::ErrorKind::Unsupported => {
+                break file;
+            }
+            Err(std::fs::TryLockError::Error(e)) => return Err(Error::io(&path, e)),
+        }
+        if same_file(&file, &path) {
+            break file;
+        }
+        // The holder removed the file as we opened it: lock the new one.
+    };
+    crate::cleanup::register(&path);
+    // From here on, dropping the lock removes the file, also on the error below.
+    let mut lock = DirLock { path, file };
+    lock.file
+        .set_len(0)
+        .and_then(|()| {
+            std::io::Write::write_all(
+                &mut lock.file,
+                format!("{}\n", std::process::id()).as_bytes(),
+            )
+        })
+        .map_err(not_writable)?;
+    crate::cleanup::remove_stale(dir, 2);
+    Ok(lock)
+}
+
+/// Whether `path` still names the open `file` (not a file created after it was removed).
+fn same_file(file: &std::fs::File, path: &Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (file.metadata(), std::fs::metadata(path)) {
+            (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = (file, path);
+        true
+    }
 }
 
 fn create_dir(dir: &Path) -> Result<()> {

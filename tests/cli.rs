@@ -1324,7 +1324,7 @@ fn estimate_references_are_render_reference_images() {
 fn gltf_corpus_fails_cleanly() {
     let bad = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bad");
     let cases = [
-        ("glb_bad_magic.glb", "not a valid glTF"),
+        ("glb_bad_magic.glb", "not a GLB file"),
         ("glb_bad_chunk_length.glb", "not a valid glTF"),
         ("glb_json_not_json.glb", "not a valid glTF"),
         ("glb_truncated.glb", "not a valid glTF 2.0 file: truncated"),

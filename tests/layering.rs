@@ -8,7 +8,8 @@ use std::path::{Path, PathBuf};
 
 /// Lowest first. A module may use the modules of lower layers only.
 const LAYERS: &[&[&str]] = &[
-    &["checked", "error", "math", "memory"],
+    &["checked", "error", "math"],
+    &["cleanup", "memory"],
     &["accel", "imageio", "sampling"],
     &["envmap", "metrics"],
     &["scene"],

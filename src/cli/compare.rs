@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use serde_json::json;
 
+use super::outln;
 use lightprobe::{imageio, metrics};
 
 #[derive(clap::Args)]
@@ -40,16 +41,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             reference.height
         );
     }
-    for (img, path) in [(&image, &a.image), (&reference, &a.reference)] {
-        if let Some(i) = img.rgb.iter().position(|c| !c.is_finite()) {
-            anyhow::bail!(
-                "{}: pixel ({}, {}) is not finite",
-                path.display(),
-                i as u32 % img.width,
-                i as u32 / img.width
-            );
-        }
-    }
+    // Negative values are allowed: another renderer's image may ring below zero, and the
+    // metrics are still defined.
+    imageio::check_radiance(&a.image, &image, true)?;
+    imageio::check_radiance(&a.reference, &reference, true)?;
     if let Some(s) = a.scale
         && !(s.is_finite() && s > 0.0)
     {
@@ -63,6 +58,17 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if !mask.contains(&true) {
         anyhow::bail!(
             "{}: its alpha (coverage) is zero everywhere, so no pixel is compared; pass --no-mask to compare every pixel",
+            a.reference.display()
+        );
+    }
+    if reference
+        .rgb
+        .iter()
+        .zip(&mask)
+        .all(|(c, &m)| !m || *c == glam::Vec3::ZERO)
+    {
+        anyhow::bail!(
+            "{}: is black (zero) on every compared pixel, so the relative errors are undefined",
             a.reference.display()
         );
     }
@@ -80,19 +86,20 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         if let (Some(p), Some(s)) = (&a.heatmap, scale) {
             v["heatmap"] = json!({ "path": p, "scale": s });
         }
-        println!("{}", serde_json::to_string_pretty(&v)?);
+        outln!("{}", serde_json::to_string_pretty(&v)?)?;
     } else {
-        println!("relMAE  {:.5}  ({:.2}%)", m.rel_mae, 100.0 * m.rel_mae);
-        println!("MAE     {:.6}", m.mae);
-        println!("RMSE    {:.6}", m.rmse);
-        println!("relMSE  {:.6}", m.rel_mse);
-        println!("PSNR    {:.2} dB", m.psnr);
-        println!(
+        outln!("relMAE  {:.5}  ({:.2}%)", m.rel_mae, 100.0 * m.rel_mae)?;
+        outln!("MAE     {:.6}", m.mae)?;
+        outln!("RMSE    {:.6}", m.rmse)?;
+        outln!("relMSE  {:.6}", m.rel_mse)?;
+        outln!("PSNR    {:.2} dB", m.psnr)?;
+        outln!(
             "pixels  {} compared, {} masked out (background)",
-            m.pixels, m.masked_out
-        );
+            m.pixels,
+            m.masked_out
+        )?;
         if let (Some(p), Some(s)) = (&a.heatmap, scale) {
-            println!("heatmap {} (scale 0..{s:.4})", p.display());
+            outln!("heatmap {} (scale 0..{s:.4})", p.display())?;
         }
     }
     Ok(())

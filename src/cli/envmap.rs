@@ -6,7 +6,7 @@ use lightprobe::envmap::latlong::{self, Filter, Target};
 use lightprobe::envmap::{Envmap, MAX_RINGS};
 use lightprobe::imageio;
 
-use super::{FilterArg, TargetArg};
+use super::{FilterArg, TargetArg, outln, say};
 
 #[derive(clap::Args)]
 pub struct ExportArgs {
@@ -55,7 +55,7 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
     let env = Envmap::load(&a.envmap)?;
     let img = latlong::export(&env, target, filter, a.width);
     imageio::write_latlong_exr(&a.out, &img)?;
-    println!(
+    outln!(
         "{}: {}×{} lat-long ({:?}, {:?} filter) of {} rings / {} cells",
         a.out.display(),
         img.width,
@@ -64,7 +64,7 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
         filter,
         env.grid.rings(),
         env.grid.cell_count()
-    );
+    )?;
     Ok(())
 }
 
@@ -80,17 +80,17 @@ pub fn import(a: ImportArgs) -> anyhow::Result<()> {
     let img = imageio::read_exr(&a.image)?;
     if img.width != 2 * img.height {
         // Any size is read as lat-long, but one that is not 2:1 is probably something else.
-        eprintln!(
+        say(&format!(
             "lightprobe: warning: {} is {}×{}, not 2:1 like a lat-long map; reading it as one anyway",
             a.image.display(),
             img.width,
             img.height
-        );
+        ));
     }
     let env =
         latlong::import(&img, target, a.rings).map_err(|m| lightprobe::Error::file(&a.image, m))?;
     env.save(&a.out)?;
-    println!(
+    outln!(
         "{}: {} rings / {} cells from {}×{} {}",
         a.out.display(),
         a.rings,
@@ -98,6 +98,6 @@ pub fn import(a: ImportArgs) -> anyhow::Result<()> {
         img.width,
         img.height,
         a.image.display()
-    );
+    )?;
     Ok(())
 }

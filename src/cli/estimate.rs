@@ -15,7 +15,7 @@ use lightprobe::output;
 use lightprobe::render::{Lights, RenderSettings, Renderer};
 use lightprobe::scene::{Scene, sidecar};
 
-use super::{Bars, SolverArg, check_memory, prepare_out_dir};
+use super::{Bars, SolverArg, check_memory, outln, prepare_out_dir, say};
 
 /// `--model`: the envmap, K sphere lights (None: 1 to 3, chosen on held-out pixels), or
 /// chosen from the data.
@@ -197,7 +197,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         || format!("{rings} rings at {w}×{h} × {views} views"),
         "; use fewer rings",
     )?;
-    prepare_out_dir(&a.out)?;
+    let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
     let render = RenderSettings::from_scene(&scene.settings);
     let true_lights = Lights::new(scene.lights.clone());
     let renderer = Renderer::new(&scene, &true_lights);
@@ -210,10 +210,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let seen = job::observe(&renderer, &render, references, &bars).with_context(in_scene)?;
     bars.finish();
     for name in &seen.blind {
-        eprintln!(
+        say(&format!(
             "lightprobe: warning: view {name:?} is left out of the fit and of the errors: {}",
             seen.blind_reason
-        );
+        ));
     }
     let job = Job::new(&renderer, &seen, &render, &settings);
     let mut estimate = job::run(&job, &mut |_| None, &bars).with_context(in_scene)?;
@@ -222,33 +222,30 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     report.scene = a.scene.clone();
     for (ch, c) in report.channels.iter().enumerate() {
         if !c.converged {
-            eprintln!(
-                "lightprobe: warning: the {:?} solver did not converge in channel {} within {} iterations / {} s (KKT violation {:.2e})",
+            say(&format!(
+                "lightprobe: warning: the {:?} solver stopped after {} iterations in channel {} without converging (KKT violation {:.2e}; it stops at its iteration limit or after --time-limit {} s)",
                 report.solver,
-                ["R", "G", "B"][ch],
                 c.iterations,
-                a.time_limit,
-                c.kkt_violation
-            );
+                ["R", "G", "B"][ch],
+                c.kkt_violation,
+                a.time_limit
+            ));
         }
     }
     output::write_estimate(&a.out, &mut estimate, &seen, a.reference.is_none(), t_all)?;
     let report = &estimate.report;
     if a.json {
-        print!(
-            "{}",
-            output::report_json(report).map_err(anyhow::Error::msg)?
-        );
+        super::print(&output::report_json(report).map_err(anyhow::Error::msg)?)?;
     } else {
         for line in summary(report) {
-            println!("{line}");
+            outln!("{line}")?;
         }
-        println!(
+        outln!(
             "total {:.1} s; peak memory {:.0} MiB; {}",
             report.timings.total_seconds,
             report.memory.peak_bytes as f64 / (1u64 << 20) as f64,
             a.out.join("report.json").display()
-        );
+        )?;
     }
     // The outputs are complete and valid either way; the exit code tells scripts the fit
     // stopped at its limits.

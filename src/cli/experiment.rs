@@ -10,7 +10,7 @@ use lightprobe::experiment::scenarios;
 use lightprobe::imageio;
 use lightprobe::scene::Scene;
 
-use super::{SolverArg, flag_error, prepare_out_dir};
+use super::{SolverArg, flag_error, outln, prepare_out_dir};
 
 #[derive(clap::Args)]
 pub struct ScenariosArgs {
@@ -88,7 +88,7 @@ pub fn scenarios(a: ScenariosArgs) -> anyhow::Result<()> {
     }
     let scene = Scene::load(&a.scene)?;
     let list = scenarios::generate(&scene, a.count, a.seed)?;
-    prepare_out_dir(&a.out)?;
+    let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
     // A folder left with sNN.ron files of a larger set would mix two sets in a sweep.
     let ours: Vec<String> = list.iter().map(|s| format!("{}.ron", s.name)).collect();
     for e in std::fs::read_dir(&a.out)
@@ -119,12 +119,12 @@ pub fn scenarios(a: ScenariosArgs) -> anyhow::Result<()> {
     let text = serde_json::to_string_pretty(&manifest)? + "\n";
     imageio::write_bytes(&a.out.join("scenarios.json"), text.as_bytes())?;
     let two = list.iter().filter(|s| s.lights.len() == 2).count();
-    println!(
+    outln!(
         "{} scenarios ({} with two lights) in {}",
         list.len(),
         two,
         a.out.display()
-    );
+    )?;
     Ok(())
 }
 
@@ -175,7 +175,8 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
     };
 
     let files = sidecar_files(&a.scenarios)?;
-    prepare_out_dir(&a.out)?;
+    // Shards of one sweep may share the folder; each locks its own trials file.
+    let _lock = prepare_out_dir(&a.out, &format!(".{}.lock", settings.shard.file_name()))?;
     let bar = if a.quiet {
         ProgressBar::hidden()
     } else {
@@ -208,7 +209,7 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
     })
     .map_err(flag_error)?;
     bar.finish_and_clear();
-    println!(
+    outln!(
         "{} trials planned, {} already done, {} run ({} failed, {} not converged) in {:.1} s: {}",
         summary.planned,
         summary.skipped,
@@ -217,7 +218,7 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         summary.not_converged,
         summary.wall_seconds,
         summary.trials_file.display()
-    );
+    )?;
     if summary.failed + summary.not_converged > 0 && !a.allow_failures {
         bail!(
             "{} trials failed and {} did not converge (see \"status\" and \"error\" in {}); pass --allow-failures to exit 0 anyway",
@@ -233,9 +234,9 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
 pub fn report(dir: &Path, json: bool) -> anyhow::Result<()> {
     let s = lightprobe::experiment::report::report(dir)?;
     if json {
-        println!("{}", serde_json::to_string_pretty(&s)?);
+        outln!("{}", serde_json::to_string_pretty(&s)?)?;
     } else {
-        println!(
+        outln!(
             "{} trials ({} failed) over {} scenarios: {} in {}",
             s.trials,
             s.failed,
@@ -246,7 +247,7 @@ pub fn report(dir: &Path, json: bool) -> anyhow::Result<()> {
                 .collect::<Vec<_>>()
                 .join(", "),
             dir.display()
-        );
+        )?;
     }
     Ok(())
 }

@@ -4,6 +4,7 @@ use std::path::Path;
 
 use serde_json::json;
 
+use super::outln;
 use lightprobe::scene::{Albedo, Scene};
 
 pub fn run(path: &Path) -> anyhow::Result<()> {
@@ -52,6 +53,6 @@ pub fn run(path: &Path) -> anyhow::Result<()> {
             "max_bounces": scene.settings.max_bounces, "seed": scene.settings.seed, "rings": scene.settings.rings,
         },
     });
-    println!("{}", serde_json::to_string_pretty(&out)?);
+    outln!("{}", serde_json::to_string_pretty(&out)?)?;
     Ok(())
 }

@@ -2,6 +2,7 @@
 //! command-line terms, a call into the library, and what is printed. Work and files belong to
 //! the library.
 
+pub mod alloc;
 pub mod compare;
 pub mod envmap;
 pub mod estimate;
@@ -9,7 +10,7 @@ pub mod experiment;
 pub mod info;
 pub mod render;
 
-use std::io::IsTerminal;
+use std::io::{IsTerminal, Write};
 use std::path::Path;
 use std::sync::Mutex;
 
@@ -75,31 +76,97 @@ pub fn flag_error(e: lightprobe::Error) -> anyhow::Error {
     }
 }
 
-/// Creates the `--out` folder and proves it writable before any long work starts.
-pub fn prepare_out_dir(dir: &Path) -> anyhow::Result<()> {
+/// Standard output could not be written (a closed pipe, a full disk).
+#[derive(Debug, thiserror::Error)]
+#[error("cannot write to standard output")]
+pub struct StdoutError(#[source] std::io::Error);
+
+/// Writes `text` to standard output; failing to is an error ([`StdoutError`]), never a panic.
+pub fn print(text: &str) -> anyhow::Result<()> {
+    let mut out = std::io::stdout().lock();
+    out.write_all(text.as_bytes())
+        .and_then(|()| out.flush())
+        .map_err(|e| StdoutError(e).into())
+}
+
+/// [`print`] with a newline, formatted like `println!`.
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        $crate::cli::print(&format!("{}\n", format_args!($($arg)*)))
+    };
+}
+pub(crate) use outln;
+
+/// Whether `e` is standard output's reader having gone away.
+pub fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.downcast_ref::<StdoutError>()
+        .is_some_and(|StdoutError(io)| io.kind() == std::io::ErrorKind::BrokenPipe)
+}
+
+/// Writes a line to standard error, ignoring failure (there is nowhere left to report it).
+pub fn say(line: &str) {
+    let _ = writeln!(std::io::stderr(), "{line}");
+}
+
+/// On SIGINT, SIGTERM or SIGHUP: removes this process's temporary files, says so, and exits
+/// with status 130. (Outputs are renamed into place only when complete, so an interrupted
+/// run leaves its output folder as it was, plus whatever finished before.)
+pub fn on_interrupt() {
+    // Failing to install the handler only loses the clean-up; the run itself is unaffected.
+    let _ = ctrlc::set_handler(|| {
+        lightprobe::cleanup::remove_all();
+        say("lightprobe: interrupted");
+        std::process::exit(130);
+    });
+}
+
+/// A byte count with an optional unit: `4G`, `4GiB`, `512M`, `1.5g`, `1000000` (bytes). K, M,
+/// G and T are powers of 1024.
+pub fn parse_size(text: &str) -> Result<u64, String> {
+    let t = text.trim();
+    let digits = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (number, unit) = t.split_at(digits);
+    let shift = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 0,
+        "k" | "kb" | "kib" => 10,
+        "m" | "mb" | "mib" => 20,
+        "g" | "gb" | "gib" => 30,
+        "t" | "tb" | "tib" => 40,
+        _ => {
+            return Err(format!(
+                "{text:?}: expected a size such as 4G, 512M or 2.5GiB"
+            ));
+        }
+    };
+    let value: f64 = number
+        .parse()
+        .map_err(|_| format!("{text:?}: expected a size such as 4G, 512M or 2.5GiB"))?;
+    let bytes = value * (1u64 << shift) as f64;
+    if !(bytes >= 1.0 && bytes < 2f64.powi(62)) {
+        return Err(format!("{text:?}: must be at least 1 byte and below 4 EiB"));
+    }
+    Ok(bytes as u64)
+}
+
+/// Creates the `--out` folder, proves it writable and locks it for this run (the lock file
+/// `lock_name`; see `lightprobe::output::DirLock`) before any long work starts. Keep the lock
+/// until the run ends.
+pub fn prepare_out_dir(dir: &Path, lock_name: &str) -> anyhow::Result<lightprobe::output::DirLock> {
     if dir.exists() && !dir.is_dir() {
         anyhow::bail!(
             "{}: exists and is not a folder (--out names a folder)",
             dir.display()
         );
     }
-    Ok(lightprobe::output::prepare_dir(dir)?)
+    Ok(lightprobe::output::prepare_dir(dir, lock_name)?)
 }
 
-/// Refuses a job that needs more than nine tenths of the memory available; `hint` ends the
-/// message (what to do instead).
+/// Refuses a job that needs more than the memory budget allows (`lightprobe::memory`);
+/// `hint` ends the message (what to do instead).
 pub fn check_memory(need: u64, what: impl FnOnce() -> String, hint: &str) -> anyhow::Result<()> {
-    if let Some(avail) = lightprobe::memory::available_bytes()
-        && need > avail / 10 * 9
-    {
-        anyhow::bail!(
-            "{} would need about {:.1} GiB, but only {:.1} GiB is available{hint}",
-            what(),
-            need as f64 / (1u64 << 30) as f64,
-            avail as f64 / (1u64 << 30) as f64
-        );
-    }
-    Ok(())
+    lightprobe::memory::reserve(need, what).map_err(|e| anyhow::anyhow!("{e}{hint}"))
 }
 
 /// Progress on stderr: a bar per phase on a terminal; elsewhere (logs of batch jobs and CI)
@@ -171,7 +238,7 @@ impl Progress for Bars {
             bar.set_message(name.to_string());
             s.bar = Some(bar);
         } else {
-            eprintln!("lightprobe: {name}: started");
+            say(&format!("lightprobe: {name}: started"));
         }
     }
 
@@ -189,7 +256,11 @@ impl Progress for Bars {
         if tenths > s.tenths {
             s.tenths = tenths;
             let secs = s.start.map_or(0.0, |t| t.elapsed().as_secs_f64());
-            eprintln!("lightprobe: {}: {}% after {secs:.1} s", s.name, tenths * 10);
+            say(&format!(
+                "lightprobe: {}: {}% after {secs:.1} s",
+                s.name,
+                tenths * 10
+            ));
         }
     }
 }

@@ -15,7 +15,7 @@ use lightprobe::render::report::{
 use lightprobe::render::{Lights, RenderSettings, Renderer, view_stream};
 use lightprobe::scene::{Camera, PickError, Scene, sidecar};
 
-use super::{Bars, StrategyArg, check_memory, prepare_out_dir};
+use super::{Bars, StrategyArg, check_memory, outln, prepare_out_dir};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -103,7 +103,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     // One view at a time: its image (RGB + coverage), the per-tile results and the encoder.
     let (w, h) = (scene.settings.width, scene.settings.height);
     check_memory(w as u64 * h as u64 * 40, || format!("{w}×{h} images"), "")?;
-    prepare_out_dir(&a.out)?;
+    let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
     let load_seconds = t_load.elapsed().as_secs_f64();
 
     let t_bvh = Instant::now();
@@ -163,20 +163,20 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let text = serde_json::to_string_pretty(&report).context("render.json")? + "\n";
     imageio::write_bytes(&a.out.join("render.json"), text.as_bytes())?;
     if a.json {
-        print!("{text}");
+        super::print(&text)?;
         return Ok(());
     }
     for v in &report.views {
-        println!(
+        outln!(
             "{:<12} {}  mean {:.4?}  coverage {:.0}%  {:.2} s",
             v.view,
             v.exr.display(),
             v.mean_rgb,
             100.0 * v.coverage,
             v.seconds,
-        );
+        )?;
     }
-    println!(
+    outln!(
         "{} triangles, {} spp, {} bounces: {:.2} s, {:.2} M samples/s on {} threads",
         report.triangles,
         settings.spp,
@@ -184,7 +184,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         render_seconds,
         report.samples_per_second / 1e6,
         report.threads
-    );
+    )?;
     Ok(())
 }
 
@@ -201,8 +201,10 @@ fn render_view(
     let seconds = t.elapsed().as_secs_f64();
     anyhow::ensure!(
         img.rgb.iter().all(|c| c.is_finite()),
-        "view {:?}: the render produced non-finite pixels (a bug; please report it)",
-        cam.name
+        "view {:?}: the render produced non-finite pixels from {} (its lights or materials \
+         overflow; a bug if every value in it is moderate)",
+        cam.name,
+        a.scene.display()
     );
     let file = |suffix: &str| a.out.join(format!("{}.{suffix}", cam.name));
     let (exr, png) = (file("exr"), file("png"));

@@ -41,9 +41,10 @@ checked!(
     "rings must be between 1 and 1000, got {}"
 );
 checked!(
-    /// Linear RGB radiance, each channel finite and ≥ 0.
-    Rgb((f32, f32, f32)), "(f32, f32, f32)", |v| [v.0, v.1, v.2].iter().all(|c| c.is_finite() && *c >= 0.0),
-    "radiance must be finite and >= 0 in every channel, got {:?}"
+    /// Linear RGB radiance, each channel in [0, 1e15] ([`crate::imageio::MAX_RADIANCE`]:
+    /// beyond it, a render's sums overflow).
+    Rgb((f32, f32, f32)), "(f32, f32, f32)", |v| [v.0, v.1, v.2].iter().all(|c| (0.0..=crate::imageio::MAX_RADIANCE).contains(c)),
+    "radiance must be between 0 and 1e15 in every channel, got {:?}"
 );
 
 /// Relative weight floor of the sampling distribution (× the mean luminance).
@@ -84,12 +85,13 @@ impl Envmap {
                 radiance.len()
             ));
         }
-        if let Some(i) = radiance
-            .iter()
-            .position(|c| !(c.is_finite() && c.min_element() >= 0.0))
-        {
+        if let Some(i) = radiance.iter().position(|c| {
+            !(c.is_finite()
+                && c.min_element() >= 0.0
+                && c.max_element() <= crate::imageio::MAX_RADIANCE)
+        }) {
             return Err(format!(
-                "cell {i} has radiance {:?}; every channel must be finite and >= 0",
+                "cell {i} has radiance {:?}; every channel must be between 0 and 1e15",
                 radiance[i].to_array()
             ));
         }
@@ -193,7 +195,7 @@ impl Envmap {
 
     /// Picks a cell with `u_cell` (by luminance × solid angle) and a direction uniformly in it
     /// with `u`: (cell, unit direction, pdf per solid angle).
-    #[inline]
+    #[inline(always)]
     pub fn sample(&self, u_cell: f32, u: Vec2) -> (u32, Vec3, f32) {
         let u_cell = u_cell as f64;
         let ring = (grid::count_while(&self.ring_cdf, |c| c <= u_cell)

@@ -51,16 +51,7 @@ pub fn load_references(
                     ),
                 ));
             }
-            if let Some(i) = img.rgb.iter().position(|c| !c.is_finite()) {
-                return Err(Error::file(
-                    &p,
-                    format!(
-                        "pixel ({}, {}) is not finite",
-                        i as u32 % width,
-                        i as u32 / width
-                    ),
-                ));
-            }
+            imageio::check_radiance(&p, &img, false)?;
             Ok(img)
         })
         .collect()

@@ -414,7 +414,6 @@ pub fn run(
         summary.wall_seconds = t_all.elapsed().as_secs_f64();
         return Ok(summary);
     }
-    let mut sink = open_append(&trials_file)?;
 
     // ---- Scenes: loaded and BVH-built once per group ----
     let needed: HashSet<usize> = todo.iter().map(|t| scenarios[t.scenario].group).collect();
@@ -426,6 +425,21 @@ pub fn run(
                 .transpose()
         })
         .collect::<Result<_>>()?;
+    // Every trial's peak (the transport dominates it), before the first trial runs.
+    for t in &todo {
+        let Some(scene) = &scenes[scenarios[t.scenario].group] else {
+            continue;
+        };
+        let per_view = scene.settings.width as u64 * scene.settings.height as u64;
+        let rings = match t.rings {
+            Some(r) => Rings::Fixed(r),
+            None => Rings::Auto(axes.rings.clone()),
+        };
+        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres)
+            .memory_needed(per_view * scene.cameras.len() as u64, per_view);
+        crate::memory::reserve(need, || format!("trial {}", id(t)))?;
+    }
+    let mut sink = open_append(&trials_file)?;
     let no_lights = Lights::new(Vec::new());
     let renderers: Vec<Option<Renderer>> = scenes
         .iter()

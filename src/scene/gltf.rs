@@ -28,6 +28,29 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
     let len = std::fs::metadata(path)
         .map_err(|e| Error::io(path, e))?
         .len();
+    if len == 0 {
+        return Err(Error::file(path, "is empty (expected a glTF 2.0 scene)"));
+    }
+    let glb = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("glb"));
+    if glb && !head[..n].starts_with(b"glTF") {
+        return Err(Error::file(
+            path,
+            "not a GLB file: it does not start with the GLB signature \"glTF\"",
+        ));
+    }
+    let json = head[..n]
+        .iter()
+        // (a UTF-8 byte-order mark is tolerated, as the gltf crate does)
+        .find(|b| !b.is_ascii_whitespace() && ![0xEF, 0xBB, 0xBF].contains(*b))
+        .is_some_and(|&b| b == b'{');
+    if !head[..n].starts_with(b"glTF") && !json {
+        return Err(Error::file(
+            path,
+            "not a glTF 2.0 file: neither JSON (.gltf) nor binary glTF (.glb)",
+        ));
+    }
     check_glb_header(&head[..n], len, path)?;
     check_uris(path)?;
     let imported = contain(path, || gltf::import(path))?.map_err(|e| match e {
@@ -217,6 +240,7 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
         .or_else(|| doc.scenes().next())
         .ok_or_else(|| Error::file(path, "has no scene"))?;
 
+    check_expansion(path, &scene, doc.nodes().len())?;
     let mut out = Loaded {
         mesh: Mesh::default(),
         materials,
@@ -269,6 +293,18 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
                     ),
                 ));
             }
+            // A camera's frame must be a rotation after removing scale: a zero or non-finite
+            // scale leaves no direction to look in (a NaN camera renders black).
+            let det = glam::Mat3::from_mat4(world).determinant();
+            if !(det.is_finite() && det.abs() > 1e-12) {
+                return Err(Error::file(
+                    path,
+                    format!(
+                        "camera node {} has a degenerate transform (its world matrix scales by {det}: a scale of 0?)",
+                        node_name(&node)
+                    ),
+                ));
+            }
             // An unnamed camera still needs a name: it names the view's files and its random
             // stream.
             let name = node
@@ -286,6 +322,105 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
         return Err(Error::file(path, "has no triangles in its scene"));
     }
     Ok(out)
+}
+
+/// Most node instances a scene may expand to (a node reached along two paths counts twice).
+const MAX_INSTANCES: u64 = 1 << 24;
+
+/// Memory a loaded triangle takes at most, with its BVH and while that is built: mesh
+/// (three vertices of position, normal and texture coordinates, indices, material: 112
+/// bytes), BVH leaves, nodes and the builder's working arrays.
+pub const BYTES_PER_TRIANGLE: u64 = 400;
+
+/// Counts the node instances and triangles `scene` expands to, without expanding it, and
+/// refuses one that is too large for the memory budget: nodes may instance a mesh through a
+/// shared hierarchy (a DAG of children), so a file of a few kilobytes can declare 2^40
+/// triangles.
+fn check_expansion(path: &Path, scene: &gltf::Scene, nodes: usize) -> Result<()> {
+    // Per node: (instances, triangles) of its subtree, saturating; memoised, so shared
+    // subtrees are counted once. The recursion is bounded by MAX_NODE_DEPTH (cycles).
+    fn count(
+        path: &Path,
+        node: &gltf::Node,
+        depth: usize,
+        memo: &mut Vec<Option<(u64, u64)>>,
+    ) -> Result<(u64, u64)> {
+        if depth > MAX_NODE_DEPTH {
+            return Err(Error::file(
+                path,
+                "node hierarchy is deeper than 256 levels (a cycle?)",
+            ));
+        }
+        if let Some(known) = memo.get(node.index()).copied().flatten() {
+            return Ok(known);
+        }
+        let mut instances = 1u64;
+        let mut triangles = node.mesh().map_or(0, |m| {
+            m.primitives()
+                .map(|p| {
+                    let n = p
+                        .indices()
+                        .or_else(|| p.get(&gltf::Semantic::Positions))
+                        .map_or(0, |a| a.count() as u64);
+                    n / 3
+                })
+                .fold(0u64, u64::saturating_add)
+        });
+        for child in node.children() {
+            let (i, t) = count(path, &child, depth + 1, memo)?;
+            instances = instances.saturating_add(i);
+            triangles = triangles.saturating_add(t);
+        }
+        if let Some(slot) = memo.get_mut(node.index()) {
+            *slot = Some((instances, triangles));
+        }
+        Ok((instances, triangles))
+    }
+    let mut memo = vec![None; nodes];
+    let (mut instances, mut triangles) = (0u64, 0u64);
+    for node in scene.nodes() {
+        let (i, t) = count(path, &node, 0, &mut memo)?;
+        instances = instances.saturating_add(i);
+        triangles = triangles.saturating_add(t);
+    }
+    if instances > MAX_INSTANCES {
+        return Err(Error::file(
+            path,
+            format!(
+                "its node hierarchy expands to {} node instances (nodes shared by several parents count once per parent); at most {MAX_INSTANCES} are loaded",
+                big(instances)
+            ),
+        ));
+    }
+    if triangles > u32::MAX as u64 / 8 {
+        return Err(Error::file(
+            path,
+            format!(
+                "expands to {} triangles; at most {} are loaded",
+                big(triangles),
+                u32::MAX / 8
+            ),
+        ));
+    }
+    crate::memory::reserve(triangles.saturating_mul(BYTES_PER_TRIANGLE), || {
+        format!(
+            "{}: loading its {} triangles and their BVH",
+            path.display(),
+            big(triangles)
+        )
+    })
+}
+
+/// A count for messages: exact below a million, else like 1.1e12 (saturated counts are
+/// "at least").
+fn big(n: u64) -> String {
+    if n == u64::MAX {
+        "more than 1.8e19".to_string()
+    } else if n < 1_000_000 {
+        n.to_string()
+    } else {
+        format!("{n:.1e}")
+    }
 }
 
 fn node_name(node: &gltf::Node) -> String {
@@ -314,6 +449,15 @@ fn load_primitive(
         ));
     }
     check_accessor_types(path, what, prim, texcoord_set)?;
+    let accessors = [
+        prim.get(&gltf::Semantic::Positions),
+        prim.get(&gltf::Semantic::Normals),
+        prim.get(&gltf::Semantic::TexCoords(texcoord_set)),
+        prim.indices(),
+    ];
+    for a in accessors.iter().flatten() {
+        check_sparse(path, what, a, buffers)?;
+    }
     let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
     let positions: Vec<Vec3> = reader
         .read_positions()
@@ -429,6 +573,55 @@ fn load_primitive(
 
 /// Checks that each attribute's accessor has the type the spec requires before reading it
 /// (the gltf crate's reader assumes it: found by fuzzing).
+/// Checks a sparse accessor's indices: each must name an element of the accessor (the
+/// gltf crate's reader does not check, and substitutes nothing for one past the end).
+fn check_sparse(
+    path: &Path,
+    what: &str,
+    accessor: &gltf::Accessor,
+    buffers: &[gltf::buffer::Data],
+) -> Result<()> {
+    let Some(sparse) = accessor.sparse() else {
+        return Ok(());
+    };
+    let indices = sparse.indices();
+    let view = indices.view();
+    let size = match indices.index_type() {
+        gltf::accessor::sparse::IndexType::U8 => 1,
+        gltf::accessor::sparse::IndexType::U16 => 2,
+        gltf::accessor::sparse::IndexType::U32 => 4,
+    };
+    let fail = |why: String| {
+        Error::file(
+            path,
+            format!("{what}: sparse accessor #{} {why}", accessor.index()),
+        )
+    };
+    let start = view.offset() + indices.offset();
+    let end = sparse
+        .count()
+        .checked_mul(size)
+        .and_then(|n| n.checked_add(start))
+        .filter(|&end| end <= view.offset() + view.length())
+        .ok_or_else(|| fail("has more indices than its buffer view holds".into()))?;
+    let bytes = buffers
+        .get(view.buffer().index())
+        .and_then(|b| b.0.get(start..end))
+        .ok_or_else(|| fail("has indices past the end of its buffer".into()))?;
+    for (k, chunk) in bytes.chunks_exact(size).enumerate() {
+        let mut word = [0u8; 4];
+        word[..size].copy_from_slice(chunk);
+        let i = u32::from_le_bytes(word) as usize;
+        if i >= accessor.count() {
+            return Err(fail(format!(
+                "substitutes element {i} (index {k}), but the accessor has {} elements",
+                accessor.count()
+            )));
+        }
+    }
+    Ok(())
+}
+
 fn check_accessor_types(
     path: &Path,
     what: &str,

@@ -1,0 +1,151 @@
+//! Files this process must not leave behind if it is interrupted: the temporaries of atomic
+//! writes and the lock of an output folder. The CLI's signal handler calls [`remove_all`]
+//! before it exits; normal paths unregister their files as they rename or remove them.
+//! Temporaries carry the writer's process id in their name, so those of a process that died
+//! without cleaning up (SIGKILL, power loss) are found by [`remove_stale`].
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// A list of files to remove on interruption.
+struct Registry(Mutex<Vec<PathBuf>>);
+
+static FILES: Registry = Registry(Mutex::new(Vec::new()));
+
+impl Registry {
+    fn register(&self, path: &Path) {
+        if let Ok(mut files) = self.0.lock() {
+            files.push(path.to_path_buf());
+        }
+    }
+
+    fn unregister(&self, path: &Path) {
+        if let Ok(mut files) = self.0.lock()
+            && let Some(i) = files.iter().rposition(|p| p == path)
+        {
+            files.swap_remove(i);
+        }
+    }
+
+    fn remove_all(&self) -> usize {
+        let files = match self.0.try_lock() {
+            Ok(mut files) => std::mem::take(&mut *files),
+            // A thread holding the lock is adding or dropping one path: wait for it.
+            Err(_) => match self.0.lock() {
+                Ok(mut files) => std::mem::take(&mut *files),
+                Err(poisoned) => std::mem::take(&mut *poisoned.into_inner()),
+            },
+        };
+        files
+            .iter()
+            .filter(|p| std::fs::remove_file(p).is_ok())
+            .count()
+    }
+}
+
+/// Registers `path` to be removed if the process is interrupted.
+pub fn register(path: &Path) {
+    FILES.register(path);
+}
+
+/// Unregisters `path` (it was renamed into place or removed).
+pub fn unregister(path: &Path) {
+    FILES.unregister(path);
+}
+
+/// Removes every registered file (for a signal handler, which runs on its own thread).
+/// Returns how many were removed.
+pub fn remove_all() -> usize {
+    FILES.remove_all()
+}
+
+/// The name of the temporary an atomic write of `name` uses in this process.
+pub fn temporary_name(name: &str) -> String {
+    format!(".{name}.{}.tmp", std::process::id())
+}
+
+/// Removes, in `dir` and its subfolders down to `depth` levels, the temporaries
+/// ([`temporary_name`]) of processes that no longer run (on Linux, where that can be told;
+/// elsewhere nothing is removed). Returns how many were removed.
+pub fn remove_stale(dir: &Path, depth: usize) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let path = entry.path();
+        let Ok(kind) = entry.file_type() else {
+            continue;
+        };
+        if kind.is_dir() && depth > 0 {
+            removed += remove_stale(&path, depth - 1);
+        } else if kind.is_file()
+            && let Some(pid) = temporary_pid(&entry.file_name().to_string_lossy())
+            && pid != std::process::id()
+            && process_is_gone(pid)
+            && std::fs::remove_file(&path).is_ok()
+        {
+            removed += 1;
+        }
+    }
+    removed
+}
+
+/// The process id in a temporary's name `.NAME.PID.tmp`.
+fn temporary_pid(file_name: &str) -> Option<u32> {
+    let rest = file_name.strip_prefix('.')?.strip_suffix(".tmp")?;
+    let (_, pid) = rest.rsplit_once('.')?;
+    pid.parse().ok()
+}
+
+/// Whether process `pid` has certainly ended (Linux: no /proc entry).
+pub fn process_is_gone(pid: u32) -> bool {
+    Path::new("/proc/self").exists() && !Path::new(&format!("/proc/{pid}")).exists()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn temporary_names_carry_the_pid() {
+        let name = temporary_name("envmap.exr");
+        assert_eq!(temporary_pid(&name), Some(std::process::id()));
+        assert_eq!(temporary_pid(".envmap.exr.tmp"), None);
+        assert_eq!(temporary_pid("envmap.exr"), None);
+    }
+
+    #[test]
+    fn stale_temporaries_go_and_live_ones_stay() {
+        let dir = tempfile::tempdir().unwrap();
+        let sub = dir.path().join("estimate");
+        std::fs::create_dir(&sub).unwrap();
+        // PIDs above the kernel's maximum (2^22) never run.
+        let dead = sub.join(".view.exr.4194305.tmp");
+        let mine = dir.path().join(temporary_name("envmap.exr"));
+        let other = dir.path().join("envmap.exr");
+        for p in [&dead, &mine, &other] {
+            std::fs::write(p, b"x").unwrap();
+        }
+        if Path::new("/proc/self").exists() {
+            assert_eq!(remove_stale(dir.path(), 1), 1);
+            assert!(!dead.exists());
+        }
+        assert!(mine.exists() && other.exists());
+    }
+
+    #[test]
+    fn registered_files_are_removed_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+        std::fs::write(&a, b"x").unwrap();
+        std::fs::write(&b, b"x").unwrap();
+        let registry = Registry(Mutex::new(Vec::new()));
+        registry.register(&a);
+        registry.register(&b);
+        registry.unregister(&b);
+        assert_eq!(registry.remove_all(), 1);
+        assert!(!a.exists() && b.exists());
+        assert_eq!(registry.remove_all(), 0);
+    }
+}
