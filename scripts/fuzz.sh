@@ -3,12 +3,14 @@
 #   sidecar  any bytes -> the RON sidecar parser
 #   gltf     any bytes -> the glTF/GLB loader (geometry, materials, cameras)
 #   envmap   any bytes -> the envmap.ron parser, then a lat-long export
+#   exr      any bytes -> the EXR reader (header checks, then decoding)
+#   reference  any bytes as a view's reference EXR -> reference loading and pixel checks
 # Usage: scripts/fuzz.sh [SECONDS_PER_TARGET] [TARGET...]   (default 60 s, all targets)
 # Crashes are left in fuzz/artifacts/<target>/; the summary prints executions and crashes.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 secs="${1:-60}"; shift || true
-targets=("$@"); [ ${#targets[@]} -gt 0 ] || targets=(sidecar gltf envmap)
+targets=("$@"); [ ${#targets[@]} -gt 0 ] || targets=(sidecar gltf envmap exr reference)
 rustup toolchain list | grep -q nightly || rustup toolchain install nightly --profile minimal
 command -v cargo-fuzz >/dev/null 2>&1 || cargo install cargo-fuzz --locked
 export RUSTFLAGS=""   # the sanitizer build sets its own flags

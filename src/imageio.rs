@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use exr::prelude::{self as x, WritableImage};
+use exr::prelude::{self as x, ReadChannels, ReadLayers, WritableImage};
 use glam::Vec3;
 
 use crate::cleanup;
@@ -148,28 +148,43 @@ pub fn read_exr(path: &Path) -> Result<Image> {
     if !path.exists() {
         return Err(Error::file(path, "no such file"));
     }
-    check_exr_header(path)?;
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
+    crate::memory::reserve(len, || format!("{}: reading the file", path.display()))?;
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    read_exr_bytes(&bytes, path)
+}
+
+/// [`read_exr`] on the bytes of an EXR file (`path` names it in errors).
+pub fn read_exr_bytes(bytes: &[u8], path: &Path) -> Result<Image> {
+    check_exr_header(bytes, path)?;
     struct Buf {
         w: usize,
         rgb: Vec<Vec3>,
         alpha: Option<Vec<f32>>,
     }
-    let img = x::read_first_rgba_layer_from_file(
-        path,
-        |size, channels: &x::RgbaChannels| Buf {
-            w: size.width(),
-            rgb: vec![Vec3::ZERO; size.area()],
-            alpha: channels.3.as_ref().map(|_| vec![1.0; size.area()]),
-        },
-        |buf: &mut Buf, p: x::Vec2<usize>, (r, g, b, a): (f32, f32, f32, f32)| {
-            let i = p.y() * buf.w + p.x();
-            buf.rgb[i] = Vec3::new(r, g, b);
-            if let Some(alpha) = &mut buf.alpha {
-                alpha[i] = a;
-            }
-        },
-    )
-    .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
+    let img = x::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .rgba_channels(
+            |size, channels: &x::RgbaChannels| Buf {
+                w: size.width(),
+                rgb: vec![Vec3::ZERO; size.area()],
+                alpha: channels.3.as_ref().map(|_| vec![1.0; size.area()]),
+            },
+            |buf: &mut Buf, p: x::Vec2<usize>, (r, g, b, a): (f32, f32, f32, f32)| {
+                let i = p.y() * buf.w + p.x();
+                buf.rgb[i] = Vec3::new(r, g, b);
+                if let Some(alpha) = &mut buf.alpha {
+                    alpha[i] = a;
+                }
+            },
+        )
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
     let size = img.layer_data.size;
     let buf = img.layer_data.channel_data.pixels;
     Ok(Image {
@@ -246,11 +261,9 @@ pub fn check_radiance(path: &Path, img: &Image, negative_ok: bool) -> Result<()>
 }
 
 /// Checks every layer an EXR declares before any pixel is decoded.
-fn check_exr_header(path: &Path) -> Result<()> {
-    let len = std::fs::metadata(path)
-        .map_err(|e| Error::io(path, e))?
-        .len();
-    let meta = exr::meta::MetaData::read_from_file(path, false)
+fn check_exr_header(bytes: &[u8], path: &Path) -> Result<()> {
+    let len = bytes.len() as u64;
+    let meta = exr::meta::MetaData::read_from_buffered(bytes, false)
         .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
     for header in meta.headers.iter() {
         let size = header.layer_size;

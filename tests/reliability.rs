@@ -633,3 +633,88 @@ fn address_space_limits_give_clean_errors_and_memory_limits_hold() {
     let peak = report["memory"]["peak_bytes"].as_u64().unwrap();
     assert!(peak > 0 && peak < 400 << 20, "peak {peak} bytes");
 }
+
+#[test]
+#[cfg(target_os = "linux")]
+fn every_command_runs_under_a_real_address_space_limit() {
+    // 1.5 GiB of address space (threads' stacks and allocator arenas included): each command
+    // on a small scene must finish inside it, so its memory provably stayed under it.
+    const KIB: u64 = 1_572_864;
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let ds = |p: &str| d.join(p).to_str().unwrap().to_string();
+    std::fs::write(d.join("scene.ron"), small_sidecar()).unwrap();
+    let steps: Vec<Vec<String>> = vec![
+        vec!["info".into(), ds("scene.ron")],
+        vec![
+            "render-reference".into(),
+            ds("scene.ron"),
+            "--out".into(),
+            ds("ref"),
+            "--quiet".into(),
+        ],
+        vec![
+            "estimate".into(),
+            ds("scene.ron"),
+            "--out".into(),
+            ds("est"),
+            "--reference".into(),
+            ds("ref"),
+            "--quiet".into(),
+        ],
+        vec![
+            "compare".into(),
+            ds("est/estimate/cam_front.exr"),
+            ds("ref/cam_front.exr"),
+        ],
+        vec![
+            "export-envmap".into(),
+            ds("est/envmap.ron"),
+            "--out".into(),
+            ds("env.exr"),
+            "--width".into(),
+            "256".into(),
+        ],
+        vec![
+            "import-envmap".into(),
+            ds("env.exr"),
+            "--rings".into(),
+            "9".into(),
+            "--out".into(),
+            ds("env9.ron"),
+        ],
+        vec![
+            "scenarios".into(),
+            "--scene".into(),
+            ds("scene.ron"),
+            "--count".into(),
+            "2".into(),
+            "--out".into(),
+            ds("sc"),
+        ],
+        vec![
+            "sweep".into(),
+            ds("sc/s00.ron"),
+            "--out".into(),
+            ds("sw"),
+            "--rings".into(),
+            "3".into(),
+            "--spp".into(),
+            "16".into(),
+            "--quiet".into(),
+        ],
+        vec!["report".into(), ds("sw")],
+        vec!["schema".into()],
+    ];
+    for step in &steps {
+        let args: Vec<&str> = step.iter().map(String::as_str).collect();
+        let o = under_ulimit(KIB, &args);
+        assert!(
+            o.status.success(),
+            "{} under ulimit -v {KIB}: exit {:?}: {}",
+            step[0],
+            o.status.code(),
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+}

@@ -402,11 +402,11 @@ pub fn fit_reusing(
             record.then_some(&mut channels),
         );
         solve_seconds += t1.elapsed().as_secs_f64();
-        // A value that is not a finite f32 ≥ 0 (a solver blown up, or beyond f32's range)
+        // A value outside [0, MAX_RADIANCE] (a solver blown up, or beyond any radiance)
         // becomes 0 and marks the fit, which callers report as a failure.
         let mut cell = |v: f64| {
             let v = v as f32;
-            if v.is_finite() && v >= 0.0 {
+            if (0.0..=crate::imageio::MAX_RADIANCE).contains(&v) {
                 v
             } else {
                 non_finite = true;
@@ -423,7 +423,10 @@ pub fn fit_reusing(
             let mean = radiance.iter().copied().sum::<Vec3>() / n as f32;
             let steer = radiance
                 .iter()
-                .map(|r| *r + 0.25 * mean + Vec3::splat(1e-6))
+                .map(|r| {
+                    (*r + 0.25 * mean + Vec3::splat(1e-6))
+                        .min(Vec3::splat(crate::imageio::MAX_RADIANCE))
+                })
                 .collect();
             Envmap::new(rings, steer).expect("finite and non-negative")
         };
