@@ -405,6 +405,42 @@ fn hostile_inputs_fail_cleanly() {
 }
 
 #[test]
+fn textures_beyond_the_memory_limit_are_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    // good_triangle.gltf with a 4096² base-colour texture: 200 MB as linear f32 RGB.
+    let bad = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bad/good_triangle.gltf");
+    let mut gltf: serde_json::Value = serde_json::from_slice(&std::fs::read(bad).unwrap()).unwrap();
+    gltf["images"] = serde_json::json!([{"uri": "big.png"}]);
+    gltf["textures"] = serde_json::json!([{"source": 0}]);
+    gltf["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] =
+        serde_json::json!({"index": 0});
+    std::fs::write(d.join("t.gltf"), gltf.to_string()).unwrap();
+    image::RgbImage::new(4096, 4096)
+        .save(d.join("big.png"))
+        .unwrap();
+    std::fs::write(
+        d.join("s.ron"),
+        "Scene(gltf: \"t.gltf\", image: (width: 8, height: 6), lights: [Sphere(center: (0, 3, 0), radius: 0.2, radiance: (10, 10, 10))], render: (spp: 1))",
+    )
+    .unwrap();
+    let info = |limit: &str| {
+        bin()
+            .args([
+                "--memory-limit",
+                limit,
+                "info",
+                d.join("s.ron").to_str().unwrap(),
+            ])
+            .output()
+            .unwrap()
+    };
+    clean_failure(&info("150M"), "its 1 textures (16777216 texels)").unwrap();
+    let o = info("2G");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
 fn a_sweep_beyond_memory_is_refused_before_it_starts() {
     let tmp = tempfile::tempdir().unwrap();
     let d = tmp.path();

@@ -202,6 +202,18 @@ type Imported = (
 );
 
 fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32) -> Result<Loaded> {
+    // Textures are kept as linear f32 RGB: 12 bytes a texel.
+    let texels: u64 = images
+        .iter()
+        .map(|i| i.width as u64 * i.height as u64)
+        .sum();
+    crate::memory::reserve(texels * 12, || {
+        format!(
+            "{}: its {} textures ({texels} texels)",
+            path.display(),
+            images.len()
+        )
+    })?;
     let textures: Vec<Arc<Texture>> = images
         .iter()
         .map(|img| Arc::new(decode_image(img)))

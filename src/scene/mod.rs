@@ -426,8 +426,19 @@ pub fn load_gltf_bytes(
 /// Loads an sRGB-encoded albedo image (PNG or JPEG) as linear RGB.
 pub fn load_albedo_map(path: &Path) -> Result<Texture> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let img = image::load_from_memory(&bytes)
-        .map_err(|e| Error::file(path, format!("cannot decode albedo map: {e}")))?;
+    let reader = || {
+        image::ImageReader::new(std::io::Cursor::new(&bytes))
+            .with_guessed_format()
+            .map_err(|e| Error::io(path, e))
+    };
+    let undecodable =
+        |e: image::ImageError| Error::file(path, format!("cannot decode albedo map: {e}"));
+    let (w, h) = reader()?.into_dimensions().map_err(undecodable)?;
+    // Decoded as 8-bit RGB, then kept as linear f32 RGB.
+    crate::memory::reserve(w as u64 * h as u64 * 15, || {
+        format!("{}: decoding its {w}×{h} albedo map", path.display())
+    })?;
+    let img = reader()?.decode().map_err(undecodable)?;
     let rgb = img.to_rgb8();
     Ok(Texture::from_srgb8(
         rgb.width(),
