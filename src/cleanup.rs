@@ -36,14 +36,17 @@ impl Registry {
                 Err(poisoned) => std::mem::take(&mut *poisoned.into_inner()),
             },
         };
+        // Newest first, so a folder goes after the files registered in it; a folder is removed
+        // only if empty.
         files
             .iter()
-            .filter(|p| std::fs::remove_file(p).is_ok())
+            .rev()
+            .filter(|p| std::fs::remove_file(p).is_ok() || std::fs::remove_dir(p).is_ok())
             .count()
     }
 }
 
-/// Registers `path` to be removed if the process is interrupted.
+/// Registers `path` to be removed if the process is interrupted (a folder: if it is empty).
 pub fn register(path: &Path) {
     FILES.register(path);
 }
@@ -89,6 +92,34 @@ pub fn remove_stale(dir: &Path, depth: usize) -> usize {
         }
     }
     removed
+}
+
+/// Removes the temporaries of `path` ([`temporary_name`]) that processes which no longer run
+/// left beside it. Returns how many were removed.
+pub fn remove_stale_of(path: &Path) -> usize {
+    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else {
+        return 0;
+    };
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let prefix = format!(".{}.", name.to_string_lossy());
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .filter(|e| {
+            let n = e.file_name().to_string_lossy().into_owned();
+            n.starts_with(&prefix)
+                && temporary_pid(&n)
+                    .is_some_and(|pid| pid != std::process::id() && process_is_gone(pid))
+                && e.file_type().is_ok_and(|t| t.is_file())
+        })
+        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .count()
 }
 
 /// The process id in a temporary's name `.NAME.PID.tmp`.

@@ -41,7 +41,7 @@ pub enum Error {
     /// Work refused before it allocated: `what` would need `need` bytes, more than the
     /// `left` bytes of the memory budget (`crate::memory::budget`) allow; `bound` says which
     /// limit that is.
-    #[error("{what} would need about {}, but only {} is left {bound}", gib(*need), gib(*left))]
+    #[error("{what} would need about {}, but only {} is left {bound}", size(*need), size(*left))]
     Memory {
         what: String,
         need: u64,
@@ -53,9 +53,15 @@ pub enum Error {
     Invalid(String),
 }
 
-/// Bytes in GiB, for messages.
-fn gib(bytes: u64) -> String {
-    format!("{:.1} GiB", bytes as f64 / (1u64 << 30) as f64)
+/// A byte count for messages, in the largest unit that keeps it at least 1 (KiB to GiB).
+pub fn size(bytes: u64) -> String {
+    let b = bytes as f64;
+    match bytes {
+        0..1024 => format!("{bytes} bytes"),
+        1024..1_048_576 => format!("{:.1} KiB", b / 1024.0),
+        1_048_576..1_073_741_824 => format!("{:.1} MiB", b / 1_048_576.0),
+        _ => format!("{:.1} GiB", b / 1_073_741_824.0),
+    }
 }
 
 /// An I/O error worded for a person (the operating system's text without "(os error N)").

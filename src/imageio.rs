@@ -62,6 +62,16 @@ pub fn write_atomic(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Res
             format!("cannot be written: {} {what}", dir.display()),
         ));
     }
+    // Renaming over a device, a link or a folder would replace it (as root, even /dev/null).
+    if let Ok(meta) = std::fs::symlink_metadata(path)
+        && !meta.is_file()
+    {
+        return Err(Error::file(
+            path,
+            "exists and is not a regular file (a device, a link or a folder); name a new or regular file",
+        ));
+    }
+    cleanup::remove_stale_of(path);
     let tmp: PathBuf = path.with_file_name(cleanup::temporary_name(&name.to_string_lossy()));
     cleanup::register(&tmp);
     let result =
@@ -148,11 +158,7 @@ pub fn read_exr(path: &Path) -> Result<Image> {
     if !path.exists() {
         return Err(Error::file(path, "no such file"));
     }
-    let len = std::fs::metadata(path)
-        .map_err(|e| Error::io(path, e))?
-        .len();
-    crate::memory::reserve(len, || format!("{}: reading the file", path.display()))?;
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let bytes = crate::memory::read_input(path)?;
     read_exr_bytes(&bytes, path)
 }
 

@@ -178,6 +178,35 @@ fn cgroup_headroom() -> Option<u64> {
     best
 }
 
+/// Reads an input file whole, after checking that it is a regular file (not a device, a pipe
+/// or a folder, which have no size and may never end) and that its size fits the budget.
+pub fn read_input(path: &std::path::Path) -> Result<Vec<u8>> {
+    let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+    if !meta.is_file() {
+        return Err(Error::file(
+            path,
+            "is not a regular file (a device, a pipe or a folder)",
+        ));
+    }
+    reserve(meta.len(), || format!("{}: reading it", path.display()))?;
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    // Read no more than the size checked, even if the file grows meanwhile.
+    std::io::Read::read_to_end(
+        &mut std::io::Read::take(
+            std::fs::File::open(path).map_err(|e| Error::io(path, e))?,
+            meta.len(),
+        ),
+        &mut bytes,
+    )
+    .map_err(|e| Error::io(path, e))?;
+    Ok(bytes)
+}
+
+/// [`read_input`] as UTF-8 text.
+pub fn read_input_text(path: &std::path::Path) -> Result<String> {
+    String::from_utf8(read_input(path)?).map_err(|_| Error::file(path, "is not UTF-8 text"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -128,6 +128,8 @@ pub const LOCK_FILE: &str = ".lightprobe.lock";
 pub struct DirLock {
     path: PathBuf,
     file: std::fs::File,
+    /// The folder, if this run created it: removed again if the run leaves it empty.
+    created: Option<PathBuf>,
 }
 
 impl Drop for DirLock {
@@ -136,6 +138,10 @@ impl Drop for DirLock {
         // gets the lock, that the name no longer leads to it, and starts over.
         let _ = std::fs::remove_file(&self.path);
         crate::cleanup::unregister(&self.path);
+        if let Some(dir) = &self.created {
+            let _ = std::fs::remove_dir(dir);
+            crate::cleanup::unregister(dir);
+        }
     }
 }
 
@@ -146,8 +152,20 @@ pub fn prepare_dir(dir: &Path, lock_name: &str) -> Result<DirLock> {
     if dir.exists() && !dir.is_dir() {
         return Err(Error::file(dir, "exists and is not a folder"));
     }
+    let created = (!dir.exists()).then(|| dir.to_path_buf());
     create_dir(dir)?;
+    if let Some(dir) = &created {
+        crate::cleanup::register(dir);
+    }
     let path = dir.join(lock_name);
+    if let Ok(meta) = std::fs::symlink_metadata(&path)
+        && !meta.is_file()
+    {
+        return Err(Error::file(
+            &path,
+            "is not a regular file (a link or a folder); remove it to use this output folder",
+        ));
+    }
     let not_writable =
         |e: std::io::Error| Error::file(dir, format!("output folder is not writable: {e}"));
     let file = loop {
@@ -185,7 +203,11 @@ pub fn prepare_dir(dir: &Path, lock_name: &str) -> Result<DirLock> {
     };
     crate::cleanup::register(&path);
     // From here on, dropping the lock removes the file, also on the error below.
-    let mut lock = DirLock { path, file };
+    let mut lock = DirLock {
+        path,
+        file,
+        created,
+    };
     lock.file
         .set_len(0)
         .and_then(|()| {

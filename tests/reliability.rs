@@ -106,6 +106,14 @@ fn triangle_gltf(camera_extra: &str, position_extra: &str) -> String {
     )
 }
 
+/// A glTF whose one triangle's POSITION accessor declares `count` vertices through a sparse
+/// block and no buffer view (the reader allocates `count` × 12 bytes for it).
+fn sparse_without_view(count: u64) -> String {
+    format!(
+        r#"{{"asset": {{"version": "2.0"}}, "scene": 0, "scenes": [{{"nodes": [0, 1]}}], "nodes": [{{"mesh": 0}}, {{"camera": 0, "translation": [0, 0.5, 3]}}], "cameras": [{{"type": "perspective", "perspective": {{"yfov": 0.8, "znear": 0.01}}}}], "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}, "indices": 1}}]}}], "accessors": [{{"componentType": 5126, "count": {count}, "type": "VEC3", "min": [-1, 0, -1], "max": [1, 0, 1], "sparse": {{"count": 1, "indices": {{"bufferView": 1, "componentType": 5125}}, "values": {{"bufferView": 0}}}}}}, {{"bufferView": 1, "componentType": 5125, "count": 1, "type": "SCALAR"}}], "bufferViews": [{{"buffer": 0, "byteLength": 36}}, {{"buffer": 0, "byteOffset": 36, "byteLength": 4}}], "buffers": [{{"byteLength": 40, "uri": "data:application/octet-stream;base64,AACAvwAAAAAAAIC/AACAPwAAAAAAAIC/AAAAAAAAAAAAAIA/AAAAAA=="}}]}}"#
+    )
+}
+
 /// The header of a scan-line EXR (RGB f32, `compression` 0 none or 3 ZIP) declaring a
 /// `w × h` image, followed by `table_bytes` zero bytes standing for the offset table.
 fn exr_header(w: i32, h: i32, compression: u8, table_bytes: usize) -> Vec<u8> {
@@ -353,6 +361,42 @@ fn cases() -> Vec<Case> {
                 "--quiet",
             ],
             expect: "under the memory limit set",
+        },
+        Case {
+            name: "a 1 KB glTF declaring 2^27 sparse vertices (no buffer view)",
+            files: vec![("big.gltf", sparse_without_view(1 << 27).into_bytes()), on("big.gltf")],
+            args: vec!["--memory-limit", "200M", "info", "{d}/s.ron"],
+            expect: "would need about",
+        },
+        Case {
+            name: "a device as an input image",
+            files: vec![("ref.exr", exr_bytes(4, 3, 1.0, None))],
+            args: vec!["compare", "/dev/zero", "{d}/ref.exr"],
+            expect: "/dev/zero: is not a regular file",
+        },
+        Case {
+            name: "an export over its own input",
+            files: vec![("env.ron", b"Envmap(rings: 2, radiance: [(1, 1, 1), (0.5, 0.5, 0.5)])".to_vec())],
+            args: vec!["export-envmap", "{d}/env.ron", "--out", "{d}/env.ron", "--width", "8"],
+            expect: "is the input",
+        },
+        Case {
+            name: "an export beyond --memory-limit",
+            files: vec![("env.ron", b"Envmap(rings: 2, radiance: [(1, 1, 1), (0.5, 0.5, 0.5)])".to_vec())],
+            args: vec!["--memory-limit", "100M", "export-envmap", "{d}/env.ron", "--out", "{d}/big.exr", "--width", "16384"],
+            expect: "a 16384×8192 lat-long image would need about",
+        },
+        Case {
+            name: "a sweep with --spheres 0",
+            files: vec![scene()],
+            args: vec!["sweep", "{d}/scene.ron", "--out", "{d}/out", "--spheres", "0", "--quiet"],
+            expect: "--spheres must be between 1 and 1000",
+        },
+        Case {
+            name: "a memory limit of a kilobyte is stated in bytes, not as 0.0 GiB",
+            files: vec![scene()],
+            args: vec!["--memory-limit", "1K", "estimate", "{d}/scene.ron", "--out", "{d}/out", "--quiet"],
+            expect: "but only 0 bytes is left under the memory limit set",
         },
         Case {
             name: "a malformed --memory-limit",
@@ -673,8 +717,9 @@ fn address_space_limits_give_clean_errors_and_memory_limits_hold() {
 #[test]
 #[cfg(target_os = "linux")]
 fn every_command_runs_under_a_real_address_space_limit() {
-    // 1.5 GiB of address space (threads' stacks and allocator arenas included): each command
-    // on a small scene must finish inside it, so its memory provably stayed under it.
+    // 1.5 GiB of address space (threads' stacks and allocator arenas included) and the same
+    // --memory-limit: each command on a small scene must finish inside them, so its memory
+    // (resident memory is part of the address space) provably stayed under the limit.
     const KIB: u64 = 1_572_864;
     let tmp = tempfile::tempdir().unwrap();
     let d = tmp.path();
@@ -743,7 +788,8 @@ fn every_command_runs_under_a_real_address_space_limit() {
         vec!["schema".into()],
     ];
     for step in &steps {
-        let args: Vec<&str> = step.iter().map(String::as_str).collect();
+        let mut args = vec!["--memory-limit", "1536M"];
+        args.extend(step.iter().map(String::as_str));
         let o = under_ulimit(KIB, &args);
         assert!(
             o.status.success(),
@@ -753,4 +799,133 @@ fn every_command_runs_under_a_real_address_space_limit() {
             String::from_utf8_lossy(&o.stderr)
         );
     }
+}
+
+#[test]
+#[cfg(unix)]
+fn outputs_never_replace_links_and_failed_runs_leave_no_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    std::fs::write(
+        d.join("env.ron"),
+        "Envmap(rings: 2, radiance: [(1, 1, 1), (0.5, 0.5, 0.5)])",
+    )
+    .unwrap();
+    // An output that is a link: refused, its target untouched.
+    std::fs::write(d.join("victim"), "keep").unwrap();
+    std::os::unix::fs::symlink(d.join("victim"), d.join("link.exr")).unwrap();
+    let o = bin()
+        .args([
+            "export-envmap",
+            d.join("env.ron").to_str().unwrap(),
+            "--out",
+            d.join("link.exr").to_str().unwrap(),
+            "--width",
+            "8",
+        ])
+        .output()
+        .unwrap();
+    clean_failure(&o, "is not a regular file").unwrap();
+    assert_eq!(std::fs::read_to_string(d.join("victim")).unwrap(), "keep");
+    assert!(
+        std::fs::symlink_metadata(d.join("link.exr"))
+            .unwrap()
+            .file_type()
+            .is_symlink()
+    );
+    // A lock file that is a link: refused, its target untouched.
+    let held = d.join("held");
+    std::fs::create_dir(&held).unwrap();
+    std::os::unix::fs::symlink(d.join("victim"), held.join(".lightprobe.lock")).unwrap();
+    let o = bin()
+        .args([
+            "render-reference",
+            bundled().to_str().unwrap(),
+            "--out",
+            held.to_str().unwrap(),
+            "--spp",
+            "1",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    clean_failure(&o, "is not a regular file").unwrap();
+    assert_eq!(std::fs::read_to_string(d.join("victim")).unwrap(), "keep");
+    // A temporary a killed export left beside its output goes with the next export there.
+    let stale = d.join(".out.exr.4194305.tmp");
+    std::fs::write(&stale, "half").unwrap();
+    let o = bin()
+        .args([
+            "export-envmap",
+            d.join("env.ron").to_str().unwrap(),
+            "--out",
+            d.join("out.exr").to_str().unwrap(),
+            "--width",
+            "8",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!stale.exists());
+    // A run that fails after creating its --out folder removes it again.
+    std::fs::create_dir(d.join("ref")).unwrap();
+    std::fs::write(d.join("scene.ron"), small_sidecar()).unwrap();
+    let o = bin()
+        .args([
+            "estimate",
+            d.join("scene.ron").to_str().unwrap(),
+            "--out",
+            d.join("new").to_str().unwrap(),
+            "--reference",
+            d.join("ref").to_str().unwrap(),
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    clean_failure(&o, "no such file").unwrap();
+    assert!(
+        !d.join("new").exists(),
+        "the failed run left its --out folder"
+    );
+}
+
+#[test]
+fn coincident_instances_load_once_and_fast() {
+    // 2^16 paths through a shared hierarchy to one triangle under one transform.
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let mut nodes = vec!["{\"mesh\": 0}".to_string()];
+    for level in 1..=16 {
+        nodes.push(format!("{{\"children\": [{}, {}]}}", level - 1, level - 1));
+    }
+    let gltf = format!(
+        r#"{{"asset": {{"version": "2.0"}}, "scene": 0, "scenes": [{{"nodes": [16, 17]}}], "nodes": [{}, {{"camera": 0, "translation": [0, 0.5, 3]}}], "cameras": [{{"type": "perspective", "perspective": {{"yfov": 0.8, "znear": 0.01}}}}], "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}}}]}}], "accessors": [{{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [-1, 0, -1], "max": [1, 0, 1]}}], "bufferViews": [{{"buffer": 0, "byteLength": 36}}], "buffers": [{{"byteLength": 36, "uri": "data:application/octet-stream;base64,AACAvwAAAAAAAIC/AACAPwAAAAAAAIC/AAAAAAAAAAAAAIA/"}}]}}"#,
+        nodes.join(", ")
+    );
+    std::fs::write(d.join("dag.gltf"), gltf).unwrap();
+    std::fs::write(d.join("s.ron"), "Scene(gltf: \"dag.gltf\", image: (width: 8, height: 6), lights: [Sphere(center: (0, 3, 0), radius: 0.2, radiance: (10, 10, 10))], render: (spp: 1))").unwrap();
+    let t = Instant::now();
+    let o = bin()
+        .args(["info", d.join("s.ron").to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let info: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(info["triangles"], 1, "{info}");
+    let o = bin()
+        .args([
+            "render-reference",
+            d.join("s.ron").to_str().unwrap(),
+            "--out",
+            d.join("out").to_str().unwrap(),
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        t.elapsed() < Duration::from_secs(30),
+        "took {:?}",
+        t.elapsed()
+    );
 }

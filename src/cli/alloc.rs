@@ -6,7 +6,7 @@
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::io::Write;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 /// [`System`], with a clean exit on failure.
 pub struct Guarded;
@@ -44,29 +44,50 @@ fn checked(ptr: *mut u8, size: usize) -> *mut u8 {
     ptr
 }
 
-static FAILING: AtomicBool = AtomicBool::new(false);
+/// The thread reporting the failure (its [`thread_mark`]; 0: none yet), and whether the
+/// report is written.
+static REPORTER: AtomicUsize = AtomicUsize::new(0);
+static REPORTED: AtomicBool = AtomicBool::new(false);
+
+thread_local! {
+    static MARK: u8 = const { 0 };
+}
+
+/// A number unique to the calling thread, found without allocating.
+fn thread_mark() -> usize {
+    MARK.with(|m| m as *const u8 as usize)
+}
 
 #[cold]
 fn out_of_memory(size: usize) -> ! {
-    // The report below allocates a little (a path, a message); if even that fails, say the
-    // least and go.
-    if FAILING.swap(true, Ordering::SeqCst) {
-        let _ = std::io::stderr().write_all(b"lightprobe: error: out of memory\n");
-        std::process::exit(1);
+    let me = thread_mark();
+    match REPORTER.compare_exchange(0, me, Ordering::SeqCst, Ordering::SeqCst) {
+        Ok(_) => {}
+        // The report itself ran out: say the least and go.
+        Err(reporter) if reporter == me => {
+            if !REPORTED.swap(true, Ordering::SeqCst) {
+                let _ = std::io::stderr().write_all(b"lightprobe: error: out of memory\n");
+            }
+            std::process::exit(1);
+        }
+        // Another thread reports and ends the process; wait for it (one error line).
+        Err(_) => loop {
+            std::thread::sleep(std::time::Duration::from_secs(1));
+            if REPORTED.load(Ordering::SeqCst) {
+                std::process::exit(1);
+            }
+        },
     }
     lightprobe::cleanup::remove_all();
     let budget = lightprobe::memory::budget().map_or(String::new(), |b| {
-        format!(
-            "; {:.1} GiB is left {}",
-            b.bytes as f64 / (1u64 << 30) as f64,
-            b.bound
-        )
+        format!("; {} is left {}", lightprobe::error::size(b.bytes), b.bound)
     });
     let _ = writeln!(
         std::io::stderr(),
-        "lightprobe: error: out of memory: {:.1} MiB more could not be allocated{budget}. \
-         Use fewer rings, views or pixels, or raise the limit",
-        size as f64 / (1u64 << 20) as f64
+        "lightprobe: error: out of memory: {} more could not be allocated{budget}; \
+         reduce the work (rings, views, image or file sizes) or raise the limit",
+        lightprobe::error::size(size as u64)
     );
+    REPORTED.store(true, Ordering::SeqCst);
     std::process::exit(1);
 }

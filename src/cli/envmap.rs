@@ -53,6 +53,19 @@ pub fn export(a: ExportArgs) -> anyhow::Result<()> {
         );
     }
     let env = Envmap::load(&a.envmap)?;
+    if same_file(&a.envmap, &a.out) {
+        anyhow::bail!(
+            "{}: is the input; --out must name another file",
+            a.out.display()
+        );
+    }
+    // The image (f32 RGB) and the encoder's copy of it.
+    let pixels = a.width as u64 * (a.width as u64 / 2);
+    super::check_memory(
+        pixels * 24,
+        || format!("a {}×{} lat-long image", a.width, a.width / 2),
+        "; use a smaller --width",
+    )?;
     let img = latlong::export(&env, target, filter, a.width);
     imageio::write_latlong_exr(&a.out, &img)?;
     outln!(
@@ -75,6 +88,12 @@ pub fn import(a: ImportArgs) -> anyhow::Result<()> {
             "--rings must be between 1 and {}, got {}",
             MAX_RINGS,
             a.rings
+        );
+    }
+    if same_file(&a.image, &a.out) {
+        anyhow::bail!(
+            "{}: is the input; --out must name another file",
+            a.out.display()
         );
     }
     let img = imageio::read_exr(&a.image)?;
@@ -100,4 +119,9 @@ pub fn import(a: ImportArgs) -> anyhow::Result<()> {
         a.image.display()
     )?;
     Ok(())
+}
+
+/// Whether `a` and `b` name the same existing file.
+fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y)
 }

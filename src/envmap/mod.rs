@@ -242,7 +242,7 @@ impl Envmap {
             rings: Rings,
             radiance: Vec<Rgb>,
         }
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::memory::read_input_text(path)?;
         let f: File = ron::Options::default().from_str(&text).map_err(|e| {
             Error::file_at(
                 path,

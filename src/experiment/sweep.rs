@@ -425,20 +425,7 @@ pub fn run(
                 .transpose()
         })
         .collect::<Result<_>>()?;
-    // Every trial's peak (the transport dominates it), before the first trial runs.
-    for t in &todo {
-        let Some(scene) = &scenes[scenarios[t.scenario].group] else {
-            continue;
-        };
-        let per_view = scene.settings.width as u64 * scene.settings.height as u64;
-        let rings = match t.rings {
-            Some(r) => Rings::Fixed(r),
-            None => Rings::Auto(axes.rings.clone()),
-        };
-        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres)
-            .memory_needed(per_view * scene.cameras.len() as u64, per_view);
-        crate::memory::reserve(need, || format!("trial {}", id(t)))?;
-    }
+    check_memory(&todo, &scenarios, &scenes, &axes, settings, &id)?;
     let mut sink = open_append(&trials_file)?;
     let no_lights = Lights::new(Vec::new());
     let renderers: Vec<Option<Renderer>> = scenes
@@ -613,10 +600,12 @@ struct Axes {
 
 impl Axes {
     fn of(settings: &SweepSettings) -> Result<Axes> {
-        for &r in settings.rings.iter().chain(&settings.spheres) {
+        let named = |name| move |&r: &u32| (name, r);
+        let rings = settings.rings.iter().map(named("rings"));
+        for (name, r) in rings.chain(settings.spheres.iter().map(named("spheres"))) {
             if !(1..=crate::envmap::MAX_RINGS).contains(&r) {
                 return Err(Error::Setting {
-                    name: "rings",
+                    name,
                     expected: format!("between 1 and {}", crate::envmap::MAX_RINGS),
                     got: r.to_string(),
                 });
@@ -896,6 +885,32 @@ fn blank_record(
 /// The estimate a trial runs: as `estimate` would with these settings, evaluated, with the
 /// sphere model (1 to 3 lights, chosen on held-out pixels) or the envmap alone. The noise
 /// floor is measured once per scenario (`observe`), not per trial.
+/// Refuses the sweep, before its first trial, if any trial's peak (the transport dominates
+/// it; `--auto` trials at their largest candidate) exceeds the memory budget.
+fn check_memory(
+    todo: &[Trial],
+    scenarios: &[ScenarioFile],
+    scenes: &[Option<Scene>],
+    axes: &Axes,
+    settings: &SweepSettings,
+    id: &dyn Fn(&Trial) -> String,
+) -> Result<()> {
+    for t in todo {
+        let Some(scene) = &scenes[scenarios[t.scenario].group] else {
+            continue;
+        };
+        let per_view = scene.settings.width as u64 * scene.settings.height as u64;
+        let rings = match t.rings {
+            Some(r) => Rings::Fixed(r),
+            None => Rings::Auto(axes.rings.clone()),
+        };
+        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres)
+            .memory_needed(per_view * scene.cameras.len() as u64, per_view);
+        crate::memory::reserve(need, || format!("trial {}", id(t)))?;
+    }
+    Ok(())
+}
+
 fn trial_settings(
     settings: &SweepSettings,
     solver: Solver,

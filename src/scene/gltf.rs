@@ -258,6 +258,7 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
         materials,
         cameras: Vec::new(),
     };
+    let mut placed = std::collections::HashSet::new();
     let mut stack: Vec<(gltf::Node, Mat4, usize)> =
         scene.nodes().map(|n| (n, Mat4::IDENTITY, 0)).collect();
     stack.reverse();
@@ -275,7 +276,13 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
                 format!("node {} has a non-finite transform", node_name(&node)),
             ));
         }
-        if let Some(mesh) = node.mesh() {
+        // The same mesh under the same world transform twice (a node reached along two
+        // paths of a shared hierarchy) is the same surface twice: loaded once. Coincident
+        // copies add nothing to an image and make the BVH build quadratic.
+        let fresh = node
+            .mesh()
+            .is_some_and(|m| placed.insert((m.index(), world.to_cols_array().map(f32::to_bits))));
+        if let Some(mesh) = node.mesh().filter(|_| fresh) {
             for (pi, prim) in mesh.primitives().enumerate() {
                 let what = format!("mesh {:?} primitive {pi}", mesh.name().unwrap_or(""));
                 let material = prim.material().index().map_or(0, |i| i + 1);
@@ -367,14 +374,20 @@ fn check_expansion(path: &Path, scene: &gltf::Scene, nodes: usize) -> Result<()>
             return Ok(known);
         }
         let mut instances = 1u64;
+        // Per primitive: its triangles (from the index or position count) and the vertices
+        // read for it (every attribute accessor's count: a sparse accessor without a buffer
+        // view declares its count freely).
         let mut triangles = node.mesh().map_or(0, |m| {
             m.primitives()
                 .map(|p| {
-                    let n = p
-                        .indices()
-                        .or_else(|| p.get(&gltf::Semantic::Positions))
-                        .map_or(0, |a| a.count() as u64);
-                    n / 3
+                    let vertices = p
+                        .attributes()
+                        .map(|(_, a)| a.count() as u64)
+                        .max()
+                        .unwrap_or(0);
+                    let corners = p.indices().map_or(vertices, |a| a.count() as u64);
+                    // A vertex (32 bytes) costs less than a triangle; count it as a third.
+                    (corners / 3).saturating_add(vertices / 3)
                 })
                 .fold(0u64, u64::saturating_add)
         });
@@ -473,7 +486,14 @@ fn load_primitive(
     let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
     let positions: Vec<Vec3> = reader
         .read_positions()
-        .ok_or_else(|| Error::file(path, format!("{what} has no POSITION attribute")))?
+        .ok_or_else(|| {
+            Error::file(
+                path,
+                format!(
+                    "{what} has no readable POSITION attribute (missing, or its buffer view is missing or out of range)"
+                ),
+            )
+        })?
         .map(Vec3::from)
         .collect();
     let n = positions.len();

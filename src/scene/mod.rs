@@ -425,7 +425,7 @@ pub fn load_gltf_bytes(
 
 /// Loads an sRGB-encoded albedo image (PNG or JPEG) as linear RGB.
 pub fn load_albedo_map(path: &Path) -> Result<Texture> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let bytes = crate::memory::read_input(path)?;
     let reader = || {
         image::ImageReader::new(std::io::Cursor::new(&bytes))
             .with_guessed_format()

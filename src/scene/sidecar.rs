@@ -184,7 +184,7 @@ checked!(
 impl Sidecar {
     /// Reads and validates a sidecar file. Errors name the file, line and column.
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::memory::read_input_text(path)?;
         Self::parse(&text, path)
     }
 
