@@ -220,48 +220,36 @@ pub fn check_radiance(path: &Path, img: &Image, negative_ok: bool) -> Result<()>
             None
         }
     };
-    let mut bad = img
-        .rgb
-        .iter()
-        .enumerate()
-        .filter_map(|(i, c)| Some((i, colour(c)?, *c)));
-    if let Some((i, what, c)) = bad.next() {
-        let more = bad.count();
-        return Err(Error::file(
+    // The first bad pixel (of those `bad` yields), described, with the count of the others.
+    let report = |mut bad: &mut dyn Iterator<Item = usize>, describe: &dyn Fn(usize) -> String| {
+        let Some(i) = bad.next() else {
+            return Ok(());
+        };
+        let more = match (&mut bad).count() {
+            0 => String::new(),
+            n => format!(" ({n} more pixels are invalid)"),
+        };
+        let (x, y) = (i as u32 % img.width.max(1), i as u32 / img.width.max(1));
+        Err(Error::file(
             path,
+            format!("pixel ({x}, {y}) {}{more}", describe(i)),
+        ))
+    };
+    report(
+        &mut (0..img.rgb.len()).filter(|&i| colour(&img.rgb[i]).is_some()),
+        &|i| {
             format!(
-                "pixel ({}, {}) {what}: {c}{}",
-                i as u32 % img.width.max(1),
-                i as u32 / img.width.max(1),
-                if more > 0 {
-                    format!(" ({more} more pixels are invalid)")
-                } else {
-                    String::new()
-                }
-            ),
-        ));
-    }
+                "{}: {}",
+                colour(&img.rgb[i]).unwrap_or_default(),
+                img.rgb[i]
+            )
+        },
+    )?;
     if let Some(alpha) = &img.alpha {
-        let mut bad = alpha
-            .iter()
-            .enumerate()
-            .filter(|(_, a)| !(0.0..=1.0).contains(*a));
-        if let Some((i, a)) = bad.next() {
-            let more = bad.count();
-            return Err(Error::file(
-                path,
-                format!(
-                    "pixel ({}, {}) has alpha {a}, outside [0, 1]{}",
-                    i as u32 % img.width.max(1),
-                    i as u32 / img.width.max(1),
-                    if more > 0 {
-                        format!(" ({more} more pixels too)")
-                    } else {
-                        String::new()
-                    }
-                ),
-            ));
-        }
+        report(
+            &mut (0..alpha.len()).filter(|&i| !(0.0..=1.0).contains(&alpha[i])),
+            &|i| format!("has alpha {}, outside [0, 1]", alpha[i]),
+        )?;
     }
     Ok(())
 }
