@@ -12,6 +12,21 @@ fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_lightprobe"))
 }
 
+/// Runs the binary with `args` to the end.
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().unwrap()
+}
+
+/// Asserts that `o` exited 0, showing its stderr otherwise.
+fn succeeded(o: &Output) {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// `dir/name` as a string argument.
+fn arg(dir: &Path, name: &str) -> String {
+    dir.join(name).to_str().unwrap().to_string()
+}
+
 fn bundled() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/tabletop/tabletop.ron")
 }
@@ -468,20 +483,10 @@ fn textures_beyond_the_memory_limit_are_refused() {
         "Scene(gltf: \"t.gltf\", image: (width: 8, height: 6), lights: [Sphere(center: (0, 3, 0), radius: 0.2, radiance: (10, 10, 10))], render: (spp: 1))",
     )
     .unwrap();
-    let info = |limit: &str| {
-        bin()
-            .args([
-                "--memory-limit",
-                limit,
-                "info",
-                d.join("s.ron").to_str().unwrap(),
-            ])
-            .output()
-            .unwrap()
-    };
+    let info = |limit: &str| run(&["--memory-limit", limit, "info", &arg(d, "s.ron")]);
     clean_failure(&info("150M"), "its 1 textures (16777216 texels)").unwrap();
     let o = info("2G");
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    succeeded(&o);
 }
 
 #[test]
@@ -498,7 +503,7 @@ fn a_sweep_beyond_memory_is_refused_before_it_starts() {
         let o = bin()
             .args([
                 "sweep",
-                d.join("s00.ron").to_str().unwrap(),
+                &arg(d, "s00.ron"),
                 "--out",
                 out.to_str().unwrap(),
                 "--quiet",
@@ -593,16 +598,13 @@ fn a_second_run_into_a_held_folder_is_refused_and_an_interrupt_cleans_up() {
     let mut first = slow_render(&out);
     assert!(!stale.exists(), "the stale temporary was not removed");
 
-    let o = bin()
-        .args([
-            "estimate",
-            bundled().to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--quiet",
-        ])
-        .output()
-        .unwrap();
+    let o = run(&[
+        "estimate",
+        bundled().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]);
     clean_failure(
         &o,
         &format!(
@@ -637,19 +639,16 @@ fn a_second_run_into_a_held_folder_is_refused_and_an_interrupt_cleans_up() {
     assert!(left.iter().all(|f| !f.ends_with(".tmp")), "{left:?}");
 
     // The folder is free again.
-    let o = bin()
-        .args([
-            "render-reference",
-            bundled().to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--spp",
-            "1",
-            "--quiet",
-        ])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&[
+        "render-reference",
+        bundled().to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--spp",
+        "1",
+        "--quiet",
+    ]);
+    succeeded(&o);
 }
 
 /// Runs `args` under an address-space limit (`ulimit -v`, KiB) through the shell.
@@ -695,19 +694,16 @@ fn address_space_limits_give_clean_errors_and_memory_limits_hold() {
         }
     }
     // Within --memory-limit the estimate runs, and its peak stays under the limit.
-    let o = bin()
-        .args([
-            "--memory-limit",
-            "400M",
-            "estimate",
-            scene,
-            "--out",
-            out_s,
-            "--quiet",
-        ])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&[
+        "--memory-limit",
+        "400M",
+        "estimate",
+        scene,
+        "--out",
+        out_s,
+        "--quiet",
+    ]);
+    succeeded(&o);
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
     let peak = report["memory"]["peak_bytes"].as_u64().unwrap();
@@ -814,17 +810,14 @@ fn outputs_never_replace_links_and_failed_runs_leave_no_folder() {
     // An output that is a link: refused, its target untouched.
     std::fs::write(d.join("victim"), "keep").unwrap();
     std::os::unix::fs::symlink(d.join("victim"), d.join("link.exr")).unwrap();
-    let o = bin()
-        .args([
-            "export-envmap",
-            d.join("env.ron").to_str().unwrap(),
-            "--out",
-            d.join("link.exr").to_str().unwrap(),
-            "--width",
-            "8",
-        ])
-        .output()
-        .unwrap();
+    let o = run(&[
+        "export-envmap",
+        &arg(d, "env.ron"),
+        "--out",
+        &arg(d, "link.exr"),
+        "--width",
+        "8",
+    ]);
     clean_failure(&o, "is not a regular file").unwrap();
     assert_eq!(std::fs::read_to_string(d.join("victim")).unwrap(), "keep");
     assert!(
@@ -837,51 +830,42 @@ fn outputs_never_replace_links_and_failed_runs_leave_no_folder() {
     let held = d.join("held");
     std::fs::create_dir(&held).unwrap();
     std::os::unix::fs::symlink(d.join("victim"), held.join(".lightprobe.lock")).unwrap();
-    let o = bin()
-        .args([
-            "render-reference",
-            bundled().to_str().unwrap(),
-            "--out",
-            held.to_str().unwrap(),
-            "--spp",
-            "1",
-            "--quiet",
-        ])
-        .output()
-        .unwrap();
+    let o = run(&[
+        "render-reference",
+        bundled().to_str().unwrap(),
+        "--out",
+        held.to_str().unwrap(),
+        "--spp",
+        "1",
+        "--quiet",
+    ]);
     clean_failure(&o, "is not a regular file").unwrap();
     assert_eq!(std::fs::read_to_string(d.join("victim")).unwrap(), "keep");
     // A temporary a killed export left beside its output goes with the next export there.
     let stale = d.join(".out.exr.4194305.tmp");
     std::fs::write(&stale, "half").unwrap();
-    let o = bin()
-        .args([
-            "export-envmap",
-            d.join("env.ron").to_str().unwrap(),
-            "--out",
-            d.join("out.exr").to_str().unwrap(),
-            "--width",
-            "8",
-        ])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&[
+        "export-envmap",
+        &arg(d, "env.ron"),
+        "--out",
+        &arg(d, "out.exr"),
+        "--width",
+        "8",
+    ]);
+    succeeded(&o);
     assert!(!stale.exists());
     // A run that fails after creating its --out folder removes it again.
     std::fs::create_dir(d.join("ref")).unwrap();
     std::fs::write(d.join("scene.ron"), small_sidecar()).unwrap();
-    let o = bin()
-        .args([
-            "estimate",
-            d.join("scene.ron").to_str().unwrap(),
-            "--out",
-            d.join("new").to_str().unwrap(),
-            "--reference",
-            d.join("ref").to_str().unwrap(),
-            "--quiet",
-        ])
-        .output()
-        .unwrap();
+    let o = run(&[
+        "estimate",
+        &arg(d, "scene.ron"),
+        "--out",
+        &arg(d, "new"),
+        "--reference",
+        &arg(d, "ref"),
+        "--quiet",
+    ]);
     clean_failure(&o, "no such file").unwrap();
     assert!(
         !d.join("new").exists(),
@@ -905,24 +889,18 @@ fn coincident_instances_load_once_and_fast() {
     std::fs::write(d.join("dag.gltf"), gltf).unwrap();
     std::fs::write(d.join("s.ron"), "Scene(gltf: \"dag.gltf\", image: (width: 8, height: 6), lights: [Sphere(center: (0, 3, 0), radius: 0.2, radiance: (10, 10, 10))], render: (spp: 1))").unwrap();
     let t = Instant::now();
-    let o = bin()
-        .args(["info", d.join("s.ron").to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&["info", &arg(d, "s.ron")]);
+    succeeded(&o);
     let info: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(info["triangles"], 1, "{info}");
-    let o = bin()
-        .args([
-            "render-reference",
-            d.join("s.ron").to_str().unwrap(),
-            "--out",
-            d.join("out").to_str().unwrap(),
-            "--quiet",
-        ])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = run(&[
+        "render-reference",
+        &arg(d, "s.ron"),
+        "--out",
+        &arg(d, "out"),
+        "--quiet",
+    ]);
+    succeeded(&o);
     assert!(
         t.elapsed() < Duration::from_secs(30),
         "took {:?}",
