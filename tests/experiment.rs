@@ -656,3 +656,38 @@ fn sphere_model_writes_a_sidecar_fragment_that_renders() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("spheres:K"));
 }
+
+#[test]
+fn a_sweep_logs_progress_lines_when_stderr_is_not_a_terminal() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small_scenario(tmp.path(), "a", KEY);
+    let out = tmp.path().join("out");
+    // Not --quiet, stderr captured (not a terminal): a line at the start and every tenth.
+    let o = run(&[
+        "sweep",
+        a.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--rings",
+        "2,3,4",
+        "--spp",
+        "8",
+    ]);
+    ok(&o);
+    let err = String::from_utf8_lossy(&o.stderr);
+    let lines: Vec<&str> = err
+        .lines()
+        .filter(|l| l.starts_with("lightprobe: sweep: "))
+        .collect();
+    assert!(
+        lines.first().is_some_and(|l| l.contains("0/3 trials")),
+        "{err}"
+    );
+    assert!(
+        lines
+            .last()
+            .is_some_and(|l| l.contains("3/3 trials") && l.contains("relMAE")),
+        "{err}"
+    );
+    assert!(lines.len() >= 3, "a line per tenth of 3 trials: {err}");
+}

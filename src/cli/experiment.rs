@@ -1,5 +1,6 @@
 //! The paper's experiment: `scenarios`, `sweep` and `report`.
 
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
 use anyhow::bail;
@@ -10,7 +11,7 @@ use lightprobe::experiment::scenarios;
 use lightprobe::imageio;
 use lightprobe::scene::Scene;
 
-use super::{SolverArg, flag_error, outln, prepare_out_dir};
+use super::{SolverArg, flag_error, outln, prepare_out_dir, say};
 
 #[derive(clap::Args)]
 pub struct ScenariosArgs {
@@ -177,7 +178,13 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
     let files = sidecar_files(&a.scenarios)?;
     // Shards of one sweep may share the folder; each locks its own trials file.
     let _lock = prepare_out_dir(&a.out, &format!(".{}.lock", settings.shard.file_name()))?;
-    let bar = if a.quiet {
+    // On a terminal a bar; elsewhere (batch and CI logs, where a bar shows nothing) a line
+    // when the sweep starts, at every tenth of its trials and for every failed trial.
+    let terminal = std::io::stderr().is_terminal();
+    let log = !a.quiet && !terminal;
+    let started = std::time::Instant::now();
+    let mut logged_tenths = None;
+    let bar = if a.quiet || !terminal {
         ProgressBar::hidden()
     } else {
         let b = ProgressBar::new(0);
@@ -196,15 +203,33 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         if p.skipped > 0 && p.done == p.skipped {
             bar.reset_eta();
         }
-        match p.record {
-            Some(r) => bar.set_message(format!(
+        let last = p.record.map(|r| {
+            format!(
                 "{} {} rings: relMAE {}",
                 r.scenario,
                 r.rings,
                 r.rel_mae
                     .map_or("failed".to_string(), |e| format!("{:.2}%", 100.0 * e))
-            )),
+            )
+        });
+        match &last {
+            Some(text) => bar.set_message(text.clone()),
             None => bar.set_message(p.phase.to_string()),
+        }
+        if log {
+            let tenths = (p.done * 10).checked_div(p.total).unwrap_or(10);
+            let failed = p.record.is_some_and(|r| r.rel_mae.is_none());
+            if logged_tenths.is_none_or(|t| tenths > t) || failed {
+                logged_tenths = Some(tenths);
+                say(&format!(
+                    "lightprobe: sweep: {}/{} trials ({} done before) after {:.0} s{}",
+                    p.done,
+                    p.total,
+                    p.skipped,
+                    started.elapsed().as_secs_f64(),
+                    last.map_or(String::new(), |t| format!("; last {t}"))
+                ));
+            }
         }
     })
     .map_err(flag_error)?;
