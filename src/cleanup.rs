@@ -28,14 +28,8 @@ impl Registry {
     }
 
     fn remove_all(&self) -> usize {
-        let files = match self.0.try_lock() {
-            Ok(mut files) => std::mem::take(&mut *files),
-            // A thread holding the lock is adding or dropping one path: wait for it.
-            Err(_) => match self.0.lock() {
-                Ok(mut files) => std::mem::take(&mut *files),
-                Err(poisoned) => std::mem::take(&mut *poisoned.into_inner()),
-            },
-        };
+        // A thread holding the lock is adding or dropping one path: waiting for it is brief.
+        let files = std::mem::take(&mut *self.0.lock().unwrap_or_else(|p| p.into_inner()));
         // Newest first, so a folder goes after the files registered in it; a folder is removed
         // only if empty.
         files
@@ -83,9 +77,7 @@ pub fn remove_stale(dir: &Path, depth: usize) -> usize {
         if kind.is_dir() && depth > 0 {
             removed += remove_stale(&path, depth - 1);
         } else if kind.is_file()
-            && let Some(pid) = temporary_pid(&entry.file_name().to_string_lossy())
-            && pid != std::process::id()
-            && process_is_gone(pid)
+            && is_stale(&entry.file_name().to_string_lossy())
             && std::fs::remove_file(&path).is_ok()
         {
             removed += 1;
@@ -113,13 +105,15 @@ pub fn remove_stale_of(path: &Path) -> usize {
         .flatten()
         .filter(|e| {
             let n = e.file_name().to_string_lossy().into_owned();
-            n.starts_with(&prefix)
-                && temporary_pid(&n)
-                    .is_some_and(|pid| pid != std::process::id() && process_is_gone(pid))
-                && e.file_type().is_ok_and(|t| t.is_file())
+            n.starts_with(&prefix) && is_stale(&n) && e.file_type().is_ok_and(|t| t.is_file())
         })
         .filter(|e| std::fs::remove_file(e.path()).is_ok())
         .count()
+}
+
+/// Whether `file_name` is a temporary ([`temporary_name`]) of a process that has ended.
+fn is_stale(file_name: &str) -> bool {
+    temporary_pid(file_name).is_some_and(|pid| pid != std::process::id() && process_is_gone(pid))
 }
 
 /// The process id in a temporary's name `.NAME.PID.tmp`.

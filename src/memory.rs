@@ -181,13 +181,7 @@ fn cgroup_headroom() -> Option<u64> {
 /// Reads an input file whole, after checking that it is a regular file (not a device, a pipe
 /// or a folder, which have no size and may never end) and that its size fits the budget.
 pub fn read_input(path: &std::path::Path) -> Result<Vec<u8>> {
-    let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
-    if !meta.is_file() {
-        return Err(Error::file(
-            path,
-            "is not a regular file (a device, a pipe or a folder)",
-        ));
-    }
+    let meta = regular_file(path)?;
     reserve(meta.len(), || format!("{}: reading it", path.display()))?;
     let mut bytes = Vec::with_capacity(meta.len() as usize);
     // Read no more than the size checked, even if the file grows meanwhile.
@@ -200,6 +194,19 @@ pub fn read_input(path: &std::path::Path) -> Result<Vec<u8>> {
     )
     .map_err(|e| Error::io(path, e))?;
     Ok(bytes)
+}
+
+/// The metadata of `path`, which must be a regular file: a device or a pipe has no size and
+/// may never end, so no input is read from one.
+pub fn regular_file(path: &std::path::Path) -> Result<std::fs::Metadata> {
+    let meta = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+    if !meta.is_file() {
+        return Err(Error::file(
+            path,
+            "is not a regular file (a device, a pipe or a folder)",
+        ));
+    }
+    Ok(meta)
 }
 
 /// [`read_input`] as UTF-8 text.
