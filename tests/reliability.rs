@@ -390,6 +390,12 @@ fn cases() -> Vec<Case> {
             expect: "/dev/zero: is not a regular file",
         },
         Case {
+            name: "a device as the scene's glTF",
+            files: vec![on("/dev/zero")],
+            args: render_s.clone(),
+            expect: "/dev/zero: is not a regular file",
+        },
+        Case {
             name: "an export over its own input",
             files: vec![("env.ron", b"Envmap(rings: 2, radiance: [(1, 1, 1), (0.5, 0.5, 0.5)])".to_vec())],
             args: vec!["export-envmap", "{d}/env.ron", "--out", "{d}/env.ron", "--width", "8"],

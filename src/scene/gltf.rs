@@ -21,13 +21,12 @@ pub(super) struct Loaded {
 
 /// Loads a `.gltf` or `.glb`; cameras get the image size (`width`, `height`).
 pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
+    // Checked before opening: a pipe would block the open, a device never ends.
+    let len = crate::memory::regular_file(path)?.len();
     let mut head = [0u8; 12];
     let n = std::fs::File::open(path)
         .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
         .map_err(|e| Error::io(path, e))?;
-    let len = std::fs::metadata(path)
-        .map_err(|e| Error::io(path, e))?
-        .len();
     if len == 0 {
         return Err(Error::file(path, "is empty (expected a glTF 2.0 scene)"));
     }
