@@ -347,17 +347,9 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
         rounds: 2,
         ..fit_settings(1, 256, Solver::Nnls, 1e-3)
     };
-    let s = estimate::select::select_rings(
-        &r,
-        &cams,
-        &refs,
-        &masks,
-        &[3, 9, 15],
-        &template,
-        &mut |_| None,
-        &|_| {},
-    )
-    .unwrap();
+    let s =
+        estimate::select::select_rings(&r, &cams, &refs, &masks, &[3, 9, 15], &template, &|_| {})
+            .unwrap();
     let best = s
         .candidates
         .iter()
@@ -392,17 +384,9 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
     let lights = Lights::new(sc.lights.clone());
     let r = Renderer::new(&sc, &lights);
     let (refs, masks) = render_all(&r, &sc, 512, 1);
-    let s = estimate::select::select_rings(
-        &r,
-        &cams,
-        &refs,
-        &masks,
-        &[3, 9, 15],
-        &template,
-        &mut |_| None,
-        &|_| {},
-    )
-    .unwrap();
+    let s =
+        estimate::select::select_rings(&r, &cams, &refs, &masks, &[3, 9, 15], &template, &|_| {})
+            .unwrap();
     assert!(s.rings >= 9, "{s:#?}");
     let c3 = &s.candidates[0];
     assert!(c3.excess_over_best > 3.0 * c3.standard_error, "{c3:?}");
@@ -628,7 +612,6 @@ fn select_model(
         center,
         &options,
         &render,
-        None,
         &|_| {},
     )
     .unwrap();

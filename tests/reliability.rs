@@ -717,6 +717,52 @@ fn address_space_limits_give_clean_errors_and_memory_limits_hold() {
 }
 
 #[test]
+fn the_transport_memory_does_not_grow_with_the_pixels() {
+    // The bundled scene at 160×120 and at 640×480 (16× the pixels). Held whole, the second
+    // transport would take 614,400 pixels × 90 cells × 12 bytes = 663 MB; streamed, the fit
+    // holds the same sums at both sizes, and the whole estimate stays under 300 MB.
+    let tmp = tempfile::tempdir().unwrap();
+    let mut bytes = Vec::new();
+    for (w, h) in [(160, 120), (640, 480)] {
+        let sidecar = tmp.path().join(format!("s{w}.ron"));
+        std::fs::write(
+            &sidecar,
+            format!(
+                "Scene(gltf: {:?}, views: [\"cam_front\", \"cam_side\"], image: (width: {w}, height: {h}), \
+                 lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400, 360, 300))], \
+                 envmap: (rings: 9), render: (spp: 8, max_bounces: 2, seed: 1))",
+                bundled_glb()
+            ),
+        )
+        .unwrap();
+        let out = tmp.path().join(format!("out{w}"));
+        let o = run(&[
+            "--memory-limit",
+            "300M",
+            "estimate",
+            sidecar.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--spp",
+            "8",
+            "--quiet",
+        ]);
+        succeeded(&o);
+        let report: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+        let peak = report["memory"]["peak_bytes"].as_u64().unwrap();
+        assert!(peak < 300 << 20, "{w}×{h}: peak {peak} bytes");
+        assert!(
+            report["rel_mae"].as_f64().unwrap() < 0.5,
+            "{w}×{h}: {report}"
+        );
+        bytes.push(report["memory"]["transport_bytes"].as_u64().unwrap());
+    }
+    assert_eq!(bytes[0], bytes[1], "transport bytes {bytes:?}");
+    assert!(bytes[1] < 100 << 20, "transport bytes {bytes:?}");
+}
+
+#[test]
 #[cfg(target_os = "linux")]
 fn every_command_runs_under_a_real_address_space_limit() {
     // 1.5 GiB of address space (threads' stacks and allocator arenas included) and the same

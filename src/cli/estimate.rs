@@ -193,7 +193,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let views = scene.cameras.len() as u64;
     let rings = settings.ring_counts().iter().copied().max().unwrap_or(1);
     check_memory(
-        settings.memory_needed(w * h * views, w * h),
+        settings.memory_needed(w * h * views),
         || format!("{rings} rings at {w}×{h} × {views} views"),
         "; use fewer rings",
     )?;
@@ -216,7 +216,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         ));
     }
     let job = Job::new(&renderer, &seen, &render, &settings);
-    let mut estimate = job::run(&job, &mut |_| None, &bars).with_context(in_scene)?;
+    let mut estimate = job::run(&job, &bars).with_context(in_scene)?;
     bars.finish();
     let report = &mut estimate.report;
     report.scene = a.scene.clone();

@@ -16,13 +16,12 @@
 //! let render = RenderSettings::from_scene(&scene.settings);
 //! let settings = EstimateSettings::new(&scene.settings);
 //! let seen = job::observe(&renderer, &render, References::Render, &())?;
-//! let estimate = job::run(&job::Job::new(&renderer, &seen, &render, &settings), &mut |_| None, &())?;
+//! let estimate = job::run(&job::Job::new(&renderer, &seen, &render, &settings), &())?;
 //! println!("relMAE {:?}", estimate.report.rel_mae);
 //! # Ok::<(), lightprobe::Error>(())
 //! ```
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use glam::Vec3;
@@ -33,7 +32,7 @@ use super::pipeline::{self, EstimateOptions, Outcome, SeenViews, SphereOutcome};
 use super::recovery::{LightRecovery, SphereRecovery};
 use super::select::{self, ModelSelection, Selection};
 use super::spheres::{FittedLight, Observations, PathCache};
-use super::{ChannelFit, FitSettings, Solver, Transport};
+use super::{ChannelFit, FitSettings, Solver};
 use crate::envmap::MAX_RINGS;
 use crate::error::{Error, Result};
 use crate::imageio::Image;
@@ -195,16 +194,16 @@ impl EstimateSettings {
         Ok(())
     }
 
-    /// The bytes the largest envmap fit needs at `pixels` masked-or-not pixels over all views:
-    /// transport rows, one channel's f64 copy for the Gram product, the per-pixel
-    /// accumulators of one view while it renders, and the Gram matrices.
-    pub fn memory_needed(&self, pixels: u64, pixels_per_view: u64) -> u64 {
+    /// The bytes the largest envmap fit needs at `pixels` pixels over all views: the
+    /// streamed transport's sums and chunk (independent of the pixels,
+    /// [`super::transport::memory_needed`]), and per pixel the references and the images the
+    /// job renders beside them (estimate, noise floor, representation limit, a candidate's
+    /// validation), 16 bytes each.
+    pub fn memory_needed(&self, pixels: u64) -> u64 {
         let rings = self.ring_counts().iter().copied().max().unwrap_or(1);
-        let n = crate::envmap::RingGrid::new(rings).cell_count() as u64;
-        Transport::memory_needed(pixels as usize, n as usize) as u64
-            + pixels * n * 8
-            + pixels_per_view * n * 12
-            + n * n * 16
+        let n = crate::envmap::RingGrid::new(rings).cell_count();
+        let parts = self.rounds.max(1) as usize;
+        super::transport::memory_needed(n, parts) as u64 + pixels * 16 * 5
     }
 }
 
@@ -466,14 +465,8 @@ pub enum FitStatus {
     NotConverged,
 }
 
-/// Runs the job. `first_round` may hand over a shared first-round transport for a fit's
-/// settings ([`super::first_round_transport`]: it does not depend on the lighting, so
-/// scenarios of one scene share it); `|_| None` computes it.
-pub fn run(
-    job: &Job,
-    first_round: &mut dyn FnMut(&FitSettings) -> Option<Arc<Transport>>,
-    progress: &dyn Progress,
-) -> Result<Estimate> {
+/// Runs the job.
+pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     let t_all = Instant::now();
     let s = job.settings;
     s.check()?;
@@ -505,7 +498,6 @@ pub fn run(
                 masks,
                 candidates,
                 &template,
-                first_round,
                 &|k| progress.advance(k),
             )
             .ok_or_else(|| Error::Invalid("no ring count to choose from".into()))?;
@@ -521,7 +513,6 @@ pub fn run(
         oracle: s.oracle,
     };
     progress.phase("estimate", pixels * options.passes(0));
-    let first = first_round(&options.fit);
     let envmap = pipeline::run(
         job.fit,
         job.truth,
@@ -532,7 +523,6 @@ pub fn run(
         job.center,
         &options,
         job.render,
-        first.as_deref(),
         &|k| progress.advance(k),
     )?;
 

@@ -13,7 +13,7 @@ use glam::Vec3;
 use super::recovery::{self, LightRecovery, SphereRecovery};
 use super::select::held_out;
 use super::spheres::{self, Observations, SphereFit, SphereSettings};
-use super::{Fit, FitSettings, Solver, Transport, fit_reusing};
+use super::{Fit, FitSettings, Solver};
 use crate::envmap::{Envmap, RingGrid};
 use crate::error::{Error, Result};
 use crate::imageio::{self, Image};
@@ -218,7 +218,7 @@ pub fn mean_rel_mae(v: &[Metrics]) -> Option<f64> {
 /// `truth_renderer` (the same one, or e.g. the true scene when the fit had perturbed albedos;
 /// same geometry and views), then matches bright clusters to `truth` (the sphere lights that
 /// made the references, if known) seen from `center`. `render` holds the references' render
-/// settings; `first` a shared first-round transport.
+/// settings.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     renderer: &Renderer,
@@ -230,7 +230,6 @@ pub fn run(
     center: Vec3,
     options: &EstimateOptions,
     render: &RenderSettings,
-    first: Option<&Transport>,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Outcome> {
     let seen: f64 = references
@@ -244,15 +243,7 @@ pub fn run(
             "the references are black wherever they see geometry: no light reaches what the views see, so the lighting is unobservable".into(),
         ));
     }
-    let fit = fit_reusing(
-        renderer,
-        views,
-        references,
-        masks,
-        &options.fit,
-        first,
-        progress,
-    );
+    let fit = super::fit(renderer, views, references, masks, &options.fit, progress);
     if fit.non_finite {
         return Err(Error::Invalid(format!(
             "the {:?} solver produced a non-finite envmap",
@@ -271,7 +262,7 @@ pub fn run(
             .saturating_mul(8)
             .clamp(1, MAX_SPP);
         o.transport.seed = render.seed.wrapping_add(31_337);
-        Lights::env(fit_reusing(renderer, views, references, masks, &o, None, progress).envmap)
+        Lights::env(super::fit(renderer, views, references, masks, &o, progress).envmap)
     });
     let oracle_seconds = t.elapsed().as_secs_f64();
 

@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::{FitSettings, Transport, Validation, fit_reusing, is_held_out};
+use super::{FitSettings, Validation, fit, is_held_out};
 use crate::envmap::Envmap;
 use crate::imageio::Image;
 use crate::render::{Lights, RenderSettings, Renderer};
@@ -223,9 +223,7 @@ fn validate(
 }
 
 /// Fits every candidate resolution on the kept pixels, re-renders it, and chooses by [`choose`]
-/// on the held-out pixels. `template`
-/// gives everything but the ring count; `first(rings)` may supply a shared first-round
-/// transport for that resolution (see [`super::first_round_transport`]).
+/// on the held-out pixels. `template` gives everything but the ring count.
 #[allow(clippy::too_many_arguments)]
 pub fn select_rings(
     renderer: &Renderer,
@@ -234,7 +232,6 @@ pub fn select_rings(
     masks: &[Vec<bool>],
     candidates: &[u32],
     template: &FitSettings,
-    first: &mut dyn FnMut(&FitSettings) -> Option<std::sync::Arc<Transport>>,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Option<Selection> {
     let t_all = Instant::now();
@@ -246,16 +243,7 @@ pub fn select_rings(
             holdout: true,
             ..*template
         };
-        let shared = first(&settings);
-        let fit = fit_reusing(
-            renderer,
-            views,
-            references,
-            masks,
-            &settings,
-            shared.as_deref(),
-            progress,
-        );
+        let fit = fit(renderer, views, references, masks, &settings, progress);
         let v = validate(renderer, views, references, masks, &fit.envmap, template);
         validations.push((
             rings,

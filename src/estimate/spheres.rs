@@ -1230,16 +1230,7 @@ fn residual_envmap(
         holdout: obs.holdout,
         ..super::FitSettings::new(settings, rings, super::Solver::Nnls, 2 * settings.spp, 1)
     };
-    super::fit_reusing(
-        renderer,
-        obs.cameras,
-        &residual,
-        obs.masks,
-        &fit,
-        None,
-        &|_| {},
-    )
-    .envmap
+    super::fit(renderer, obs.cameras, &residual, obs.masks, &fit, &|_| {}).envmap
 }
 
 /// Judges each refined light: merged (inseparable from a brighter one), contributing nothing,

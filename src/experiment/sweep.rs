@@ -22,6 +22,7 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
+use crate::estimate::Solver;
 use crate::estimate::job::{
     self, EstimateReport, EstimateSettings, FitStatus, Job, LightModel, Rings,
 };
@@ -29,7 +30,6 @@ use crate::estimate::pipeline::{self, SeenViews};
 use crate::estimate::recovery::SphereRecovery;
 use crate::estimate::select::Selection;
 use crate::estimate::spheres::LightStatus;
-use crate::estimate::{FitSettings, Solver, Transport, first_round_transport};
 use crate::imageio;
 use crate::metrics::Metrics;
 use crate::render::{Lights, RenderSettings, Renderer};
@@ -141,14 +141,11 @@ pub struct LightFigures {
 /// Seconds per phase.
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Timings {
-    /// What the fit costs on its own (`estimate --fit-only`'s fit): the first transport round,
-    /// the later rounds and the solves.
+    /// What the fit costs on its own (`estimate --fit-only`'s fit): choosing the resolution
+    /// (with `--rings auto`), the transport and the solves.
     pub fit_seconds: f64,
     pub transport_seconds: f64,
     pub solve_seconds: f64,
-    /// The first round's cost, paid once per scene × resolution here (`first_round_shared`).
-    pub first_round_seconds: f64,
-    pub first_round_shared: bool,
     pub rerender_seconds: f64,
     /// This trial's wall time in the sweep (references not included).
     pub trial_seconds: f64,
@@ -330,8 +327,6 @@ struct Observed<'a> {
     seen: SeenViews<'a>,
     /// relMAE of the noise floor, per view.
     noise_floor: Vec<f64>,
-    /// Hash of the masks: the shared first round must have seen the same pixels.
-    mask_hash: u64,
 }
 
 /// Progress of a sweep, reported after each trial.
@@ -652,9 +647,8 @@ impl Axes {
     }
 }
 
-/// This shard's trials, ordered so that one shared first-round transport serves a block:
-/// per spp and albedo error, the fixed resolutions, then the `--rings auto` trial, then the
-/// sphere model; within each, every solver over every scenario.
+/// This shard's trials: per spp and albedo error, the fixed resolutions, then the `--rings
+/// auto` trial, then the sphere model; within each, every solver over every scenario.
 fn plan(scenarios: &[ScenarioFile], axes: &Axes, settings: &SweepSettings) -> Vec<Trial> {
     let mine: Vec<usize> = (0..scenarios.len())
         .filter(|i| *i as u32 % settings.shard.count == settings.shard.index)
@@ -699,17 +693,14 @@ struct Context<'a> {
     out: &'a Path,
 }
 
-/// What trials hand on to later ones: each scenario's references, and the first-round
-/// transports of the current block of (spp, albedo, rings, solver).
+/// What trials hand on to later ones: each scenario's references.
 #[derive(Default)]
 struct Caches<'a> {
     observed: HashMap<usize, Arc<Observed<'a>>>,
-    shared: HashMap<SharedKey, (Arc<Transport>, f64)>,
-    block: Option<(u32, usize, Option<u32>, Solver)>,
 }
 
-/// Runs one trial: its scenario's references (once, kept on disk), then one estimate job
-/// with the shared first rounds; a failed estimate is a failed record, not an error. The
+/// Runs one trial: its scenario's references (once, kept on disk), then one estimate job; a
+/// failed estimate is a failed record, not an error. The
 /// record's `fingerprint` is the caller's to fill.
 fn run_trial<'a>(
     ctx: &Context<'a>,
@@ -755,48 +746,11 @@ fn run_trial<'a>(
         }
     };
 
-    // A new block of (spp, rings, solver): the previous shared transports are done with.
-    if caches.block != Some((spp, a, rings_plan, solver)) {
-        caches.shared.clear();
-        caches.block = Some((spp, a, rings_plan, solver));
-    }
     let rings = match rings_plan {
         Some(r) => Rings::Fixed(r),
         None => Rings::Auto(ctx.axes.rings.clone()),
     };
     let estimate = trial_settings(settings, solver, spp, rings, spheres);
-    // The shared first round of a resolution: per call, (seconds it took, was cached).
-    let mut first_rounds: Vec<(f64, bool)> = Vec::new();
-    let mut first_of = |fit: &FitSettings| {
-        let key = (
-            sf.group,
-            a,
-            fit.rings,
-            fit.transport.spp,
-            fit.transport.max_bounces,
-            obs.mask_hash,
-            fit.transport.seed,
-            solver,
-        );
-        let (tr, secs, cached) = match caches.shared.get(&key) {
-            Some((t, secs)) => (t.clone(), *secs, true),
-            None => {
-                let t = Instant::now();
-                let tr = Arc::new(first_round_transport(
-                    &fit_renderer,
-                    &views,
-                    &obs.seen.masks,
-                    fit,
-                    &|_| {},
-                ));
-                let secs = t.elapsed().as_secs_f64();
-                caches.shared.insert(key, (tr.clone(), secs));
-                (tr, secs, false)
-            }
-        };
-        first_rounds.push((secs, cached));
-        Some(tr)
-    };
     let id = trial_id(
         &sf.name,
         spp,
@@ -816,7 +770,7 @@ fn run_trial<'a>(
         center: scene.center(),
         size: (hi.x - lo.x).max(hi.z - lo.z).max(1e-3),
     };
-    let result = job::run(&job, &mut first_of, &());
+    let result = job::run(&job, &());
     let mut record = blank_record(
         id,
         sf,
@@ -834,7 +788,6 @@ fn run_trial<'a>(
         Ok(est) => fill_record(
             &mut record,
             est.report,
-            &first_rounds,
             &obs.noise_floor,
             (&sf.lights, job.center),
         ),
@@ -905,7 +858,7 @@ fn check_memory(
             None => Rings::Auto(axes.rings.clone()),
         };
         let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres)
-            .memory_needed(per_view * scene.cameras.len() as u64, per_view);
+            .memory_needed(per_view * scene.cameras.len() as u64);
         crate::memory::reserve(need, || format!("trial {}", id(t)))?;
     }
     Ok(())
@@ -936,10 +889,6 @@ fn trial_settings(
         oracle: false,
     }
 }
-
-/// Key of a shared first-round transport: (scene group, albedo error, rings, spp, bounces,
-/// mask hash, seed, solver).
-type SharedKey = (usize, usize, u32, u32, u32, u64, u64, Solver);
 
 /// One planned trial.
 #[derive(Debug, Clone, Copy)]
@@ -978,19 +927,13 @@ fn light_figures(lights: &[SphereLight], center: Vec3, size: f32) -> Vec<LightFi
         .collect()
 }
 
-/// A trial's figures from its estimate's report. `first_rounds`: per shared first-round
-/// transport the job asked for, in order (the candidates of `--rings auto`, then the fit),
-/// its seconds and whether it was shared; a stand-alone estimate would have paid for each.
+/// A trial's figures from its estimate's report.
 fn fill_record(
     record: &mut TrialRecord,
     report: EstimateReport,
-    first_rounds: &[(f64, bool)],
     noise_floor: &[f64],
     (truth, center): (&[SphereLight], Vec3),
 ) {
-    let (first_seconds, was_shared) = first_rounds.last().copied().unwrap_or((0.0, false));
-    let candidates = &first_rounds[..first_rounds.len().saturating_sub(1)];
-    let shared_selection: f64 = candidates.iter().filter(|c| c.1).map(|c| c.0).sum();
     record.rings = report.rings;
     record.cells = report.cells;
     record.rel_mae = report.rel_mae;
@@ -1033,21 +976,13 @@ fn fill_record(
         record.rel_mae = None;
     }
     let t = &report.timings;
-    let selection_seconds = report
-        .rings_selection
-        .as_ref()
-        .map_or(0.0, |s| s.seconds + shared_selection);
+    let selection_seconds = report.rings_selection.as_ref().map_or(0.0, |s| s.seconds);
     record.timings = Timings {
-        // The fit's own transport time counts the clone of the shared round, not its
-        // rendering: the stand-alone cost adds the first round's measured time.
-        fit_seconds: selection_seconds + first_seconds + t.transport_seconds + t.solve_seconds,
+        fit_seconds: selection_seconds + t.transport_seconds + t.solve_seconds,
         transport_seconds: t.transport_seconds,
         solve_seconds: t.solve_seconds,
-        first_round_seconds: first_seconds,
-        first_round_shared: was_shared,
         rerender_seconds: t.rerender_seconds,
         trial_seconds: 0.0,
-        // Stand-alone, the candidates' shared first rounds would have been paid too.
         selection_seconds,
     };
     record.transport_bytes = report.memory.transport_bytes;
@@ -1193,14 +1128,5 @@ fn observe<'a>(
         blind_reason: seen.blind_reason,
         seconds: seen.seconds,
     };
-    let mask_hash = seen
-        .masks
-        .iter()
-        .flatten()
-        .fold(0x1234_5678u64, |h, &b| mix64(h ^ b as u64));
-    Ok(Observed {
-        seen,
-        noise_floor,
-        mask_hash,
-    })
+    Ok(Observed { seen, noise_floor })
 }

@@ -30,9 +30,9 @@ use crate::imageio::Image;
 use crate::sampling::mix64;
 use crate::scene::{Camera, Scene, SceneSettings};
 use integrator::Tracer;
-use pixels::{Done, Light, Tile, TilePaths, Trace, View, Walk, drive, render_key, tiles};
+use pixels::{Light, TilePaths, Trace, View, Walk, drive, render_key};
 
-pub use pixels::TILE;
+pub use pixels::{Done, TILE, Tile, tiles};
 
 /// Which light-transport estimator to use at each surface vertex.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, schemars::JsonSchema)]
@@ -242,20 +242,34 @@ impl<'a> Renderer<'a> {
         acc: &A,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Frame<A::Pixel> {
-        let tracer = self.tracer(settings);
-        let ray_dir = camera.ray_dirs();
-        let view = self.view(camera, settings, stream, &ray_dir);
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(camera.width, camera.height)
             .par_iter()
             .map(|&tile| {
-                let mut k = Trace::new(&tracer, camera, acc, tile);
-                drive(&view, tile, &mut k);
-                let pixels = k.into_pixels();
+                let pixels = self.render_tile(camera, stream, settings, acc, tile);
                 progress(pixels.len() as u64);
                 pixels
             })
             .collect();
         assemble(camera.width, camera.height, done)
+    }
+
+    /// Renders one tile of `camera` (one of [`tiles`]) on this thread: its pixels in visiting
+    /// order, each as [`Renderer::render`] computes it (a pixel's random streams depend on its
+    /// index, not on its tile). For reductions that never hold a whole frame.
+    pub fn render_tile<A: Accumulator>(
+        &self,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+        acc: &A,
+        tile: Tile,
+    ) -> Vec<Done<A::Pixel>> {
+        let tracer = self.tracer(settings);
+        let ray_dir = camera.ray_dirs();
+        let view = self.view(camera, settings, stream, &ray_dir);
+        let mut k = Trace::new(&tracer, camera, acc, tile);
+        drive(&view, tile, &mut k);
+        k.into_pixels()
     }
 
     /// Walks every camera path of a render of `camera` (as [`Renderer::render`] would with
