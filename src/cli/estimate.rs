@@ -86,7 +86,8 @@ pub struct Args {
     rings_candidates: Vec<u32>,
     #[arg(long, value_enum, default_value_t = SolverArg::Nnls)]
     solver: SolverArg,
-    /// Samples per pixel of the transport estimate, over all rounds (default: the sidecar's).
+    /// Samples per pixel of the transport estimate, over all its parts or rounds (default: the
+    /// sidecar's).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=sidecar::MAX_SPP as i64))]
     spp: Option<u32>,
     /// Smoothness weight between neighbouring cells (relative; 0 = none).
@@ -98,10 +99,10 @@ pub struct Args {
     /// visible 1% of brightness on coarse grids).
     #[arg(long, default_value_t = 1e-3)]
     ridge: f64,
-    /// Transport rounds (sequential Monte Carlo), sharing --spp: rounds after the first sample
-    /// cells by the current estimate. Default 4 for nnls (which fits their mean transport,
-    /// with TᵀT from products of different rounds: unbiased from 2 rounds on), 3 for gradient
-    /// (which continues from its estimate each round).
+    /// How the transport's --spp is split. nnls (default 4): into that many independent
+    /// parts, whose cell sampling a pilot pass over a quarter of the pixels steers (the fit
+    /// takes TᵀT from products of different parts: unbiased from 2 on). gradient (default 3):
+    /// into sequential rounds, each sampling cells by the estimate so far.
     #[arg(long)]
     rounds: Option<u32>,
     /// Also compute the representation limit: the best envmap of this resolution, fitted to a

@@ -450,7 +450,8 @@ pub struct Timings {
 /// Bytes.
 #[derive(Debug, Clone, Serialize, JsonSchema)]
 pub struct Memory {
-    /// The envmap fit's transport.
+    /// The envmap fit's streamed transport at most: its normal equations and one chunk of
+    /// rendered rows (independent of the pixels and views).
     pub transport_bytes: usize,
     /// Peak resident memory of the process so far.
     pub peak_bytes: u64,
@@ -489,7 +490,8 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         Rings::Auto(candidates) => {
             progress.phase(
                 "choosing rings",
-                pixels * candidates.len() as u64 * s.rounds as u64,
+                // Per candidate: its fit's passes and a validation render.
+                pixels * candidates.len() as u64 * (template.passes() + 1),
             );
             let sel = select::select_rings(
                 job.fit,
@@ -512,7 +514,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         noise_floor: s.noise_floor,
         oracle: s.oracle,
     };
-    progress.phase("estimate", pixels * options.passes(0));
+    progress.phase("estimate", pixels * options.passes());
     let envmap = pipeline::run(
         job.fit,
         job.truth,

@@ -41,11 +41,11 @@ pub enum Solver {
 }
 
 impl Solver {
-    /// Transport rounds by default: NNLS combines four ([`rounds`]; it needs two or more for
-    /// an unbiased TᵀT). Measured on the bundled scene at 9 rings, mean relMAE over 3 seeds,
-    /// 2 → 4 rounds at equal samples: 10.09% → 9.94% at 128 spp, 9.87% → 9.84% at 512; 8
-    /// rounds of 8 spp steer worse than 4 of 16. The gradient solver continues from its
-    /// estimate over three.
+    /// Transport parts or rounds by default: NNLS combines four independent parts
+    /// ([`transport`]; it needs two or more for an unbiased TᵀT; measured with sequential
+    /// rounds on the bundled scene at 9 rings, mean relMAE over 3 seeds, 2 → 4 at equal
+    /// samples: 10.09% → 9.94% at 128 spp, 9.87% → 9.84% at 512). The gradient solver
+    /// continues from its estimate over three rounds.
     pub fn default_rounds(self) -> u32 {
         match self {
             Solver::Nnls => 4,
@@ -67,10 +67,10 @@ pub struct FitSettings {
     /// Weight of a ridge pulling every cell toward zero, relative to the mean diagonal of TᵀT:
     /// cells the views barely see stay dark instead of taking wild values; 0 = none.
     pub ridge: f64,
-    /// Transport rounds (sequential Monte Carlo): each round after the first samples cells by
-    /// the current estimate (plus a defensive floor). NNLS solves on the rounds' transports
-    /// combined ([`rounds`]: their mean, and cross products for TᵀT); the gradient solver
-    /// continues from its current estimate each round.
+    /// How the transport's samples are split. NNLS: into this many independent parts of one
+    /// pass, sampled by a pilot's estimate ([`fit`]; their mean, and cross products for TᵀT).
+    /// Gradient: into sequential rounds (sequential Monte Carlo), each sampling cells by the
+    /// current estimate (plus a defensive floor) and continuing from it.
     pub rounds: u32,
     /// Wall-clock budget of each channel's solve.
     pub time_limit: Duration,
@@ -102,6 +102,16 @@ impl Validation {
 }
 
 impl FitSettings {
+    /// Transport passes over the pixels [`fit`] makes, for progress: the rounds, and NNLS's
+    /// pilot (a pass over a quarter of the pixels at one part's samples, counted whole).
+    pub fn passes(&self) -> u64 {
+        let rounds = self.rounds.max(1) as u64;
+        match self.solver {
+            Solver::Nnls if rounds >= 2 => rounds + 1,
+            _ => rounds,
+        }
+    }
+
     /// Settings for `spp` transport samples per pixel in all, split over `rounds`, with the
     /// transport's own seed (the references' + 1); no smoothing, ridge 0.001, 60 s per solve.
     pub fn new(render: &RenderSettings, rings: u32, solver: Solver, spp: u32, rounds: u32) -> Self {

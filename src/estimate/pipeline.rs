@@ -176,11 +176,9 @@ pub struct EstimateOptions {
 
 impl EstimateOptions {
     /// Image-sized passes [`run`] makes (rounds, re-render, oracle), for progress bars.
-    pub fn passes(&self, rounds_done: u32) -> u64 {
-        let all = self.fit.rounds.max(1) as u64;
-        let rounds = all.saturating_sub(rounds_done as u64);
+    pub fn passes(&self) -> u64 {
         let lightings = self.evaluate as u64 * (1 + self.noise_floor as u64) + self.oracle as u64;
-        rounds + lightings + if self.oracle { 8 * all } else { 0 }
+        self.fit.passes() * if self.oracle { 9 } else { 1 } + lightings
     }
 }
 
@@ -262,7 +260,9 @@ pub fn run(
             .saturating_mul(8)
             .clamp(1, MAX_SPP);
         o.transport.seed = render.seed.wrapping_add(31_337);
-        Lights::env(super::fit(renderer, views, references, masks, &o, progress).envmap)
+        // 8× the samples per pixel: each pixel counts 8 for progress.
+        let progress = |k| progress(8 * k);
+        Lights::env(super::fit(renderer, views, references, masks, &o, &progress).envmap)
     });
     let oracle_seconds = t.elapsed().as_secs_f64();
 

@@ -213,12 +213,13 @@ fn validate(
     masks: &[Vec<bool>],
     envmap: &Envmap,
     template: &FitSettings,
+    progress: &(dyn Fn(u64) + Sync),
 ) -> Validation {
     let lights = Lights::env(envmap.clone());
     let images =
         renderer
             .with_lights(&lights)
-            .render_views(views, &validation_settings(template), &|_| {});
+            .render_views(views, &validation_settings(template), progress);
     held_out(&images, references, masks)
 }
 
@@ -244,7 +245,15 @@ pub fn select_rings(
             ..*template
         };
         let fit = fit(renderer, views, references, masks, &settings, progress);
-        let v = validate(renderer, views, references, masks, &fit.envmap, template);
+        let v = validate(
+            renderer,
+            views,
+            references,
+            masks,
+            &fit.envmap,
+            template,
+            progress,
+        );
         validations.push((
             rings,
             fit.envmap.grid.cell_count(),

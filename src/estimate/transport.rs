@@ -249,19 +249,23 @@ pub fn accumulate(
         count: cells,
     };
     let counts = |(v, i): (usize, u32)| masks[v][i as usize] && keep((v, i));
-    let work: Vec<(usize, Tile)> = cameras
+    let per_view: Vec<Box<dyn Fn(u32) -> bool + Sync + '_>> = (0..cameras.len())
+        .map(|v| Box::new(move |i| counts((v, i))) as Box<dyn Fn(u32) -> bool + Sync>)
+        .collect();
+    let (work, idle): (Vec<(usize, Tile)>, Vec<(usize, Tile)>) = cameras
         .iter()
         .enumerate()
-        .flat_map(|(v, cam)| {
-            tiles(cam.width, cam.height)
-                .into_iter()
-                .map(move |t| (v, t))
-        })
-        .filter(|&(v, (x0, y0, x1, y1))| {
+        .flat_map(|(v, cam)| tiles(cam.width, cam.height).into_iter().map(move |t| (v, t)))
+        .partition(|&(v, (x0, y0, x1, y1))| {
             let w = cameras[v].width;
             (y0..y1).any(|y| (x0..x1).any(|x| counts((v, y * w + x))))
-        })
-        .collect();
+        });
+    // Tiles with nothing to render are done at once.
+    let idle_pixels: u64 = idle
+        .iter()
+        .map(|(_, (x0, y0, x1, y1))| ((x1 - x0) * (y1 - y0)) as u64)
+        .sum();
+    progress(idle_pixels * parts.len() as u64);
     for chunk in work.chunks(tiles_per_chunk(cells, parts.len())) {
         // Per tile, per part: the tile's pixels.
         let rendered: Vec<Vec<Vec<Done<Vec<Vec3>>>>> = chunk
@@ -277,6 +281,7 @@ pub fn accumulate(
                             &part.settings,
                             &acc,
                             tile,
+                            Some(&*per_view[v]),
                         );
                         progress(px.len() as u64);
                         px

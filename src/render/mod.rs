@@ -219,6 +219,7 @@ impl<'a> Renderer<'a> {
             ray_dir,
             settings,
             isa: self.accel.isa(),
+            wanted: None,
         }
     }
 
@@ -245,7 +246,7 @@ impl<'a> Renderer<'a> {
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(camera.width, camera.height)
             .par_iter()
             .map(|&tile| {
-                let pixels = self.render_tile(camera, stream, settings, acc, tile);
+                let pixels = self.render_tile(camera, stream, settings, acc, tile, None);
                 progress(pixels.len() as u64);
                 pixels
             })
@@ -255,7 +256,10 @@ impl<'a> Renderer<'a> {
 
     /// Renders one tile of `camera` (one of [`tiles`]) on this thread: its pixels in visiting
     /// order, each as [`Renderer::render`] computes it (a pixel's random streams depend on its
-    /// index, not on its tile). For reductions that never hold a whole frame.
+    /// index, not on its tile), except that pixels `wanted` refuses are skipped (no sample,
+    /// the accumulator's empty pixel, coverage 0). For reductions that never hold a whole
+    /// frame.
+    #[allow(clippy::too_many_arguments)]
     pub fn render_tile<A: Accumulator>(
         &self,
         camera: &Camera,
@@ -263,10 +267,14 @@ impl<'a> Renderer<'a> {
         settings: &RenderSettings,
         acc: &A,
         tile: Tile,
+        wanted: Option<&(dyn Fn(u32) -> bool + Sync)>,
     ) -> Vec<Done<A::Pixel>> {
         let tracer = self.tracer(settings);
         let ray_dir = camera.ray_dirs();
-        let view = self.view(camera, settings, stream, &ray_dir);
+        let view = View {
+            wanted,
+            ..self.view(camera, settings, stream, &ray_dir)
+        };
         let mut k = Trace::new(&tracer, camera, acc, tile);
         drive(&view, tile, &mut k);
         k.into_pixels()

@@ -75,6 +75,8 @@ pub struct View<'a, R: Fn(f32, f32) -> Vec3> {
     /// The instruction set the BVH runs ([`crate::accel::Accel::isa`]); the pixel loop
     /// follows it.
     pub isa: Isa,
+    /// The pixels (by index) the caller asks for; the others are skipped. None: all.
+    pub wanted: Option<&'a (dyn Fn(u32) -> bool + Sync)>,
 }
 
 /// Visits the pixels of `tile` with `kernel`: compiled twice, for the baseline target and for
@@ -112,7 +114,8 @@ fn drive_on<R: Fn(f32, f32) -> Vec3, K: Kernel>(view: &View<R>, tile: Tile, kern
                 index: y * view.camera.width + x,
                 corners: pixel_corners(view.ray_dir, x, y),
             };
-            if kernel.blind(&p) && kernel.hides_emitters() {
+            let unwanted = view.wanted.is_some_and(|w| !w(p.index));
+            if unwanted || (kernel.blind(&p) && kernel.hides_emitters()) {
                 kernel.skip(&p);
                 continue;
             }
