@@ -258,7 +258,8 @@ const TRANSPORT_STREAMS: u64 = 1000;
 /// rings 9.54% against 9.53% relMAE, 25 rings 9.56% against 9.39%, within the seeds' spread
 /// of ±0.15%), for a sixteenth of the main pass's samples.
 fn in_pilot((view, pixel): (usize, u32)) -> bool {
-    crate::sampling::mix64(((view as u64) << 32 | pixel as u64) ^ 0x005E_ED0F_9170).is_multiple_of(4)
+    crate::sampling::mix64(((view as u64) << 32 | pixel as u64) ^ 0x005E_ED0F_9170)
+        .is_multiple_of(4)
 }
 
 /// Seed of transport part or round `k`.

@@ -255,7 +255,11 @@ pub fn accumulate(
     let (work, idle): (Vec<(usize, Tile)>, Vec<(usize, Tile)>) = cameras
         .iter()
         .enumerate()
-        .flat_map(|(v, cam)| tiles(cam.width, cam.height).into_iter().map(move |t| (v, t)))
+        .flat_map(|(v, cam)| {
+            tiles(cam.width, cam.height)
+                .into_iter()
+                .map(move |t| (v, t))
+        })
         .partition(|&(v, (x0, y0, x1, y1))| {
             let w = cameras[v].width;
             (y0..y1).any(|y| (x0..x1).any(|x| counts((v, y * w + x))))
