@@ -202,6 +202,9 @@ impl NormalEquations {
     }
 }
 
+/// A tile of a view: (view index, tile).
+type ViewTile = (usize, Tile);
+
 /// Bytes a chunk of rendered rows may take (every part's f32 rows, one channel's f64 copies):
 /// big enough for efficient matrix products, small beside any image.
 const CHUNK_BYTES: usize = 64 << 20;
@@ -252,7 +255,8 @@ pub fn accumulate(
     let per_view: Vec<Box<dyn Fn(u32) -> bool + Sync + '_>> = (0..cameras.len())
         .map(|v| Box::new(move |i| counts((v, i))) as Box<dyn Fn(u32) -> bool + Sync>)
         .collect();
-    let (work, idle): (Vec<(usize, Tile)>, Vec<(usize, Tile)>) = cameras
+    // (view, tile) pairs: those with a pixel to render, and the rest.
+    let (work, idle): (Vec<ViewTile>, Vec<ViewTile>) = cameras
         .iter()
         .enumerate()
         .flat_map(|(v, cam)| {
