@@ -1651,3 +1651,102 @@ fn renders_are_bit_identical_on_the_portable_and_the_detected_kernels() {
         assert!(a == b, "{view} differs between the kernels");
     }
 }
+
+/// A glTF quad in front of a camera, its vertices coloured by COLOR_0 (`color_type`:
+/// "VEC4" normalised bytes, or anything else to test a bad accessor), base colour 0.5.
+fn colored_quad(dir: &Path, color_type: &str) -> PathBuf {
+    let mut bin: Vec<u8> = Vec::new();
+    for p in [
+        [-1.0f32, -1.0, 0.0],
+        [1.0, -1.0, 0.0],
+        [1.0, 1.0, 0.0],
+        [-1.0, 1.0, 0.0],
+    ] {
+        p.iter().for_each(|v| bin.extend(v.to_le_bytes()));
+    }
+    // One colour for every vertex: (51, 128, 255)/255.
+    for _ in 0..4 {
+        bin.extend([51u8, 128, 255, 255]);
+    }
+    for i in [0u32, 1, 2, 0, 2, 3] {
+        bin.extend(i.to_le_bytes());
+    }
+    std::fs::write(dir.join("q.bin"), &bin).unwrap();
+    let gltf = format!(
+        r#"{{"asset": {{"version": "2.0"}},
+        "buffers": [{{"uri": "q.bin", "byteLength": {len}}}],
+        "bufferViews": [{{"buffer": 0, "byteOffset": 0, "byteLength": 48}},
+                        {{"buffer": 0, "byteOffset": 48, "byteLength": 16}},
+                        {{"buffer": 0, "byteOffset": 64, "byteLength": 24}}],
+        "accessors": [{{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+                        "min": [-1, -1, 0], "max": [1, 1, 0]}},
+                      {{"bufferView": 1, "componentType": 5121, "normalized": true, "count": 4,
+                        "type": "{color_type}"}},
+                      {{"bufferView": 2, "componentType": 5125, "count": 6, "type": "SCALAR"}}],
+        "materials": [{{"name": "scan", "pbrMetallicRoughness": {{"baseColorFactor": [0.5, 0.5, 0.5, 1]}}}}],
+        "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0, "COLOR_0": 1}}, "indices": 2, "material": 0}}]}}],
+        "cameras": [{{"type": "perspective", "perspective": {{"yfov": 0.5, "znear": 0.01}}}}],
+        "nodes": [{{"mesh": 0}}, {{"name": "cam", "camera": 0, "translation": [0, 0, 3]}}],
+        "scenes": [{{"nodes": [0, 1]}}], "scene": 0}}"#,
+        len = bin.len()
+    );
+    let path = dir.join("q.gltf");
+    std::fs::write(&path, gltf).unwrap();
+    path
+}
+
+#[test]
+fn vertex_colors_multiply_the_base_colour_unless_the_sidecar_overrides_it() {
+    use lightprobe::render::{Lights, Renderer};
+    use lightprobe::scene::Scene;
+    let tmp = tempfile::tempdir().unwrap();
+    colored_quad(tmp.path(), "VEC4");
+    let albedo_at_centre = |overrides: &str| {
+        let ron = tmp.path().join("q.ron");
+        std::fs::write(
+            &ron,
+            format!(
+                "Scene(gltf: \"q.gltf\", image: (width: 8, height: 6), albedo: {{{overrides}}})"
+            ),
+        )
+        .unwrap();
+        let scene = Scene::load(&ron).unwrap();
+        let lights = Lights::new(Vec::new());
+        let aovs = Renderer::new(&scene, &lights).aovs(&scene.cameras[0]);
+        aovs.albedo.rgb[3 * 8 + 4]
+    };
+    // glTF: albedo = baseColorFactor × COLOR_0 (linear), here 0.5 × (0.2, 0.502, 1).
+    let a = albedo_at_centre("");
+    let want = [0.5 * 51.0 / 255.0, 0.5 * 128.0 / 255.0, 0.5];
+    for (got, want) in a.to_array().iter().zip(want) {
+        assert!((got - want).abs() < 1e-4, "albedo {a}, want {want:?}");
+    }
+    // An override is the whole albedo.
+    let a = albedo_at_centre("\"scan\": Constant((0.3, 0.3, 0.3))");
+    assert!(
+        (a - glam::Vec3::splat(0.3)).abs().max_element() < 1e-6,
+        "albedo {a}"
+    );
+    // `info` says the mesh carries colours.
+    let ron = tmp.path().join("q.ron");
+    std::fs::write(
+        &ron,
+        "Scene(gltf: \"q.gltf\", image: (width: 8, height: 6))",
+    )
+    .unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+        .args(["info", ron.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let info: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(info["vertex_colors"], true, "{info}");
+    // A COLOR_0 of the wrong type is refused, naming the file and the accessor.
+    colored_quad(tmp.path(), "SCALAR");
+    let o = Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+        .args(["info", ron.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("q.gltf") && err.contains("COLOR_0"), "{err}");
+}

@@ -42,6 +42,7 @@ pub fn run(path: &Path) -> anyhow::Result<()> {
         "scene": path,
         "triangles": scene.mesh.triangle_count(),
         "vertices": scene.mesh.positions.len(),
+        "vertex_colors": scene.mesh.has_colors(),
         "bounds": { "min": lo.to_array(), "max": hi.to_array() },
         "surface_area": scene.mesh.surface_area(),
         "materials": materials,

@@ -240,7 +240,8 @@ fn surface_point(scene: &Scene, hit: &Hit, d: Vec3) -> SurfacePoint {
         ns = -ns;
     }
     let uv = mesh.uvs[ia] * b0 + mesh.uvs[ib] * hit.b1 + mesh.uvs[ic] * hit.b2;
-    let albedo = scene.materials[mesh.triangle_material[t] as usize].albedo_at(uv);
+    let color = mesh.colors[ia] * b0 + mesh.colors[ib] * hit.b1 + mesh.colors[ic] * hit.b2;
+    let albedo = scene.materials[mesh.triangle_material[t] as usize].albedo_at(uv) * color;
     SurfacePoint { p, ng, ns, albedo }
 }
 

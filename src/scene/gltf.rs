@@ -477,6 +477,7 @@ fn load_primitive(
         prim.get(&gltf::Semantic::Positions),
         prim.get(&gltf::Semantic::Normals),
         prim.get(&gltf::Semantic::TexCoords(texcoord_set)),
+        prim.get(&gltf::Semantic::Colors(0)),
         prim.indices(),
     ];
     for a in accessors.iter().flatten() {
@@ -575,6 +576,30 @@ fn load_primitive(
         _ => {}
     }
 
+    // COLOR_0 is linear RGB(A); alpha plays no part in a Lambertian albedo.
+    let colors: Option<Vec<Vec3>> = reader
+        .read_colors(0)
+        .map(|c| c.into_rgb_f32().map(Vec3::from).collect());
+    if let Some(c) = &colors {
+        if c.len() != n {
+            return Err(Error::file(
+                path,
+                format!("{what} has {} COLOR_0 values for {n} vertices", c.len()),
+            ));
+        }
+        if let Some(bad) = c.iter().find(|v| !v.is_finite()) {
+            return Err(Error::file(
+                path,
+                format!("{what} has a non-finite COLOR_0 value {bad}"),
+            ));
+        }
+    }
+    let colors = colors.map(|c| {
+        c.into_iter()
+            .map(|v| v.clamp(Vec3::ZERO, Vec3::ONE))
+            .collect::<Vec<_>>()
+    });
+
     let world_positions: Vec<Vec3> = positions
         .iter()
         .map(|&p| world.transform_point3(p))
@@ -592,10 +617,11 @@ fn load_primitive(
             })
             .collect::<Vec<_>>()
     });
-    mesh.push(
+    mesh.push_colored(
         &world_positions,
         world_normals.as_deref(),
         uvs.as_deref(),
+        colors.as_deref(),
         &indices,
         material,
     );
@@ -698,6 +724,23 @@ fn check_accessor_types(
         Dim::Vec2,
         &|d, n| d == D::F32 || (n && matches!(d, D::U8 | D::U16)),
     )?;
+    // COLOR_0: VEC3 or VEC4 of floats or normalised unsigned bytes or shorts.
+    if let Some(a) = prim.get(&gltf::Semantic::Colors(0)) {
+        let dims_ok = matches!(a.dimensions(), Dim::Vec3 | Dim::Vec4);
+        let d = a.data_type();
+        let type_ok = d == D::F32 || (a.normalized() && matches!(d, D::U8 | D::U16));
+        if !(dims_ok && type_ok) {
+            return Err(Error::file(
+                path,
+                format!(
+                    "{what}: COLOR_0 accessor #{} is {:?} {:?}, not a valid COLOR_0",
+                    a.index(),
+                    a.dimensions(),
+                    d
+                ),
+            ));
+        }
+    }
     check("index", prim.indices(), Dim::Scalar, &|d, n| {
         !n && matches!(d, D::U8 | D::U16 | D::U32)
     })

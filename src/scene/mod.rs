@@ -134,6 +134,9 @@ pub struct Mesh {
     /// Unit shading normals, world space (zero where a file gave a degenerate one).
     pub normals: Vec<Vec3>,
     pub uvs: Vec<Vec2>,
+    /// Per-vertex colour, linear RGB in [0, 1], multiplying the material's albedo (glTF
+    /// `COLOR_0`, what scanned meshes carry); 1 where the file has none.
+    pub colors: Vec<Vec3>,
     pub triangles: Vec<[u32; 3]>,
     /// Material index of each triangle.
     pub triangle_material: Vec<u32>,
@@ -165,8 +168,22 @@ impl Mesh {
         indices: &[u32],
         material: u32,
     ) {
+        self.push_colored(positions, normals, uvs, None, indices, material)
+    }
+
+    /// [`Mesh::push`] with per-vertex colours (1 without).
+    pub fn push_colored(
+        &mut self,
+        positions: &[Vec3],
+        normals: Option<&[Vec3]>,
+        uvs: Option<&[Vec2]>,
+        colors: Option<&[Vec3]>,
+        indices: &[u32],
+        material: u32,
+    ) {
         debug_assert!(indices.len().is_multiple_of(3));
         let uv = |i: u32| uvs.map_or(Vec2::ZERO, |u| u[i as usize]);
+        let color = |i: u32| colors.map_or(Vec3::ONE, |c| c[i as usize]);
         match normals {
             Some(normals) => {
                 let base = self.positions.len() as u32;
@@ -174,6 +191,7 @@ impl Mesh {
                 self.normals
                     .extend(normals.iter().map(|n| n.normalize_or_zero()));
                 self.uvs.extend((0..positions.len() as u32).map(uv));
+                self.colors.extend((0..positions.len() as u32).map(color));
                 for t in indices.chunks_exact(3) {
                     self.triangles.push([base + t[0], base + t[1], base + t[2]]);
                     self.triangle_material.push(material);
@@ -192,6 +210,7 @@ impl Mesh {
                         self.positions.push(p[k]);
                         self.normals.push(n);
                         self.uvs.push(uv(i));
+                        self.colors.push(color(i));
                     }
                     self.triangles.push([base, base + 1, base + 2]);
                     self.triangle_material.push(material);
@@ -200,14 +219,32 @@ impl Mesh {
         }
     }
 
+    /// Sets the colours of `material`'s vertices to 1 (each vertex belongs to the triangles
+    /// of one [`Mesh::push`], so to one material).
+    pub fn clear_colors(&mut self, material: u32) {
+        for (t, &m) in self.triangles.iter().zip(&self.triangle_material) {
+            if m == material {
+                for &v in t {
+                    self.colors[v as usize] = Vec3::ONE;
+                }
+            }
+        }
+    }
+
+    /// Whether any vertex has a colour other than 1.
+    pub fn has_colors(&self) -> bool {
+        self.colors.iter().any(|&c| c != Vec3::ONE)
+    }
+
     /// Appends another mesh's triangles with material `material` (its normals and texture
     /// coordinates are kept).
     pub fn append(&mut self, other: &Mesh, material: u32) {
         let indices: Vec<u32> = other.triangles.iter().flatten().copied().collect();
-        self.push(
+        self.push_colored(
             &other.positions,
             Some(&other.normals),
             Some(&other.uvs),
+            Some(&other.colors),
             &indices,
             material,
         );
@@ -301,8 +338,9 @@ impl Scene {
         let loaded = gltf::load(&gltf_path, w, h)?;
 
         let mut materials = loaded.materials;
+        let mut mesh = loaded.mesh;
         for (name, source) in &sidecar.albedo {
-            let Some(m) = materials.iter_mut().find(|m| &m.name == name) else {
+            let Some(index) = materials.iter().position(|m| &m.name == name) else {
                 return Err(Error::file(
                     sidecar_path,
                     format!(
@@ -311,7 +349,9 @@ impl Scene {
                     ),
                 ));
             };
-            m.albedo = match source {
+            // An override is the whole albedo: the material's vertex colours go too.
+            mesh.clear_colors(index as u32);
+            materials[index].albedo = match source {
                 sidecar::AlbedoSource::Constant(c) => {
                     Albedo::Constant(Vec3::new(c.0.0, c.0.1, c.0.2))
                 }
@@ -362,7 +402,7 @@ impl Scene {
         let lights = sidecar.sphere_lights();
 
         Ok(Scene {
-            mesh: loaded.mesh,
+            mesh,
             materials,
             cameras,
             lights,
