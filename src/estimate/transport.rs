@@ -72,6 +72,40 @@ impl Accumulator for PerEmitterAccumulator {
     }
 }
 
+/// Accumulates a pixel's row of the envmap's transport sparsely: the (cell, weight per unit
+/// radiance) each path delivers, merged by cell when the pixel is done. A 16-sample part at
+/// 25 rings reaches a few dozen of 738 cells; a dense row would be zeroed and scanned whole
+/// for each pixel of each part.
+pub struct CellAccumulator;
+
+impl Accumulator for CellAccumulator {
+    type Pixel = Vec<(u32, Vec3)>;
+    fn new_pixel(&self) -> Self::Pixel {
+        Vec::new()
+    }
+    #[inline]
+    fn add(&self, pixel: &mut Self::Pixel, emitter: Emitter, weight: Vec3) {
+        if let Emitter::EnvCell(c) = emitter {
+            pixel.push((c, weight));
+        }
+    }
+    fn finish(&self, pixel: &mut Self::Pixel, spp: u32) {
+        // Stable: the weights of a cell are summed in sample order.
+        pixel.sort_by_key(|e| e.0);
+        let inv = 1.0 / spp as f32;
+        let mut merged: Vec<(u32, Vec3)> = Vec::with_capacity(pixel.len());
+        for &(c, w) in pixel.iter() {
+            match merged.last_mut() {
+                Some(last) if last.0 == c => last.1 += w,
+                _ => merged.push((c, w)),
+            }
+        }
+        merged.retain(|e| e.1 != Vec3::ZERO);
+        merged.iter_mut().for_each(|e| e.1 *= inv);
+        *pixel = merged;
+    }
+}
+
 /// One independent estimate of T within a pass: the envmap whose importance distribution
 /// picks cells (its radiance only steers sampling; T does not depend on it) and the render
 /// settings (samples, bounces, seed).
@@ -323,10 +357,7 @@ pub fn accumulate(
         .map(|p| Lights::env(p.sampling.clone()))
         .collect();
     let renderers: Vec<Renderer> = lights.iter().map(|l| renderer.with_lights(l)).collect();
-    let acc = PerEmitterAccumulator {
-        kind: EmitterKind::EnvCells,
-        count: cells,
-    };
+    let acc = CellAccumulator;
     let counts = |(v, i): (usize, u32)| masks[v][i as usize] && keep((v, i));
     let per_view: Vec<Box<dyn Fn(u32) -> bool + Sync + '_>> = (0..cameras.len())
         .map(|v| Box::new(move |i| counts((v, i))) as Box<dyn Fn(u32) -> bool + Sync>)
@@ -352,7 +383,7 @@ pub fn accumulate(
     progress(idle_pixels * parts.len() as u64);
     for chunk in work.chunks(tiles_per_chunk(cells, parts.len())) {
         // Per tile, per part: the tile's pixels.
-        let rendered: Vec<Vec<Vec<Done<Vec<Vec3>>>>> = chunk
+        let rendered: Vec<Vec<Vec<Done<Vec<(u32, Vec3)>>>>> = chunk
             .par_iter()
             .map(|&(v, tile)| {
                 renderers
@@ -403,10 +434,7 @@ pub fn accumulate(
         let pairs: usize = rows
             .par_iter()
             .map(|&(t, _, k)| {
-                let nnz: Vec<usize> = rendered[t]
-                    .iter()
-                    .map(|part| part[k].1.iter().filter(|w| **w != Vec3::ZERO).count())
-                    .collect();
+                let nnz: Vec<usize> = rendered[t].iter().map(|part| part[k].1.len()).collect();
                 let all = nnz.iter().sum::<usize>().min(cells);
                 nnz.iter()
                     .chain([&all])
@@ -426,9 +454,7 @@ pub fn accumulate(
                             part[k]
                                 .1
                                 .iter()
-                                .enumerate()
-                                .filter(|(_, w)| **w != Vec3::ZERO)
-                                .map(|(c, w)| (c as u32, w.as_dvec3().to_array()))
+                                .map(|&(c, w)| (c, w.as_dvec3().to_array()))
                                 .collect()
                         })
                         .collect();
@@ -442,10 +468,12 @@ pub fn accumulate(
         let m = rows.len();
         for ch in 0..3 {
             // Row-major copies (each pixel's row is contiguous where it was rendered).
-            let mut mats: Vec<Vec<f64>> = vec![Vec::with_capacity(m * cells); parts.len()];
-            for &(t, _, k) in &rows {
+            let mut mats: Vec<Vec<f64>> = vec![vec![0.0; m * cells]; parts.len()];
+            for (r, &(t, _, k)) in rows.iter().enumerate() {
                 for (a, mat) in mats.iter_mut().enumerate() {
-                    mat.extend(rendered[t][a][k].1.iter().map(|w| w[ch] as f64));
+                    for &(c, w) in &rendered[t][a][k].1 {
+                        mat[r * cells + c as usize] = w[ch] as f64;
+                    }
                 }
             }
             let mats: Vec<MatRef<f64>> = mats
