@@ -78,8 +78,11 @@ impl Accumulator for PerEmitterAccumulator {
 /// for each pixel of each part.
 pub struct CellAccumulator;
 
+/// A pixel's transport row: (cell, weight per unit radiance), by increasing cell.
+pub type CellRow = Vec<(u32, Vec3)>;
+
 impl Accumulator for CellAccumulator {
-    type Pixel = Vec<(u32, Vec3)>;
+    type Pixel = CellRow;
     fn new_pixel(&self) -> Self::Pixel {
         Vec::new()
     }
@@ -383,7 +386,7 @@ pub fn accumulate(
     progress(idle_pixels * parts.len() as u64);
     for chunk in work.chunks(tiles_per_chunk(cells, parts.len())) {
         // Per tile, per part: the tile's pixels.
-        let rendered: Vec<Vec<Vec<Done<Vec<(u32, Vec3)>>>>> = chunk
+        let rendered: Vec<Vec<Vec<Done<CellRow>>>> = chunk
             .par_iter()
             .map(|&(v, tile)| {
                 renderers
