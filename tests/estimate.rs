@@ -976,3 +976,54 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
         }
     }
 }
+
+/// Records each phase's declared units and the units reported done.
+#[derive(Default)]
+struct Recorder(std::sync::Mutex<Vec<(String, u64, u64)>>);
+
+impl lightprobe::estimate::job::Progress for Recorder {
+    fn phase(&self, name: &str, units: u64) {
+        self.0.lock().unwrap().push((name.to_string(), units, 0));
+    }
+    fn advance(&self, units: u64) {
+        self.0.lock().unwrap().last_mut().unwrap().2 += units;
+    }
+}
+
+#[test]
+fn progress_declares_exactly_the_work_it_reports() {
+    // Every unit a phase reports done was declared when it started, and all of them are
+    // reported by its end: a bar neither stops short (it stopped at 28% with the oracle)
+    // nor sits at 100% while work remains. The envmap's phases with a held-out choice of
+    // rings, the oracle, masks that leave tiles out, NNLS (pilot and parts) and gradient.
+    use lightprobe::estimate::job::{self, EstimateSettings, Job, References, Rings};
+    let scene = Scene::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/scenes/tabletop/tabletop.ron"
+    )))
+    .unwrap();
+    let lights = Lights::new(scene.lights.clone());
+    let renderer = Renderer::new(&scene, &lights);
+    let render = RenderSettings {
+        spp: 4,
+        ..RenderSettings::from_scene(&scene.settings)
+    };
+    let seen = job::observe(&renderer, &render, References::Render, &()).unwrap();
+    for solver in [Solver::Nnls, Solver::Gradient] {
+        let settings = EstimateSettings {
+            rings: Rings::Auto(vec![3, 5]),
+            spp: 8,
+            solver,
+            rounds: solver.default_rounds(),
+            oracle: true,
+            ..EstimateSettings::new(&scene.settings)
+        };
+        let rec = Recorder::default();
+        job::run(&Job::new(&renderer, &seen, &render, &settings), &rec).unwrap();
+        let phases = rec.0.into_inner().unwrap();
+        assert_eq!(phases.len(), 2, "{phases:?}");
+        for (name, declared, done) in phases {
+            assert_eq!(done, declared, "{solver:?}, phase {name}");
+        }
+    }
+}

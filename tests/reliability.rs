@@ -362,6 +362,27 @@ fn cases() -> Vec<Case> {
             expect: "--threads must be between 1 and",
         },
         Case {
+            name: "sphere lights whose camera paths outgrow --memory-limit",
+            files: vec![(
+                "big.ron",
+                small_sidecar()
+                    .replace("width: 16, height: 12", "width: 4000, height: 3000")
+                    .into_bytes(),
+            )],
+            args: vec![
+                "--memory-limit",
+                "2G",
+                "estimate",
+                "{d}/big.ron",
+                "--out",
+                "{d}/out",
+                "--model",
+                "spheres:1",
+                "--quiet",
+            ],
+            expect: "keeps its camera paths per pixel",
+        },
+        Case {
             name: "an estimate beyond --memory-limit",
             files: vec![scene()],
             args: vec![

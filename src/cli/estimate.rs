@@ -193,10 +193,20 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let (w, h) = (scene.settings.width as u64, scene.settings.height as u64);
     let views = scene.cameras.len() as u64;
     let rings = settings.ring_counts().iter().copied().max().unwrap_or(1);
+    let spheres = settings.model.max_lights() > 0;
     check_memory(
-        settings.memory_needed(w * h * views),
-        || format!("{rings} rings at {w}×{h} × {views} views"),
-        "; use fewer rings",
+        settings.memory_needed(w * h * views, scene.settings.max_bounces),
+        || match spheres {
+            true => format!("sphere lights and {rings} rings at {w}×{h} × {views} views"),
+            false => format!("{rings} rings at {w}×{h} × {views} views"),
+        },
+        match spheres {
+            // The sphere model keeps its camera paths: they grow with the pixels.
+            true => {
+                "; the sphere model keeps its camera paths per pixel: use fewer or smaller views (--views)"
+            }
+            false => "; use fewer rings",
+        },
     )?;
     let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
     let render = RenderSettings::from_scene(&scene.settings);

@@ -198,12 +198,19 @@ impl EstimateSettings {
     /// streamed transport's sums and chunk (independent of the pixels,
     /// [`super::transport::memory_needed`]), and per pixel the references and the images the
     /// job renders beside them (estimate, noise floor, representation limit, a candidate's
-    /// validation), 16 bytes each.
-    pub fn memory_needed(&self, pixels: u64) -> u64 {
+    /// validation), 16 bytes each; with sphere lights, the walked camera paths they keep
+    /// ([`super::spheres::PathCache`]: up to `max_bounces` vertices of 64 bytes for each of
+    /// 80 samples per pixel), which grow with the pixels.
+    pub fn memory_needed(&self, pixels: u64, max_bounces: u32) -> u64 {
         let rings = self.ring_counts().iter().copied().max().unwrap_or(1);
         let n = crate::envmap::RingGrid::new(rings).cell_count();
         let parts = self.rounds.max(1) as usize;
-        super::transport::memory_needed(n, parts) as u64 + pixels * 16 * 5
+        let paths = if self.model.max_lights() > 0 {
+            pixels * 80 * (max_bounces as u64 * 64 + 8)
+        } else {
+            0
+        };
+        super::transport::memory_needed(n, parts) as u64 + pixels * 16 * 5 + paths
     }
 }
 
@@ -490,8 +497,18 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         Rings::Auto(candidates) => {
             progress.phase(
                 "choosing rings",
-                // Per candidate: its fit's passes and a validation render.
-                pixels * candidates.len() as u64 * (template.passes() + 1),
+                // Per candidate: its fit and a validation render.
+                candidates
+                    .iter()
+                    .map(|&r| {
+                        let fit = FitSettings {
+                            rings: r,
+                            holdout: true,
+                            ..template
+                        };
+                        fit.progress_units(masks) + pixels
+                    })
+                    .sum(),
             );
             let sel = select::select_rings(
                 job.fit,
@@ -514,7 +531,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         noise_floor: s.noise_floor,
         oracle: s.oracle,
     };
-    progress.phase("estimate", pixels * options.passes());
+    progress.phase("estimate", options.progress_units(masks, pixels));
     let envmap = pipeline::run(
         job.fit,
         job.truth,

@@ -102,13 +102,17 @@ impl Validation {
 }
 
 impl FitSettings {
-    /// Transport passes over the pixels [`fit`] makes, for progress: the rounds, and NNLS's
-    /// pilot (a pass over a quarter of the pixels at one part's samples, counted whole).
-    pub fn passes(&self) -> u64 {
-        let rounds = self.rounds.max(1) as u64;
+    /// What [`fit`] reports to its progress on `masks`: each pixel it renders, once per part
+    /// or round, the pilot's too (each unit a pixel at one part's samples).
+    pub fn progress_units(&self, masks: &[Vec<bool>]) -> u64 {
+        let rounds = self.rounds.max(1) as usize;
+        let fit_pixel = |p: (usize, u32)| !self.holdout || !is_held_out(p);
+        let main = transport::progress_units(masks, &fit_pixel, rounds);
         match self.solver {
-            Solver::Nnls if rounds >= 2 => rounds + 1,
-            _ => rounds,
+            Solver::Nnls if rounds >= 2 => {
+                main + transport::progress_units(masks, &|p| fit_pixel(p) && in_pilot(p), 1)
+            }
+            _ => main,
         }
     }
 

@@ -175,10 +175,22 @@ pub struct EstimateOptions {
 }
 
 impl EstimateOptions {
-    /// Image-sized passes [`run`] makes (rounds, re-render, oracle), for progress bars.
-    pub fn passes(&self) -> u64 {
+    /// Units of work [`run`] reports to its progress on `masks` (`pixels` in all views): the
+    /// fit's ([`FitSettings::progress_units`]; the oracle's count 8 each), and every pixel of
+    /// each re-rendered image.
+    pub fn progress_units(&self, masks: &[Vec<bool>], pixels: u64) -> u64 {
         let lightings = self.evaluate as u64 * (1 + self.noise_floor as u64) + self.oracle as u64;
-        self.fit.passes() * if self.oracle { 9 } else { 1 } + lightings
+        // The oracle is an NNLS fit whatever the solver.
+        let oracle = FitSettings {
+            solver: Solver::Nnls,
+            ..self.fit
+        };
+        let oracle = if self.oracle {
+            8 * oracle.progress_units(masks)
+        } else {
+            0
+        };
+        self.fit.progress_units(masks) + oracle + pixels * lightings
     }
 }
 

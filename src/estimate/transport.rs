@@ -341,7 +341,8 @@ pub fn memory_needed(cells: usize, parts: usize) -> usize {
 /// Renders the transport of `parts` over the pixels of each camera that its mask holds and
 /// `keep((view, pixel))` accepts, and reduces it to its [`NormalEquations`] against the
 /// references' values, chunk by chunk. Tiles without such a pixel are not rendered.
-/// `progress` is called with the pixels of each rendered tile and part.
+/// `progress` is called with the rendered pixels of each tile and part: [`progress_units`]
+/// in all.
 #[allow(clippy::too_many_arguments)]
 pub fn accumulate(
     renderer: &Renderer,
@@ -365,8 +366,8 @@ pub fn accumulate(
     let per_view: Vec<Box<dyn Fn(u32) -> bool + Sync + '_>> = (0..cameras.len())
         .map(|v| Box::new(move |i| counts((v, i))) as Box<dyn Fn(u32) -> bool + Sync>)
         .collect();
-    // (view, tile) pairs: those with a pixel to render, and the rest.
-    let (work, idle): (Vec<ViewTile>, Vec<ViewTile>) = cameras
+    // (view, tile) pairs with a pixel to render, and how many.
+    let work: Vec<(ViewTile, u64)> = cameras
         .iter()
         .enumerate()
         .flat_map(|(v, cam)| {
@@ -374,21 +375,21 @@ pub fn accumulate(
                 .into_iter()
                 .map(move |t| (v, t))
         })
-        .partition(|&(v, (x0, y0, x1, y1))| {
+        .map(|(v, (x0, y0, x1, y1))| {
             let w = cameras[v].width;
-            (y0..y1).any(|y| (x0..x1).any(|x| counts((v, y * w + x))))
-        });
-    // Tiles with nothing to render are done at once.
-    let idle_pixels: u64 = idle
-        .iter()
-        .map(|(_, (x0, y0, x1, y1))| ((x1 - x0) * (y1 - y0)) as u64)
-        .sum();
-    progress(idle_pixels * parts.len() as u64);
+            let n = (y0..y1)
+                .flat_map(|y| (x0..x1).map(move |x| y * w + x))
+                .filter(|&i| counts((v, i)))
+                .count();
+            ((v, (x0, y0, x1, y1)), n as u64)
+        })
+        .filter(|&(_, n)| n > 0)
+        .collect();
     for chunk in work.chunks(tiles_per_chunk(cells, parts.len())) {
         // Per tile, per part: the tile's pixels.
         let rendered: Vec<Vec<Vec<Done<CellRow>>>> = chunk
             .par_iter()
-            .map(|&(v, tile)| {
+            .map(|&((v, tile), wanted)| {
                 renderers
                     .iter()
                     .zip(parts)
@@ -401,7 +402,7 @@ pub fn accumulate(
                             tile,
                             Some(&*per_view[v]),
                         );
-                        progress(px.len() as u64);
+                        progress(wanted);
                         px
                     })
                     .collect()
@@ -412,7 +413,7 @@ pub fn accumulate(
             .iter()
             .zip(&rendered)
             .enumerate()
-            .flat_map(|(t, (&(v, _), per_part))| {
+            .flat_map(|(t, (&((v, _), _), per_part))| {
                 per_part[0]
                     .iter()
                     .enumerate()
@@ -488,6 +489,25 @@ pub fn accumulate(
         }
     }
     out
+}
+
+/// What [`accumulate`] reports to its progress: the pixels it renders, once per part.
+pub fn progress_units(
+    masks: &[Vec<bool>],
+    keep: &dyn Fn((usize, u32)) -> bool,
+    parts: usize,
+) -> u64 {
+    let kept: usize = masks
+        .iter()
+        .enumerate()
+        .map(|(v, m)| {
+            m.iter()
+                .enumerate()
+                .filter(|&(i, &b)| b && keep((v, i as u32)))
+                .count()
+        })
+        .sum();
+    kept as u64 * parts as u64
 }
 
 /// The sum of sparse rows given by increasing index, by increasing index.

@@ -857,8 +857,10 @@ fn check_memory(
             Some(r) => Rings::Fixed(r),
             None => Rings::Auto(axes.rings.clone()),
         };
-        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres)
-            .memory_needed(per_view * scene.cameras.len() as u64);
+        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres).memory_needed(
+            per_view * scene.cameras.len() as u64,
+            scene.settings.max_bounces,
+        );
         crate::memory::reserve(need, || format!("trial {}", id(t)))?;
     }
     Ok(())
