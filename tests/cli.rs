@@ -1750,3 +1750,46 @@ fn vertex_colors_multiply_the_base_colour_unless_the_sidecar_overrides_it() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("q.gltf") && err.contains("COLOR_0"), "{err}");
 }
+
+#[test]
+fn estimate_views_picks_the_views_it_fits() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.ron");
+    let out = tmp.path().join("out");
+    let run = |views: &str| {
+        Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+            .args([
+                "estimate",
+                scene,
+                "--out",
+                out.to_str().unwrap(),
+                "--spp",
+                "8",
+            ])
+            .args(["--views", views, "--fit-only", "--quiet"])
+            .output()
+            .unwrap()
+    };
+    let o = run("cam_side");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let views: Vec<&str> = report["views"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["view"].as_str().unwrap())
+        .collect();
+    assert_eq!(views, ["cam_side"]);
+    assert!(out.join("reference/cam_side.exr").exists());
+    assert!(!out.join("reference/cam_front.exr").exists());
+    for (views, expect) in [
+        ("cam_top", "\"cam_top\" is not a view of"),
+        ("cam_side,cam_side", "listed twice"),
+    ] {
+        let o = run(views);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(err.contains(expect), "{err}");
+    }
+}

@@ -60,6 +60,9 @@ pub struct Args {
     /// sphere lights into OUT/reference/).
     #[arg(long)]
     reference: Option<PathBuf>,
+    /// Only these views (comma-separated camera node names; default: the sidecar's).
+    #[arg(long, value_delimiter = ',')]
+    views: Vec<String>,
     /// Rings of the envmap (default: the sidecar's), or `auto`: fit each of
     /// --rings-candidates on three quarters of the pixels and take the smallest whose error
     /// on the held-out quarter is within one standard error of the best.
@@ -182,7 +185,8 @@ impl Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let t_all = Instant::now();
-    let scene = Scene::load(&a.scene)?;
+    let mut scene = Scene::load(&a.scene)?;
+    super::keep_views(&mut scene, &a.views, &a.scene)?;
     let settings = a.settings(&scene);
     settings.check().map_err(|e| a.flag_error(e))?;
     anyhow::ensure!(

@@ -165,6 +165,24 @@ pub fn prepare_out_dir(dir: &Path, lock_name: &str) -> anyhow::Result<lightprobe
 
 /// Refuses a job that needs more than the memory budget allows (`lightprobe::memory`);
 /// `hint` ends the message (what to do instead).
+/// Keeps only the views `--views` names (all when it names none).
+pub fn keep_views(
+    scene: &mut lightprobe::scene::Scene,
+    views: &[String],
+    path: &std::path::Path,
+) -> anyhow::Result<()> {
+    use lightprobe::scene::PickError;
+    if views.is_empty() {
+        return Ok(());
+    }
+    scene.keep_views(views).map_err(|e| match e {
+        PickError::Twice(v) => anyhow::anyhow!("--views: {v:?} is listed twice"),
+        PickError::Missing(v) => {
+            anyhow::anyhow!("--views: {v:?} is not a view of {}", path.display())
+        }
+    })
+}
+
 pub fn check_memory(need: u64, what: impl FnOnce() -> String, hint: &str) -> anyhow::Result<()> {
     lightprobe::memory::reserve(need, what).map_err(|e| anyhow::anyhow!("{e}{hint}"))
 }

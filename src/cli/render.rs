@@ -13,7 +13,7 @@ use lightprobe::render::report::{
     EnvmapReport, ImageSize, LightReport, RenderReport, RenderTimings, ViewRender,
 };
 use lightprobe::render::{Lights, RenderSettings, Renderer, view_stream};
-use lightprobe::scene::{Camera, PickError, Scene, sidecar};
+use lightprobe::scene::{Camera, Scene, sidecar};
 
 use super::{Bars, StrategyArg, check_memory, outln, prepare_out_dir};
 
@@ -79,14 +79,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     settings.strategy = a.strategy.into();
     settings.hide_emitters = !a.show_emitters;
-    if !a.views.is_empty() {
-        scene.keep_views(&a.views).map_err(|e| match e {
-            PickError::Twice(v) => anyhow::anyhow!("--views: {v:?} is listed twice"),
-            PickError::Missing(v) => {
-                anyhow::anyhow!("--views: {v:?} is not a view of {}", a.scene.display())
-            }
-        })?;
-    }
+    super::keep_views(&mut scene, &a.views, &a.scene)?;
     let mut lights = Lights::new(if a.no_sphere_lights {
         Vec::new()
     } else {
