@@ -30,11 +30,10 @@ use crate::imageio::Image;
 use crate::render::{Accumulator, Done, Emitter, Lights, RenderSettings, Renderer, Tile, tiles};
 use crate::scene::Camera;
 
-/// Which emitters a [`PerEmitterAccumulator`] keeps apart.
+/// Which emitters a [`PerEmitterAccumulator`] keeps apart (the envmap's own transport
+/// accumulates sparsely, [`CellAccumulator`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum EmitterKind {
-    /// The envmap's cells (the envmap model's transport).
-    EnvCells,
     /// The sphere lights (the sphere model's transport, [`super::spheres`]).
     Spheres,
     /// The sphere lights, then the envmap's cells (the sphere model with a background).
@@ -56,8 +55,7 @@ impl Accumulator for PerEmitterAccumulator {
     #[inline]
     fn add(&self, pixel: &mut Vec<Vec3>, emitter: Emitter, weight: Vec3) {
         match (self.kind, emitter) {
-            (EmitterKind::EnvCells, Emitter::EnvCell(i))
-            | (EmitterKind::Spheres | EmitterKind::SpheresThenCells { .. }, Emitter::Sphere(i)) => {
+            (EmitterKind::Spheres | EmitterKind::SpheresThenCells { .. }, Emitter::Sphere(i)) => {
                 pixel[i as usize] += weight
             }
             (EmitterKind::SpheresThenCells { spheres }, Emitter::EnvCell(c)) => {
