@@ -5,7 +5,7 @@ COLOR_0, no textures, no material but the default), and a ring of cameras around
 
     python3 scripts/make_scan.py [--out scenes/scan] [--grid 725] [--views 20]
 
-`--grid 725` gives 2·724² = 1,048,352 triangles on 525,625 vertices (a 37-MB .glb). The sidecar
+`--grid 725` gives 2·724² = 1,048,352 triangles on 525,625 vertices (a 27-MB .glb). The sidecar
 (`scan.ron`, committed) names the cameras' image size and the lights the references are
 rendered under. Standard library only; deterministic.
 """

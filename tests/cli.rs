@@ -1410,41 +1410,48 @@ fn gltf_corpus_fails_cleanly() {
 
 #[test]
 fn estimate_is_bit_identical_at_one_and_two_threads() {
+    // 7 rings: the transport's dense products; 25 rings at 16 spp: its sparse updates.
     let tmp = tempfile::tempdir().unwrap();
     let scene = small_scene(tmp.path(), "");
-    let mut outs = Vec::new();
-    for threads in ["1", "2"] {
-        let out = tmp.path().join(format!("t{threads}"));
-        let o = bin()
-            .args([
-                "estimate",
-                scene.to_str().unwrap(),
-                "--out",
-                out.to_str().unwrap(),
-                "--rings",
-                "7",
-                "--spp",
-                "16",
-                "--quiet",
-            ])
-            .env("RAYON_NUM_THREADS", threads)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        outs.push((
-            std::fs::read(out.join("envmap.ron")).unwrap(),
-            std::fs::read(out.join("envmap.exr")).unwrap(),
-            std::fs::read(out.join("estimate/cam_side.exr")).unwrap(),
-        ));
+    for rings in ["7", "25"] {
+        let mut outs = Vec::new();
+        for threads in ["1", "2", "3"] {
+            let out = tmp.path().join(format!("r{rings}t{threads}"));
+            let o = bin()
+                .args([
+                    "estimate",
+                    scene.to_str().unwrap(),
+                    "--out",
+                    out.to_str().unwrap(),
+                    "--rings",
+                    rings,
+                    "--spp",
+                    "16",
+                    "--quiet",
+                ])
+                .env("RAYON_NUM_THREADS", threads)
+                .output()
+                .unwrap();
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            outs.push((
+                std::fs::read(out.join("envmap.ron")).unwrap(),
+                std::fs::read(out.join("envmap.exr")).unwrap(),
+                std::fs::read(out.join("estimate/cam_side.exr")).unwrap(),
+            ));
+        }
+        for (k, other) in outs.iter().enumerate().skip(1) {
+            assert!(
+                outs[0].0 == other.0,
+                "{rings} rings: envmap.ron differs between 1 and {} threads",
+                k + 1
+            );
+            assert!(
+                outs[0].1 == other.1 && outs[0].2 == other.2,
+                "{rings} rings: EXR outputs differ between 1 and {} threads",
+                k + 1
+            );
+        }
     }
-    assert!(
-        outs[0].0 == outs[1].0,
-        "envmap.ron differs between 1 and 2 threads"
-    );
-    assert!(
-        outs[0].1 == outs[1].1 && outs[0].2 == outs[1].2,
-        "EXR outputs differ between 1 and 2 threads"
-    );
 }
 
 #[test]

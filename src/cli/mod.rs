@@ -163,8 +163,6 @@ pub fn prepare_out_dir(dir: &Path, lock_name: &str) -> anyhow::Result<lightprobe
     Ok(lightprobe::output::prepare_dir(dir, lock_name)?)
 }
 
-/// Refuses a job that needs more than the memory budget allows (`lightprobe::memory`);
-/// `hint` ends the message (what to do instead).
 /// Keeps only the views `--views` names (all when it names none).
 pub fn keep_views(
     scene: &mut lightprobe::scene::Scene,
@@ -183,6 +181,8 @@ pub fn keep_views(
     })
 }
 
+/// Refuses a job that needs more than the memory budget allows (`lightprobe::memory`);
+/// `hint` ends the message (what to do instead).
 pub fn check_memory(need: u64, what: impl FnOnce() -> String, hint: &str) -> anyhow::Result<()> {
     lightprobe::memory::reserve(need, what).map_err(|e| anyhow::anyhow!("{e}{hint}"))
 }

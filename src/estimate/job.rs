@@ -87,9 +87,9 @@ pub struct EstimateSettings {
     pub rings: Rings,
     pub model: LightModel,
     pub solver: Solver,
-    /// Transport samples per pixel, over all rounds.
+    /// Transport samples per pixel, over all parts (NNLS) or rounds (gradient).
     pub spp: u32,
-    /// Transport rounds (sequential Monte Carlo).
+    /// NNLS: independent parts of the transport pass; gradient: sequential rounds.
     pub rounds: u32,
     /// Smoothness weight between neighbouring cells (relative; 0 = none).
     pub smooth: f64,
@@ -353,7 +353,7 @@ pub struct EstimateReport {
     pub solver: Solver,
     pub smooth: f64,
     pub ridge: f64,
-    /// Transport samples per pixel, over all rounds.
+    /// Transport samples per pixel, over all parts (NNLS) or rounds (gradient).
     pub transport_spp: u32,
     pub rounds: u32,
     /// The references' render settings.

@@ -4,7 +4,8 @@
 //! per-cell radiance λ ≥ 0 to the references, per colour channel, over the masked pixels of
 //! every view jointly: `min ‖T_α λ_α − I_α‖² (+ μ·smoothness)` subject to `λ_α ≥ 0`.
 //!
-//! - `nnls` (default): cells sampled in proportion to solid angle, then exact NNLS.
+//! - `nnls` (default): a pilot pass steers the cell sampling of one pass of independent parts,
+//!   then exact NNLS on their unbiased normal equations.
 //! - `gradient`: the paper's method — projected gradient descent with a backtracking line
 //!   search, re-estimating T between rounds with importance sampling from the current estimate
 //!   (sequential Monte Carlo).
@@ -258,9 +259,9 @@ const TRANSPORT_STREAMS: u64 = 1000;
 
 /// The pixels the NNLS fit's pilot pass renders: a fixed quarter, by a hash of (view, pixel),
 /// scattered over every view. The pilot only steers the cell sampling of the main pass, which
-/// a quarter of the pixels does as well as all of them (bundled scene, 64 spp, 3 seeds: 9
-/// rings 9.54% against 9.53% relMAE, 25 rings 9.56% against 9.39%, within the seeds' spread
-/// of ±0.15%), for a sixteenth of the main pass's samples.
+/// a quarter of the pixels does about as well as all of them (bundled scene, 64 spp, 3 seeds:
+/// 9 rings 9.54% against 9.53% relMAE, 25 rings 9.56% against 9.39%; single seeds spread by
+/// ±0.15%), for 1/(4P) of the main pass's samples with P parts (a sixteenth at the default 4).
 fn in_pilot((view, pixel): (usize, u32)) -> bool {
     crate::sampling::mix64(((view as u64) << 32 | pixel as u64) ^ 0x005E_ED0F_9170)
         .is_multiple_of(4)
@@ -339,7 +340,9 @@ pub fn fit(
             record.then_some(&mut channels),
         );
         solve_seconds += t1.elapsed().as_secs_f64();
-        radiance_of(&x, &mut non_finite)
+        let mut bad = false;
+        let radiance = radiance_of(&x, &mut bad);
+        (radiance, bad)
     };
     let constant = Envmap::constant(rings, Vec3::ONE);
     let zero = vec![vec![0.0f64; n]; 3];
@@ -352,7 +355,8 @@ pub fn fit(
                     settings: part_seed(settings, rounds),
                 };
                 let keep = |p| fit_pixel(p) && in_pilot(p);
-                steering(rings, &run(&[pilot], &keep, &zero, false))
+                // The pilot only steers: a value out of range there fails nothing.
+                steering(rings, &run(&[pilot], &keep, &zero, false).0)
             } else {
                 constant
             };
@@ -362,7 +366,9 @@ pub fn fit(
                     settings: part_seed(settings, k),
                 })
                 .collect();
-            run(&parts, &fit_pixel, &zero, true)
+            let (radiance, bad) = run(&parts, &fit_pixel, &zero, true);
+            non_finite |= bad;
+            radiance
         }
         Solver::Gradient => {
             let (mut sampling, mut lambda) = (constant, zero);
@@ -372,7 +378,9 @@ pub fn fit(
                     sampling: sampling.clone(),
                     settings: part_seed(settings, round),
                 };
-                radiance = run(&[part], &fit_pixel, &lambda, true);
+                let bad;
+                (radiance, bad) = run(&[part], &fit_pixel, &lambda, true);
+                non_finite |= bad;
                 lambda = (0..3)
                     .map(|ch| radiance.iter().map(|r| r[ch] as f64).collect())
                     .collect();

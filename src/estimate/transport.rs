@@ -328,12 +328,14 @@ fn tiles_per_chunk(cells: usize, parts: usize) -> usize {
     (CHUNK_BYTES / per_tile.max(1)).clamp(16, 4096)
 }
 
-/// Bytes [`accumulate`] needs at most for `cells` cells and `parts` parts: the sums, one
-/// chunk and its products' scratch.
+/// Bytes [`accumulate`] and the solve after it need at most for `cells` cells and `parts`
+/// parts: the sums, one chunk (rendered rows, sparse at up to 16 bytes an entry or dense, and
+/// their f64 copies), the products' scratch, and the solve's dense Gram, its regularised copy
+/// and the positive semi-definite projection's eigenvectors (about 5 cells² f64).
 pub fn memory_needed(cells: usize, parts: usize) -> usize {
     let px = (crate::render::TILE * crate::render::TILE) as usize;
-    let chunk = tiles_per_chunk(cells, parts) * px * cells * (12 * parts + 8 * (parts + 1));
-    NormalEquations::memory_needed(cells) + chunk + 2 * cells * cells * 8
+    let chunk = tiles_per_chunk(cells, parts) * px * cells * (16 * parts + 8 * (parts + 1));
+    NormalEquations::memory_needed(cells) + chunk + 2 * cells * cells * 8 + 5 * cells * cells * 8
 }
 
 /// Renders the transport of `parts` over the pixels of each camera that its mask holds and

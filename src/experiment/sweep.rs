@@ -3,9 +3,7 @@
 //!
 //! - **Shared work.** References and the noise floor are rendered once per scenario and kept
 //!   under `OUT/references/<scenario>/`. Scenarios that differ only in their lights share the
-//!   geometry, the BVH and the first transport round (it samples cells by solid angle, so it
-//!   does not depend on the lighting): a trial's fit is bit-identical to a stand-alone
-//!   estimate's, and its record carries both the stand-alone fit time and what it cost here.
+//!   geometry and the BVH; a trial's fit is the stand-alone estimate's.
 //! - **Resumable.** Finished trials are read back from `OUT/trials*.jsonl` and skipped; a line
 //!   cut short by a crash is ignored (and the trial run again).
 //! - **Shardable.** `Shard { index: i, count: n }` runs the scenarios whose position in the list
@@ -368,7 +366,8 @@ pub fn run(
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let fingerprint = |s: usize, solver: Solver| {
         format!(
-            "{} smooth={} ridge={} time_limit={}s rounds={}",
+            // The transport method: a sweep started by another cannot be resumed into this one.
+            "{} smooth={} ridge={} time_limit={}s rounds={} transport=streamed-pilot-parts",
             scenarios[s].fingerprint,
             settings.smooth,
             settings.ridge,
