@@ -318,7 +318,7 @@ type ViewTile = (usize, Tile);
 
 /// Bytes a chunk of rendered rows may take (every part's f32 rows, one channel's f64 copies):
 /// big enough for efficient matrix products, small beside any image.
-const CHUNK_BYTES: usize = 64 << 20;
+const CHUNK_BYTES: usize = 16 << 20;
 
 /// Tiles rendered and reduced together: a function of the cell and part counts only, so the
 /// sums (and the fit) do not depend on the thread count.
