@@ -22,7 +22,7 @@
 
 use faer::linalg::matmul::triangular::{BlockStructure, matmul};
 use faer::{Accum, Mat, MatRef};
-use glam::Vec3;
+use glam::{DVec3, Vec3};
 use rayon::prelude::*;
 
 use crate::envmap::Envmap;
@@ -91,17 +91,9 @@ impl Accumulator for CellAccumulator {
         }
     }
     fn finish(&self, pixel: &mut Self::Pixel, spp: u32) {
-        // Stable: the weights of a cell are summed in sample order.
-        pixel.sort_by_key(|e| e.0);
-        let inv = 1.0 / spp as f32;
-        let mut merged: Vec<(u32, Vec3)> = Vec::with_capacity(pixel.len());
-        for &(c, w) in pixel.iter() {
-            match merged.last_mut() {
-                Some(last) if last.0 == c => last.1 += w,
-                _ => merged.push((c, w)),
-            }
-        }
+        let mut merged = merge_by_cell(std::mem::take(pixel));
         merged.retain(|e| e.1 != Vec3::ZERO);
+        let inv = 1.0 / spp as f32;
         merged.iter_mut().for_each(|e| e.1 *= inv);
         *pixel = merged;
     }
@@ -127,13 +119,13 @@ pub struct NormalEquations {
     pub parts: usize,
     /// `Σ_a T_aᵀT_a`, lower triangle (entry (i, j ≤ i) at `i·cells + j`), the three
     /// channels of an entry together (the sparse updates touch one place for all three).
-    own: Vec<[f64; 3]>,
+    own: Vec<DVec3>,
     /// `SᵀS` with `S = Σ_a T_a`, laid out as `own`.
-    sum: Vec<[f64; 3]>,
+    sum: Vec<DVec3>,
     /// `Sᵀy` per cell.
-    sty: Vec<[f64; 3]>,
+    sty: Vec<DVec3>,
     /// `yᵀy`.
-    yy: [f64; 3],
+    yy: DVec3,
 }
 
 impl NormalEquations {
@@ -142,10 +134,10 @@ impl NormalEquations {
             cells,
             rows: 0,
             parts,
-            own: vec![[0.0; 3]; cells * cells],
-            sum: vec![[0.0; 3]; cells * cells],
-            sty: vec![[0.0; 3]; cells],
-            yy: [0.0; 3],
+            own: vec![DVec3::ZERO; cells * cells],
+            sum: vec![DVec3::ZERO; cells * cells],
+            sty: vec![DVec3::ZERO; cells],
+            yy: DVec3::ZERO,
         }
     }
 
@@ -242,15 +234,15 @@ impl NormalEquations {
     /// sum; `y[r]` its values. The lower triangles are cut into fixed blocks of Gram rows,
     /// updated in parallel, each row's entries in row order: the sums do not depend on the
     /// thread count.
-    fn add_sparse(&mut self, rows: &[Vec<Sparse>], y: &[[f64; 3]]) {
+    fn add_sparse(&mut self, rows: &[Vec<Sparse>], y: &[DVec3]) {
         let n = self.cells;
         // Block boundaries at equal shares of the triangle's area.
         const BLOCKS: usize = 16;
         let edges: Vec<usize> = (0..=BLOCKS)
             .map(|b| ((n as f64) * (b as f64 / BLOCKS as f64).sqrt()).round() as usize)
             .collect();
-        let mut own_blocks: Vec<&mut [[f64; 3]]> = Vec::with_capacity(BLOCKS);
-        let mut sum_blocks: Vec<&mut [[f64; 3]]> = Vec::with_capacity(BLOCKS);
+        let mut own_blocks: Vec<&mut [DVec3]> = Vec::with_capacity(BLOCKS);
+        let mut sum_blocks: Vec<&mut [DVec3]> = Vec::with_capacity(BLOCKS);
         let (mut own_rest, mut sum_rest) = (&mut self.own[..], &mut self.sum[..]);
         for w in edges.windows(2) {
             let len = (w[1] - w[0]) * n;
@@ -271,7 +263,7 @@ impl NormalEquations {
                 for lists in rows {
                     for (k, list) in lists.iter().enumerate() {
                         // The parts' own products, then the sum's (one part: no sum).
-                        let dst: &mut [[f64; 3]] = if k < parts {
+                        let dst: &mut [DVec3] = if k < parts {
                             &mut *own
                         } else if parts > 1 {
                             &mut *sum
@@ -287,10 +279,7 @@ impl NormalEquations {
                             }
                             let row = &mut dst[(i - lo) as usize * n..];
                             for &(j, wj) in &list[..=a] {
-                                let e = &mut row[j as usize];
-                                e[0] += wi[0] * wj[0];
-                                e[1] += wi[1] * wj[1];
-                                e[2] += wi[2] * wj[2];
+                                row[j as usize] += wi * wj;
                             }
                         }
                     }
@@ -298,20 +287,15 @@ impl NormalEquations {
             });
         for (lists, y) in rows.iter().zip(y) {
             for &(i, w) in lists.last().expect("the sum's list") {
-                let e = &mut self.sty[i as usize];
-                for c in 0..3 {
-                    e[c] += w[c] * y[c];
-                }
+                self.sty[i as usize] += w * *y;
             }
-            for (yy, v) in self.yy.iter_mut().zip(y) {
-                *yy += v * v;
-            }
+            self.yy += *y * *y;
         }
     }
 }
 
 /// A row's non-zero entries `(cell, RGB weight)`, by increasing cell.
-type Sparse = Vec<(u32, [f64; 3])>;
+type Sparse = Vec<(u32, DVec3)>;
 
 /// A tile of a view: (view index, tile).
 type ViewTile = (usize, Tile);
@@ -363,9 +347,6 @@ pub fn accumulate(
     let renderers: Vec<Renderer> = lights.iter().map(|l| renderer.with_lights(l)).collect();
     let acc = CellAccumulator;
     let counts = |(v, i): (usize, u32)| masks[v][i as usize] && keep((v, i));
-    let per_view: Vec<Box<dyn Fn(u32) -> bool + Sync + '_>> = (0..cameras.len())
-        .map(|v| Box::new(move |i| counts((v, i))) as Box<dyn Fn(u32) -> bool + Sync>)
-        .collect();
     // (view, tile) pairs with a pixel to render, and how many.
     let work: Vec<(ViewTile, u64)> = cameras
         .iter()
@@ -390,6 +371,7 @@ pub fn accumulate(
         let rendered: Vec<Vec<Vec<Done<CellRow>>>> = chunk
             .par_iter()
             .map(|&((v, tile), wanted)| {
+                let wanted_pixel = |i| counts((v, i));
                 renderers
                     .iter()
                     .zip(parts)
@@ -400,7 +382,7 @@ pub fn accumulate(
                             &part.settings,
                             &acc,
                             tile,
-                            Some(&*per_view[v]),
+                            Some(&wanted_pixel),
                         );
                         progress(wanted);
                         px
@@ -422,11 +404,11 @@ pub fn accumulate(
             })
             .collect();
         out.rows += rows.len();
-        let y: Vec<[f64; 3]> = rows
+        let y: Vec<DVec3> = rows
             .iter()
             .map(|&(t, v, k)| {
                 let index = rendered[t][0][k].0 as usize;
-                references[v].rgb[index].as_dvec3().to_array()
+                references[v].rgb[index].as_dvec3()
             })
             .collect();
         // Pairs a sparse update would visit (three channels each; the sum's non-zeros taken
@@ -454,13 +436,7 @@ pub fn accumulate(
                 .map(|&(t, _, k)| {
                     let mut lists: Vec<Sparse> = rendered[t]
                         .iter()
-                        .map(|part| {
-                            part[k]
-                                .1
-                                .iter()
-                                .map(|&(c, w)| (c, w.as_dvec3().to_array()))
-                                .collect()
-                        })
+                        .map(|part| part[k].1.iter().map(|&(c, w)| (c, w.as_dvec3())).collect())
                         .collect();
                     lists.push(sum_of(&lists));
                     lists
@@ -510,15 +486,20 @@ pub fn progress_units(
     kept as u64 * parts as u64
 }
 
-/// The sum of sparse rows given by increasing index, by increasing index.
+/// The sum of sparse rows, by increasing cell.
 fn sum_of(lists: &[Sparse]) -> Sparse {
-    let mut all: Vec<(u32, [f64; 3])> = lists.iter().flatten().copied().collect();
-    all.sort_by_key(|e| e.0);
-    let mut out: Sparse = Vec::with_capacity(all.len());
-    for (i, w) in all {
+    merge_by_cell(lists.iter().flatten().copied().collect())
+}
+
+/// (cell, weight) entries summed by cell, by increasing cell; a cell's weights are summed in
+/// the order given (the sort is stable), so sums do not depend on how they were gathered.
+fn merge_by_cell<T: Copy + std::ops::AddAssign>(mut entries: Vec<(u32, T)>) -> Vec<(u32, T)> {
+    entries.sort_by_key(|e| e.0);
+    let mut out: Vec<(u32, T)> = Vec::with_capacity(entries.len());
+    for (c, w) in entries {
         match out.last_mut() {
-            Some(last) if last.0 == i => (0..3).for_each(|c| last.1[c] += w[c]),
-            _ => out.push((i, w)),
+            Some(last) if last.0 == c => last.1 += w,
+            _ => out.push((c, w)),
         }
     }
     out
@@ -603,8 +584,8 @@ mod tests {
                     .collect()
             })
             .collect();
-        let y: Vec<[f64; 3]> = (0..rows)
-            .map(|_| [rng.next_f32() as f64, 2.0, -(rng.next_f32() as f64)])
+        let y: Vec<DVec3> = (0..rows)
+            .map(|_| DVec3::new(rng.next_f32() as f64, 2.0, -(rng.next_f32() as f64)))
             .collect();
         let scale = [1.0, 0.5, 3.0];
         let mut dense = NormalEquations::new(cells, parts);
@@ -636,7 +617,7 @@ mod tests {
                                 .filter(|&c| p[r * cells + c] != 0.0)
                                 .map(|c| {
                                     let v = p[r * cells + c];
-                                    (c as u32, [v * scale[0], v * scale[1], v * scale[2]])
+                                    (c as u32, DVec3::from_array(scale) * v)
                                 })
                                 .collect()
                         })
