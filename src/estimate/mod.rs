@@ -311,8 +311,13 @@ pub fn fit(
     let rounds = settings.rounds.max(1);
     let mut non_finite = false;
     let fit_pixel = |p: (usize, u32)| !settings.holdout || !is_held_out(p);
-    let pass = |parts: &[Part], keep: &(dyn Fn((usize, u32)) -> bool + Sync)| {
-        accumulate(
+    // Each pass: transport, then solve from `lambda`; returns the new estimate.
+    let mut run = |parts: &[Part],
+                   keep: &(dyn Fn((usize, u32)) -> bool + Sync),
+                   lambda: &[Vec<f64>],
+                   record: bool| {
+        let t0 = Instant::now();
+        let ne = accumulate(
             renderer,
             cameras,
             masks,
@@ -321,15 +326,7 @@ pub fn fit(
             parts,
             TRANSPORT_STREAMS,
             progress,
-        )
-    };
-    // Each pass: transport, then solve from `lambda`; returns the new estimate.
-    let mut run = |parts: &[Part],
-                   keep: &(dyn Fn((usize, u32)) -> bool + Sync),
-                   lambda: &[Vec<f64>],
-                   record: bool| {
-        let t0 = Instant::now();
-        let ne = pass(parts, keep);
+        );
         transport_seconds += t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
         let x = solve_all(
@@ -340,9 +337,7 @@ pub fn fit(
             record.then_some(&mut channels),
         );
         solve_seconds += t1.elapsed().as_secs_f64();
-        let mut bad = false;
-        let radiance = radiance_of(&x, &mut bad);
-        (radiance, bad)
+        radiance_of(&x)
     };
     let constant = Envmap::constant(rings, Vec3::ONE);
     let zero = vec![vec![0.0f64; n]; 3];
@@ -404,22 +399,24 @@ pub fn fit(
     }
 }
 
-/// A solver's per-channel cells as radiance. A value outside [0, MAX_RADIANCE] (a solver
-/// blown up, or beyond any radiance) becomes 0 and sets `non_finite`, which callers report as
-/// a failure.
-fn radiance_of(x: &[Vec<f64>], non_finite: &mut bool) -> Vec<Vec3> {
+/// A solver's per-channel cells as radiance, and whether any was out of range: a value
+/// outside [0, MAX_RADIANCE] (a solver blown up, or beyond any radiance) becomes 0, and
+/// callers report the fit as failed.
+fn radiance_of(x: &[Vec<f64>]) -> (Vec<Vec3>, bool) {
+    let mut bad = false;
     let mut cell = |v: f64| {
         let v = v as f32;
         if (0.0..=crate::imageio::MAX_RADIANCE).contains(&v) {
             v
         } else {
-            *non_finite = true;
+            bad = true;
             0.0
         }
     };
-    (0..x[0].len())
+    let radiance = (0..x[0].len())
         .map(|c| Vec3::new(cell(x[0][c]), cell(x[1][c]), cell(x[2][c])))
-        .collect()
+        .collect();
+    (radiance, bad)
 }
 
 /// The envmap that samples cells by an estimate, with a defensive floor so that no cell is
