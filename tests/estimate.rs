@@ -349,7 +349,8 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
     };
     let s =
         estimate::select::select_rings(&r, &cams, &refs, &masks, &[3, 9, 15], &template, &|_| {})
-            .unwrap();
+            .unwrap()
+            .selection;
     let best = s
         .candidates
         .iter()
@@ -386,7 +387,8 @@ fn rings_auto_rejects_grids_too_coarse_for_the_data() {
     let (refs, masks) = render_all(&r, &sc, 512, 1);
     let s =
         estimate::select::select_rings(&r, &cams, &refs, &masks, &[3, 9, 15], &template, &|_| {})
-            .unwrap();
+            .unwrap()
+            .selection;
     assert!(s.rings >= 9, "{s:#?}");
     let c3 = &s.candidates[0];
     assert!(c3.excess_over_best > 3.0 * c3.standard_error, "{c3:?}");
@@ -598,6 +600,7 @@ fn select_model(
             holdout: true,
             ..fit_settings(5, 256, Solver::Nnls, 0.01)
         },
+        fitted: false,
         evaluate: true,
         noise_floor: false,
         oracle: false,
@@ -611,6 +614,7 @@ fn select_model(
         &[],
         center,
         &options,
+        None,
         &render,
         &|_| {},
     )

@@ -165,21 +165,40 @@ impl RingGrid {
     /// (this is on the tracer's path for every ray that escapes).
     #[inline(always)]
     pub fn lookup(&self, d: Vec3) -> u32 {
-        // Ring: how many band edges lie at or above d (θ ≥ edge, i.e. cos θ ≤ cos edge).
         let y = d.y as f64;
-        let ring = count_while(&self.edges_cos, |e| y <= e);
+        self.cell_in_ring(count_while(&self.edges_cos, |e| y <= e), || azimuth(d))
+    }
+
+    /// [`Self::lookup`] of a direction with up-component `y`, polar angle `theta` (≈ acos y)
+    /// and azimuth `phi` ([`azimuth`]): the same cell, found in O(1) whatever the ring count,
+    /// so that many grids can share one inverse cosine and one arctangent.
+    #[inline(always)]
+    pub fn lookup_polar(&self, y: f64, theta: f64, phi: f64) -> u32 {
+        // The ring is the number of band edges at or above the direction; θ/Δ rounded
+        // counts them up to rounding, which the comparisons with the edges settle.
+        let last = self.edges_cos.len();
+        let mut ring = ((theta / self.delta() + 0.5) as usize).min(last);
+        while ring > 0 && y > self.edges_cos[ring - 1] {
+            ring -= 1;
+        }
+        while ring < last && y <= self.edges_cos[ring] {
+            ring += 1;
+        }
+        self.cell_in_ring(ring, || phi)
+    }
+
+    /// The cell of ring `ring` whose sector holds azimuth `phi` (asked for only if the ring
+    /// has more than one cell).
+    #[inline(always)]
+    fn cell_in_ring(&self, ring: usize, phi: impl FnOnce() -> f64) -> u32 {
         let n = self.counts[ring];
         if n == 1 {
             return self.first[ring];
         }
-        let mut phi = atan2(d.x, -d.z) as f64;
-        if phi < 0.0 {
-            phi += TAU;
-        }
         // Nearest sector centre; φ ≥ 0, so rounding is the truncation of x + ½ (f64::round
         // and, on the baseline x86-64 target, f64::floor are library calls) and the wrap past
         // the last sector a comparison (not a division).
-        let j = (phi * n as f64 / TAU + 0.5) as u32;
+        let j = (phi() * n as f64 / TAU + 0.5) as u32;
         self.first[ring] + if j >= n { j - n } else { j }
     }
 
@@ -250,6 +269,14 @@ impl RingGrid {
             (-sin_t * cp as f64) as f32,
         )
     }
+}
+
+/// The azimuth φ ∈ [0, 2π) of unit direction `d` (see the module doc), by the inline f32
+/// arctangent of [`RingGrid::lookup`].
+#[inline(always)]
+pub fn azimuth(d: Vec3) -> f64 {
+    let phi = atan2(d.x, -d.z) as f64;
+    if phi < 0.0 { phi + TAU } else { phi }
 }
 
 /// How many leading elements of `sorted` satisfy `pred` (which must hold for a prefix, as for
@@ -324,6 +351,31 @@ mod tests {
                 differ += (g.lookup(d) != g.lookup_angles(t, p)) as u32;
             }
             assert!(differ <= 2, "N = {n}: {differ} of 100000 differ");
+        }
+    }
+
+    #[test]
+    fn polar_lookup_is_exactly_the_fast_lookup() {
+        // Many grids share one θ and φ per direction: the cell must be the one `lookup` (and
+        // so the tracer) finds, bit for bit, also at band edges and the poles.
+        let mut r = Rng::new(9);
+        for n in [1, 2, 3, 4, 9, 21, 27, 61] {
+            let g = RingGrid::new(n);
+            let edge_dirs = g.edges_cos.iter().flat_map(|&c| {
+                let s = (1.0 - c * c).sqrt() as f32;
+                [Vec3::new(s, c as f32, 0.0), Vec3::new(0.0, c as f32, -s)]
+            });
+            let random = (0..50_000).map(|_| uniform_sphere(r.next_2d()));
+            let poles = [Vec3::Y, Vec3::NEG_Y, Vec3::NEG_Z];
+            for d in random.chain(edge_dirs.collect::<Vec<_>>()).chain(poles) {
+                let y = d.y as f64;
+                let theta = y.clamp(-1.0, 1.0).acos();
+                assert_eq!(
+                    g.lookup_polar(y, theta, azimuth(d)),
+                    g.lookup(d),
+                    "N={n} {d}"
+                );
+            }
         }
     }
 

@@ -492,25 +492,14 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         holdout: model_auto,
         ..FitSettings::new(job.render, 1, s.solver, s.spp, s.rounds)
     };
-    let (rings, selection) = match &s.rings {
-        Rings::Fixed(r) => (*r, None),
+    let (rings, selection, fitted) = match &s.rings {
+        Rings::Fixed(r) => (*r, None, None),
         Rings::Auto(candidates) => {
             progress.phase(
                 "choosing rings",
-                // Per candidate: its fit and a validation render.
-                candidates
-                    .iter()
-                    .map(|&r| {
-                        let fit = FitSettings {
-                            rings: r,
-                            holdout: true,
-                            ..template
-                        };
-                        fit.progress_units(masks) + pixels
-                    })
-                    .sum(),
+                select::progress_units(&template, candidates, masks),
             );
-            let sel = select::select_rings(
+            let choice = select::select_rings(
                 job.fit,
                 views,
                 references,
@@ -520,13 +509,15 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                 &|k| progress.advance(k),
             )
             .ok_or_else(|| Error::Invalid("no ring count to choose from".into()))?;
-            (sel.rings, Some(sel))
+            (choice.selection.rings, Some(choice.selection), choice.fit)
         }
     };
 
-    // ---- The envmap: fit, re-render, noise floor, representation limit ----
+    // ---- The envmap: fit (unless choosing the rings made it), re-render, noise floor,
+    // representation limit ----
     let options = EstimateOptions {
         fit: FitSettings { rings, ..template },
+        fitted: fitted.is_some(),
         evaluate: s.evaluate,
         noise_floor: s.noise_floor,
         oracle: s.oracle,
@@ -541,6 +532,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         truth_lights,
         job.center,
         &options,
+        fitted,
         job.render,
         &|k| progress.advance(k),
     )?;

@@ -27,7 +27,7 @@ use crate::envmap::{Envmap, RingGrid};
 use crate::imageio::Image;
 use crate::render::{RenderSettings, Renderer};
 use crate::scene::Camera;
-use transport::{NormalEquations, Part, accumulate};
+use transport::{NormalEquations, Part, Targets, accumulate};
 
 /// Which solver fits λ.
 #[derive(
@@ -115,6 +115,21 @@ impl FitSettings {
             }
             _ => main,
         }
+    }
+
+    /// What [`fit_candidates`] reports to its progress on `masks`: as [`fit`] with `holdout`.
+    pub fn candidates_progress_units(&self, masks: &[Vec<bool>]) -> u64 {
+        FitSettings {
+            holdout: true,
+            solver: Solver::Nnls,
+            ..*self
+        }
+        .progress_units(masks)
+    }
+
+    /// What [`Candidates::refit`] reports to its progress: each held-out pixel once per part.
+    pub fn refit_progress_units(&self, masks: &[Vec<bool>]) -> u64 {
+        transport::progress_units(masks, &|p| is_held_out(p), self.rounds.max(1) as usize)
     }
 
     /// Settings for `spp` transport samples per pixel in all, split over `rounds`, with the
@@ -277,10 +292,7 @@ fn part_seed(settings: &FitSettings, k: u32) -> RenderSettings {
 /// Fits an envmap of `settings.rings` rings to `references` (masked by `masks`), seen by
 /// `cameras` in the scene of `renderer`.
 ///
-/// - NNLS: a pilot pass ([`in_pilot`] pixels, one part, cells sampled by solid angle) is
-///   solved on its own Gram to steer the cell sampling of the main pass: `rounds` independent
-///   parts of `spp / rounds` samples each, sampled by the pilot's estimate plus a defensive
-///   floor, whose unbiased TᵀT ([`transport`]) the fit solves exactly.
+/// - NNLS: [`nnls_pass`] into the one grid, then exact NNLS on its unbiased normal equations.
 /// - Gradient: the paper's rounds, each a pass of one part sampled by the current estimate,
 ///   the solver continuing from it.
 pub fn fit(
@@ -291,110 +303,305 @@ pub fn fit(
     settings: &FitSettings,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Fit {
-    let rings = settings.rings;
-    let grid = RingGrid::new(rings);
-    let n = grid.cell_count();
-    let pairs = if settings.smooth > 0.0 {
-        neighbours(&grid)
+    let grid = RingGrid::new(settings.rings);
+    if settings.solver == Solver::Gradient {
+        return fit_gradient(renderer, cameras, references, masks, settings, progress);
+    }
+    let fit_pixel = |p| (!settings.holdout || !is_held_out(p)).then_some(0);
+    let targets = Targets {
+        grids: std::slice::from_ref(&grid),
+        sets: 1,
+        set_of: &fit_pixel,
+    };
+    let pass = nnls_pass(
+        renderer, cameras, references, masks, settings, &grid, &targets, progress,
+    );
+    solved(&pass.sums[0][0], &grid, settings, &pass)
+}
+
+/// The sums of an NNLS transport pass, and what the pass cost.
+pub struct Pass {
+    /// Normal equations by `[set][grid]` of the pass's [`Targets`].
+    pub sums: Vec<Vec<NormalEquations>>,
+    /// The parts of its main pass (their seeds and cell sampling), to add more pixels to
+    /// the same sums.
+    pub parts: Vec<Part>,
+    pub seconds: f64,
+    /// Bytes the pass and a solve after it need at most ([`transport::pass_memory`]).
+    pub bytes: usize,
+}
+
+/// The NNLS estimator's transport. A pilot pass ([`in_pilot`] pixels of set 0, one part, the
+/// cells of `pilot` sampled by solid angle) is solved on its own Gram to steer the cell
+/// sampling of the main pass: `rounds` independent parts of `spp / rounds` samples each,
+/// sampled by the pilot's estimate plus a defensive floor, accumulated into `targets` (whose
+/// grids need not be the pilot's). With one round, no pilot: one part cannot give an unbiased
+/// TᵀT, so there is nothing to steer for.
+#[allow(clippy::too_many_arguments)]
+fn nnls_pass(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    settings: &FitSettings,
+    pilot: &RingGrid,
+    targets: &Targets,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Pass {
+    let t0 = Instant::now();
+    let rounds = settings.rounds.max(1);
+    let constant = Envmap::constant(pilot.rings(), Vec3::ONE);
+    let sampling = if rounds >= 2 {
+        let part = Part {
+            sampling: constant,
+            settings: part_seed(settings, rounds),
+        };
+        let in_set0 = |p| ((targets.set_of)(p) == Some(0) && in_pilot(p)).then_some(0);
+        let pilot_targets = Targets {
+            grids: std::slice::from_ref(pilot),
+            sets: 1,
+            set_of: &in_set0,
+        };
+        let ne = &accumulate(
+            renderer,
+            cameras,
+            masks,
+            &pilot_targets,
+            references,
+            &[part],
+            TRANSPORT_STREAMS,
+            progress,
+        )[0][0];
+        let zero = vec![vec![0.0f64; ne.cells]; 3];
+        let x = solve_all(ne, &smoothing_pairs(pilot, settings), settings, &zero, None);
+        // The pilot only steers: a value out of range there fails nothing.
+        steering(pilot.rings(), &radiance_of(&x).0)
+    } else {
+        constant
+    };
+    let parts: Vec<Part> = (0..rounds)
+        .map(|k| Part {
+            sampling: sampling.clone(),
+            settings: part_seed(settings, k),
+        })
+        .collect();
+    let sums = accumulate(
+        renderer,
+        cameras,
+        masks,
+        targets,
+        references,
+        &parts,
+        TRANSPORT_STREAMS,
+        progress,
+    );
+    let cells: Vec<usize> = targets.grids.iter().map(|g| g.cell_count()).collect();
+    Pass {
+        sums,
+        bytes: transport::pass_memory(&cells, targets.sets, parts.len()),
+        parts,
+        seconds: t0.elapsed().as_secs_f64(),
+    }
+}
+
+/// The smoothness prior's neighbour pairs of `grid`, if the settings smooth.
+fn smoothing_pairs(grid: &RingGrid, settings: &FitSettings) -> Vec<(u32, u32)> {
+    if settings.smooth > 0.0 {
+        neighbours(grid)
     } else {
         Vec::new()
-    };
-    let mut channels: Vec<ChannelFit> = (0..3)
+    }
+}
+
+fn new_channels() -> Vec<ChannelFit> {
+    (0..3)
         .map(|_| ChannelFit {
             iterations: 0,
             kkt_violation: 0.0,
             converged: false,
             objective: Vec::new(),
         })
-        .collect();
-    let (mut transport_seconds, mut solve_seconds) = (0.0, 0.0);
-    let rounds = settings.rounds.max(1);
-    let mut non_finite = false;
-    let fit_pixel = |p: (usize, u32)| !settings.holdout || !is_held_out(p);
-    // Each pass: transport, then solve from `lambda`; returns the new estimate.
-    let mut run = |parts: &[Part],
-                   keep: &(dyn Fn((usize, u32)) -> bool + Sync),
-                   lambda: &[Vec<f64>],
-                   record: bool| {
+        .collect()
+}
+
+/// The NNLS fit of `grid` on the sums `ne` of `pass`.
+fn solved(ne: &NormalEquations, grid: &RingGrid, settings: &FitSettings, pass: &Pass) -> Fit {
+    let t = Instant::now();
+    let mut channels = new_channels();
+    let zero = vec![vec![0.0f64; ne.cells]; 3];
+    let pairs = smoothing_pairs(grid, settings);
+    let x = solve_all(ne, &pairs, settings, &zero, Some(&mut channels));
+    let (radiance, non_finite) = radiance_of(&x);
+    Fit {
+        envmap: Envmap::new(grid.rings(), radiance)
+            .expect("solver output is finite and non-negative"),
+        channels,
+        transport_seconds: pass.seconds,
+        solve_seconds: t.elapsed().as_secs_f64(),
+        transport_bytes: pass.bytes,
+        non_finite,
+    }
+}
+
+/// Hold-out fits of several resolutions from one NNLS pass ([`fit_candidates`]), and what it
+/// takes to refit any of them on every pixel.
+pub struct Candidates {
+    pub grids: Vec<RingGrid>,
+    /// Per grid, its fit on the pixels [`is_held_out`] leaves in.
+    pub fits: Vec<Fit>,
+    pass: Pass,
+}
+
+impl Candidates {
+    /// Candidate `i` fitted on every pixel: its sums, plus the held-out pixels rendered by
+    /// the same parts into its grid alone (a pixel's paths depend on its index and the
+    /// part's seed only, so these are the rows the pass would have added). `progress` as
+    /// for [`accumulate`]: [`FitSettings::refit_progress_units`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn refit(
+        &self,
+        i: usize,
+        settings: &FitSettings,
+        renderer: &Renderer,
+        cameras: &[&Camera],
+        references: &[Image],
+        masks: &[Vec<bool>],
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Fit {
         let t0 = Instant::now();
-        let ne = accumulate(
+        let grid = &self.grids[i];
+        let held_out = |p| is_held_out(p).then_some(0);
+        let targets = Targets {
+            grids: std::slice::from_ref(grid),
+            sets: 1,
+            set_of: &held_out,
+        };
+        let mut all = accumulate(
             renderer,
             cameras,
             masks,
-            keep,
+            &targets,
             references,
-            parts,
+            &self.pass.parts,
             TRANSPORT_STREAMS,
             progress,
-        );
+        )
+        .swap_remove(0)
+        .swap_remove(0);
+        all.add(&self.pass.sums[0][i]);
+        let pass = Pass {
+            sums: Vec::new(),
+            parts: Vec::new(),
+            seconds: self.pass.seconds + t0.elapsed().as_secs_f64(),
+            bytes: self.pass.bytes,
+        };
+        solved(&all, grid, settings, &pass)
+    }
+}
+
+/// Fits every resolution of `rings` on the pixels [`is_held_out`] leaves in, with the NNLS
+/// estimator, from one transport pass: each path's directions are binned into every
+/// candidate's grid ([`transport::CellAccumulator`]), the pilot steering from the median
+/// grid (sampling only needs the bright regions roughly; the finest grid's pilot solve
+/// costs more than it steers better). One walk then serves all candidates, where fitting each on its own would walk the
+/// scene once per candidate. `template` gives everything but the ring count.
+pub fn fit_candidates(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    template: &FitSettings,
+    rings: &[u32],
+    progress: &(dyn Fn(u64) + Sync),
+) -> Candidates {
+    let grids: Vec<RingGrid> = rings.iter().map(|&r| RingGrid::new(r)).collect();
+    let mut by_size: Vec<&RingGrid> = grids.iter().collect();
+    by_size.sort_by_key(|g| g.cell_count());
+    let median = by_size[by_size.len() / 2];
+    let held_in = |p| (!is_held_out(p)).then_some(0);
+    let targets = Targets {
+        grids: &grids,
+        sets: 1,
+        set_of: &held_in,
+    };
+    let pass = nnls_pass(
+        renderer, cameras, references, masks, template, median, &targets, progress,
+    );
+    let fits = grids
+        .iter()
+        .enumerate()
+        .map(|(i, g)| {
+            let settings = FitSettings {
+                rings: g.rings(),
+                ..*template
+            };
+            solved(&pass.sums[0][i], g, &settings, &pass)
+        })
+        .collect();
+    Candidates { grids, fits, pass }
+}
+
+/// The gradient solver's fit: sequential rounds, each one part sampled by the estimate so far.
+fn fit_gradient(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    settings: &FitSettings,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Fit {
+    let grid = RingGrid::new(settings.rings);
+    let n = grid.cell_count();
+    let pairs = smoothing_pairs(&grid, settings);
+    let mut channels = new_channels();
+    let (mut transport_seconds, mut solve_seconds) = (0.0, 0.0);
+    let mut non_finite = false;
+    let fit_pixel = |p| (!settings.holdout || !is_held_out(p)).then_some(0);
+    let targets = Targets {
+        grids: std::slice::from_ref(&grid),
+        sets: 1,
+        set_of: &fit_pixel,
+    };
+    let (mut sampling, mut lambda) = (
+        Envmap::constant(settings.rings, Vec3::ONE),
+        vec![vec![0.0f64; n]; 3],
+    );
+    let mut radiance = Vec::new();
+    for round in 0..settings.rounds.max(1) {
+        let part = Part {
+            sampling: sampling.clone(),
+            settings: part_seed(settings, round),
+        };
+        let t0 = Instant::now();
+        let ne = &accumulate(
+            renderer,
+            cameras,
+            masks,
+            &targets,
+            references,
+            &[part],
+            TRANSPORT_STREAMS,
+            progress,
+        )[0][0];
         transport_seconds += t0.elapsed().as_secs_f64();
         let t1 = Instant::now();
-        let x = solve_all(
-            &ne,
-            &pairs,
-            settings,
-            lambda,
-            record.then_some(&mut channels),
-        );
+        let x = solve_all(ne, &pairs, settings, &lambda, Some(&mut channels));
         solve_seconds += t1.elapsed().as_secs_f64();
-        radiance_of(&x)
-    };
-    let constant = Envmap::constant(rings, Vec3::ONE);
-    let zero = vec![vec![0.0f64; n]; 3];
-    let radiance = match settings.solver {
-        Solver::Nnls => {
-            // One part cannot give an unbiased TᵀT, so there is nothing to steer for.
-            let sampling = if rounds >= 2 {
-                let pilot = Part {
-                    sampling: constant.clone(),
-                    settings: part_seed(settings, rounds),
-                };
-                let keep = |p| fit_pixel(p) && in_pilot(p);
-                // The pilot only steers: a value out of range there fails nothing.
-                steering(rings, &run(&[pilot], &keep, &zero, false).0)
-            } else {
-                constant
-            };
-            let parts: Vec<Part> = (0..rounds)
-                .map(|k| Part {
-                    sampling: sampling.clone(),
-                    settings: part_seed(settings, k),
-                })
-                .collect();
-            let (radiance, bad) = run(&parts, &fit_pixel, &zero, true);
-            non_finite |= bad;
-            radiance
-        }
-        Solver::Gradient => {
-            let (mut sampling, mut lambda) = (constant, zero);
-            let mut radiance = Vec::new();
-            for round in 0..rounds {
-                let part = Part {
-                    sampling: sampling.clone(),
-                    settings: part_seed(settings, round),
-                };
-                let bad;
-                (radiance, bad) = run(&[part], &fit_pixel, &lambda, true);
-                non_finite |= bad;
-                lambda = (0..3)
-                    .map(|ch| radiance.iter().map(|r| r[ch] as f64).collect())
-                    .collect();
-                sampling = steering(rings, &radiance);
-            }
-            radiance
-        }
-    };
-    let parts = if settings.solver == Solver::Nnls {
-        rounds
-    } else {
-        1
-    };
+        let bad;
+        (radiance, bad) = radiance_of(&x);
+        non_finite |= bad;
+        lambda = (0..3)
+            .map(|ch| radiance.iter().map(|r| r[ch] as f64).collect())
+            .collect();
+        sampling = steering(settings.rings, &radiance);
+    }
     Fit {
-        envmap: Envmap::new(rings, radiance).expect("solver output is finite and non-negative"),
+        envmap: Envmap::new(settings.rings, radiance)
+            .expect("solver output is finite and non-negative"),
         channels,
         transport_seconds,
         solve_seconds,
-        transport_bytes: transport::memory_needed(n, parts as usize),
+        transport_bytes: transport::memory_needed(n, 1),
         non_finite,
     }
 }

@@ -165,6 +165,9 @@ pub fn noise_floor(
 #[derive(Debug, Clone, Copy)]
 pub struct EstimateOptions {
     pub fit: FitSettings,
+    /// The fit is made already and handed to [`run`] (choosing the resolution made it): no
+    /// transport of its own.
+    pub fitted: bool,
     /// Re-render the estimate and measure its error.
     pub evaluate: bool,
     /// With `evaluate`, also measure the noise floor: the truth renderer's own lights lit
@@ -190,7 +193,12 @@ impl EstimateOptions {
         } else {
             0
         };
-        self.fit.progress_units(masks) + oracle + pixels * lightings
+        let fit = if self.fitted {
+            0
+        } else {
+            self.fit.progress_units(masks)
+        };
+        fit + oracle + pixels * lightings
     }
 }
 
@@ -228,7 +236,7 @@ pub fn mean_rel_mae(v: &[Metrics]) -> Option<f64> {
 /// `truth_renderer` (the same one, or e.g. the true scene when the fit had perturbed albedos;
 /// same geometry and views), then matches bright clusters to `truth` (the sphere lights that
 /// made the references, if known) seen from `center`. `render` holds the references' render
-/// settings.
+/// settings. `fitted`: the fit, if already made (`options.fitted`).
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     renderer: &Renderer,
@@ -239,6 +247,7 @@ pub fn run(
     truth: &[SphereLight],
     center: Vec3,
     options: &EstimateOptions,
+    fitted: Option<Fit>,
     render: &RenderSettings,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Outcome> {
@@ -253,7 +262,10 @@ pub fn run(
             "the references are black wherever they see geometry: no light reaches what the views see, so the lighting is unobservable".into(),
         ));
     }
-    let fit = super::fit(renderer, views, references, masks, &options.fit, progress);
+    let fit = match fitted {
+        Some(f) => f,
+        None => super::fit(renderer, views, references, masks, &options.fit, progress),
+    };
     if fit.non_finite {
         return Err(Error::Invalid(format!(
             "the {:?} solver produced a non-finite envmap",
@@ -291,7 +303,7 @@ pub fn run(
     }
     sets.extend(&best);
     let mut images = truth_renderer
-        .render_views_under(views, &evaluation_settings(render), &sets, progress)
+        .render_views_under(views, &evaluation_settings(render), &sets, None, progress)
         .into_iter();
     let (mut renders, mut errors, mut noise_floor) = (Vec::new(), Vec::new(), Vec::new());
     if options.evaluate {

@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::{FitSettings, Validation, fit, is_held_out};
+use super::{Fit, FitSettings, Solver, Validation, fit, fit_candidates, is_held_out};
 use crate::envmap::Envmap;
 use crate::imageio::Image;
 use crate::render::{Lights, RenderSettings, Renderer};
@@ -30,7 +30,9 @@ pub struct Candidate {
     pub excess_over_best: f64,
     /// Standard error of that excess.
     pub standard_error: f64,
-    /// Seconds this candidate's hold-out fit took.
+    /// Seconds of this candidate's own hold-out fit: with NNLS its solve only (the transport
+    /// pass and the validation render, shared by all candidates, are in the selection's
+    /// seconds).
     pub seconds: f64,
 }
 
@@ -199,7 +201,9 @@ pub fn validation_settings(template: &FitSettings) -> RenderSettings {
     }
 }
 
-/// The held-out error of `envmap`, re-rendered by the one path tracer ([`validation_settings`]).
+/// The held-out errors of `envmaps`, re-rendered by the one path tracer
+/// ([`validation_settings`]) on the held-out pixels only, every envmap lighting the same
+/// camera paths (their noise is shared, so it cancels in the paired comparison).
 ///
 /// Why a render, not the fit's own transport T̂: predicting held-out pixels as T̂·λ adds T̂'s noise
 /// times λ, which grows with the contrast of λ. Measured on a small distant light at 9 rings: 10.5%
@@ -211,20 +215,72 @@ fn validate(
     views: &[&Camera],
     references: &[Image],
     masks: &[Vec<bool>],
-    envmap: &Envmap,
+    envmaps: &[&Envmap],
     template: &FitSettings,
     progress: &(dyn Fn(u64) + Sync),
-) -> Validation {
-    let lights = Lights::env(envmap.clone());
-    let images =
-        renderer
-            .with_lights(&lights)
-            .render_views(views, &validation_settings(template), progress);
-    held_out(&images, references, masks)
+) -> Vec<Validation> {
+    let lights: Vec<Lights> = envmaps.iter().map(|e| Lights::env((*e).clone())).collect();
+    let sets: Vec<&Lights> = lights.iter().collect();
+    let wanted = |(v, i): (usize, u32)| masks[v][i as usize] && is_held_out((v, i));
+    renderer
+        .render_views_under(
+            views,
+            &validation_settings(template),
+            &sets,
+            Some(&wanted),
+            progress,
+        )
+        .iter()
+        .map(|images| held_out(images, references, masks))
+        .collect()
 }
 
-/// Fits every candidate resolution on the kept pixels, re-renders it, and chooses by [`choose`]
-/// on the held-out pixels. `template` gives everything but the ring count.
+/// What [`select_rings`] reports to its progress: the candidates' fits (one pass for all with
+/// NNLS, [`super::fit_candidates`]), each candidate's held-out pixels, and with NNLS the
+/// chosen one's refit on all pixels unless `template.holdout`.
+pub fn progress_units(template: &FitSettings, candidates: &[u32], masks: &[Vec<bool>]) -> u64 {
+    let held_out: u64 = masks
+        .iter()
+        .enumerate()
+        .map(|(v, m)| {
+            m.iter()
+                .enumerate()
+                .filter(|&(i, &b)| b && is_held_out((v, i as u32)))
+                .count() as u64
+        })
+        .sum();
+    let fits = match template.solver {
+        Solver::Nnls => template.candidates_progress_units(masks),
+        Solver::Gradient => candidates
+            .iter()
+            .map(|&rings| {
+                FitSettings {
+                    rings,
+                    holdout: true,
+                    ..*template
+                }
+                .progress_units(masks)
+            })
+            .sum(),
+    };
+    let refit = match (template.solver, template.holdout) {
+        (Solver::Nnls, false) => template.refit_progress_units(masks),
+        _ => 0,
+    };
+    fits + held_out * candidates.len() as u64 + refit
+}
+
+/// The chosen resolution, and with NNLS its fit on the pixels `template` asks for (all, or
+/// those [`is_held_out`] leaves in with `template.holdout`), made from the same pass.
+pub struct RingsChoice {
+    pub selection: Selection,
+    pub fit: Option<Fit>,
+}
+
+/// Fits every candidate resolution on the kept pixels, re-renders them on the held-out ones,
+/// and chooses by [`choose`]. With NNLS one transport pass serves every candidate
+/// ([`super::fit_candidates`]) and the chosen one's final fit; the gradient solver fits each
+/// candidate on its own. `template` gives everything but the ring count.
 #[allow(clippy::too_many_arguments)]
 pub fn select_rings(
     renderer: &Renderer,
@@ -234,36 +290,59 @@ pub fn select_rings(
     candidates: &[u32],
     template: &FitSettings,
     progress: &(dyn Fn(u64) + Sync),
-) -> Option<Selection> {
+) -> Option<RingsChoice> {
+    if candidates.is_empty() {
+        return None;
+    }
     let t_all = Instant::now();
-    let mut validations = Vec::new();
-    for &rings in candidates {
-        let t = Instant::now();
+    let held_in = FitSettings {
+        holdout: true,
+        ..*template
+    };
+    let (fits, joint) = match template.solver {
+        Solver::Nnls => {
+            let c = fit_candidates(
+                renderer, views, references, masks, &held_in, candidates, progress,
+            );
+            let fits = c.fits.iter().map(|f| (f.envmap.clone(), f.solve_seconds));
+            (fits.collect::<Vec<_>>(), Some(c))
+        }
+        Solver::Gradient => {
+            let fits = candidates.iter().map(|&rings| {
+                let settings = FitSettings { rings, ..held_in };
+                let f = fit(renderer, views, references, masks, &settings, progress);
+                (f.envmap, f.transport_seconds + f.solve_seconds)
+            });
+            (fits.collect(), None)
+        }
+    };
+    let envmaps: Vec<&Envmap> = fits.iter().map(|f| &f.0).collect();
+    let validations = validate(
+        renderer, views, references, masks, &envmaps, template, progress,
+    );
+    let validations: Vec<(u32, usize, Validation, f64)> = fits
+        .iter()
+        .zip(validations)
+        .map(|((e, seconds), v)| (e.grid.rings(), e.grid.cell_count(), v, *seconds))
+        .collect();
+    let mut selection = choose(&validations)?;
+    let fit = joint.map(|c| {
+        let i = candidates
+            .iter()
+            .position(|&r| r == selection.rings)
+            .expect("the choice is a candidate");
         let settings = FitSettings {
-            rings,
-            holdout: true,
+            rings: selection.rings,
             ..*template
         };
-        let fit = fit(renderer, views, references, masks, &settings, progress);
-        let v = validate(
-            renderer,
-            views,
-            references,
-            masks,
-            &fit.envmap,
-            template,
-            progress,
-        );
-        validations.push((
-            rings,
-            fit.envmap.grid.cell_count(),
-            v,
-            t.elapsed().as_secs_f64(),
-        ));
-    }
-    let mut s = choose(&validations)?;
-    s.seconds = t_all.elapsed().as_secs_f64();
-    Some(s)
+        if template.holdout {
+            c.fits.into_iter().nth(i).expect("a fit per candidate")
+        } else {
+            c.refit(i, &settings, renderer, views, references, masks, progress)
+        }
+    });
+    selection.seconds = t_all.elapsed().as_secs_f64();
+    Some(RingsChoice { selection, fit })
 }
 
 /// Error of re-rendered images on the held-out pixels ([`is_held_out`]), in one fixed

@@ -170,7 +170,8 @@ fn set_bits(mut mask: u32) -> impl Iterator<Item = usize> {
 
 /// What each of [`LANES`] paths delivers, (emitter, weight per unit emitted radiance), in
 /// order: [`Tracer::light`]'s scratch space.
-pub(super) type Added = [Vec<(Emitter, Vec3)>; LANES];
+/// Per lane, what its path delivers: (emitter, unit direction toward it, weight).
+pub(super) type Added = [Vec<(Emitter, Vec3, Vec3)>; LANES];
 
 /// Lane `l`'s `len` vertices in the scratch space [`Tracer::walk`] filled with
 /// `max_bounces`-long stretches (empty for a lane past the last).
@@ -440,7 +441,7 @@ impl Tracer<'_> {
             };
             if let Some(e) = seen {
                 if !st.hide_emitters {
-                    added[l].push((e, Vec3::ONE));
+                    added[l].push((e, path.dir, Vec3::ONE));
                 }
                 continue;
             }
@@ -543,14 +544,14 @@ impl Tracer<'_> {
                         1.0
                     };
                     // Throughput after the bounce: f · cos / pdf = albedo, i.e. π · f.
-                    added[l].push((e, v.throughput_f * std::f32::consts::PI * w));
+                    added[l].push((e, v.wi, v.throughput_f * std::f32::consts::PI * w));
                 }
                 alive[l] = false;
             }
         }
         for added in &added[..paths.len()] {
-            for &(e, w) in added {
-                acc.add(px, e, w);
+            for &(e, d, w) in added {
+                acc.add(px, e, d, w);
             }
         }
         hits
@@ -586,7 +587,7 @@ impl Tracer<'_> {
         } else {
             1.0
         };
-        added[lane].push((ls.emitter, v.throughput_f * (cos_s * w / ls.pdf)));
+        added[lane].push((ls.emitter, ls.wi, v.throughput_f * (cos_s * w / ls.pdf)));
     }
 
     /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading

@@ -92,12 +92,13 @@ impl RenderSettings {
     }
 }
 
-/// What the tracer accumulates per pixel. A path hands over each emitter it reaches with a
-/// weight per unit of that emitter's radiance (throughput × MIS weight / pdf).
+/// What the tracer accumulates per pixel. A path hands over each emitter it reaches, the unit
+/// direction (world space) in which it reached it, and a weight per unit of that emitter's
+/// radiance (throughput × MIS weight / pdf).
 pub trait Accumulator: Sync {
     type Pixel: Send;
     fn new_pixel(&self) -> Self::Pixel;
-    fn add(&self, pixel: &mut Self::Pixel, emitter: Emitter, weight: Vec3);
+    fn add(&self, pixel: &mut Self::Pixel, emitter: Emitter, dir: Vec3, weight: Vec3);
     /// Turns the sum over `spp` samples into the pixel's estimate.
     fn finish(&self, pixel: &mut Self::Pixel, spp: u32);
 }
@@ -111,7 +112,7 @@ impl Accumulator for RadianceAccumulator<'_> {
         Vec3::ZERO
     }
     #[inline]
-    fn add(&self, pixel: &mut Vec3, emitter: Emitter, weight: Vec3) {
+    fn add(&self, pixel: &mut Vec3, emitter: Emitter, _: Vec3, weight: Vec3) {
         *pixel += weight * self.0.radiance(emitter);
     }
     fn finish(&self, pixel: &mut Vec3, spp: u32) {
@@ -342,6 +343,20 @@ impl<'a> Renderer<'a> {
         lights: &[&Lights],
         progress: &(dyn Fn(u64) + Sync),
     ) -> Vec<Image> {
+        self.radiance_under(camera, stream, settings, lights, None, progress)
+    }
+
+    /// [`Renderer::render_radiance_under`] of the pixels `wanted` accepts (by index; the others
+    /// are black with coverage 0); `progress` counts rendered pixels once per light set.
+    fn radiance_under(
+        &self,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+        lights: &[&Lights],
+        wanted: Option<&(dyn Fn(u32) -> bool + Sync)>,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Vec<Image> {
         if lights.is_empty() {
             return Vec::new();
         }
@@ -354,7 +369,10 @@ impl<'a> Renderer<'a> {
             })
             .collect();
         let ray_dir = camera.ray_dirs();
-        let view = self.view(camera, settings, stream, &ray_dir);
+        let view = View {
+            wanted,
+            ..self.view(camera, settings, stream, &ray_dir)
+        };
         let walker = self.tracer(settings);
         let done: Vec<Vec<Vec<Done<Vec3>>>> = tiles(w, h)
             .par_iter()
@@ -364,7 +382,11 @@ impl<'a> Renderer<'a> {
                     .iter()
                     .map(|t| light_tile(&view, t, &RadianceAccumulator(t.lights), &walked, tile))
                     .collect();
-                progress(lit.iter().map(|l| l.len() as u64).sum());
+                let pixels = match wanted {
+                    Some(f) => lit[0].iter().filter(|d| f(d.0)).count(),
+                    None => lit[0].len(),
+                };
+                progress((pixels * lit.len()) as u64);
                 lit
             })
             .collect();
@@ -375,18 +397,24 @@ impl<'a> Renderer<'a> {
     }
 
     /// [`Renderer::render_radiance_under`] for each view (random stream [`view_stream`]): per
-    /// light set, one image per view.
+    /// light set, one image per view. With `wanted`, only the (view index, pixel index) pairs
+    /// it accepts are rendered, the rest left black.
     pub fn render_views_under(
         &self,
         views: &[&Camera],
         settings: &RenderSettings,
         lights: &[&Lights],
+        wanted: Option<&(dyn Fn((usize, u32)) -> bool + Sync)>,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Vec<Vec<Image>> {
         let per_view = views
             .iter()
-            .map(|cam| {
-                self.render_radiance_under(cam, view_stream(cam), settings, lights, progress)
+            .enumerate()
+            .map(|(v, cam)| {
+                let in_view = move |i: u32| wanted.is_none_or(|f| f((v, i)));
+                let filter: Option<&(dyn Fn(u32) -> bool + Sync)> =
+                    wanted.is_some().then_some(&in_view);
+                self.radiance_under(cam, view_stream(cam), settings, lights, filter, progress)
             })
             .collect();
         transpose(per_view, lights.len())
