@@ -416,12 +416,16 @@ fn rings_auto_reports_its_choice_and_the_sweep_charts_it() {
     };
     let sweep_candidates = serde_json::to_value(&auto.auto.as_ref().unwrap().candidates).unwrap();
     assert_eq!(errs(&sweep_candidates), errs(&estimate_candidates));
-    // The auto trial at its chosen resolution is the fixed trial at that resolution.
+    // The auto trial's envmap is fitted from the selection's own transport pass (steered
+    // and seeded as one pass for all candidates), so it is not the fixed trial's bit for
+    // bit; at the same resolution and samples it is as good. Measured: 30.40% against
+    // 30.36%.
     let fixed = recs
         .iter()
         .find(|r| r.auto.is_none() && r.rings == auto.rings)
         .unwrap();
-    assert_eq!(fixed.rel_mae, auto.rel_mae);
+    let (a, f) = (auto.rel_mae.unwrap(), fixed.rel_mae.unwrap());
+    assert!((a - f).abs() <= 0.02 * f, "auto {a} against fixed {f}");
     ok(&run(&["report", out.to_str().unwrap()]));
     assert!(out.join("auto_vs_best.png").exists());
     let md = std::fs::read_to_string(out.join("report.md")).unwrap();
