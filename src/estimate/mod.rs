@@ -87,7 +87,7 @@ pub fn is_held_out((view, pixel): (usize, u32)) -> bool {
 }
 
 /// Error of a hold-out fit on the held-out pixels.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct Validation {
     /// Per held-out pixel: Σ over channels of |T·λ − reference|.
     pub abs_error: Vec<f64>,
