@@ -303,10 +303,10 @@ pub fn fit(
     settings: &FitSettings,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Fit {
-    let grid = RingGrid::new(settings.rings);
     if settings.solver == Solver::Gradient {
         return fit_gradient(renderer, cameras, references, masks, settings, progress);
     }
+    let grid = RingGrid::new(settings.rings);
     let fit_pixel = |p| (!settings.holdout || !is_held_out(p)).then_some(0);
     let targets = Targets {
         grids: std::slice::from_ref(&grid),
