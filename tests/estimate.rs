@@ -244,8 +244,8 @@ fn a_known_envmap_is_recovered_at_the_noise_floor() {
 
 #[test]
 fn one_pass_recovers_a_sky_in_a_grid_it_did_not_sample_by() {
-    // `--rings auto` fits every candidate from one pass whose cells are sampled on the median
-    // candidate's grid (5 rings here): the 3-ring rows are binned from path directions. They
+    // `--rings auto` fits every candidate from one pass whose cells are sampled on the finest
+    // candidate's grid (9 rings here): the 3-ring rows are binned from path directions. They
     // must still be an unbiased transport of the 3-ring grid, so the 3-ring sky comes back
     // as exactly as from its own pass (the exact-recovery test above: every cell above the
     // table within 10%), on the held-in pixels and refitted on all of them.
