@@ -107,7 +107,7 @@ impl FitSettings {
     /// or round, the pilot's too (each unit a pixel at one part's samples).
     pub fn progress_units(&self, masks: &[Vec<bool>]) -> u64 {
         let rounds = self.rounds.max(1) as usize;
-        let fit_pixel = |p: (usize, u32)| !self.holdout || !is_held_out(p);
+        let fit_pixel = |p| self.fits(p);
         let main = transport::progress_units(masks, &fit_pixel, rounds);
         match self.solver {
             Solver::Nnls if rounds >= 2 => {
@@ -115,6 +115,12 @@ impl FitSettings {
             }
             _ => main,
         }
+    }
+
+    /// Whether `fit` fits pixel `p` (all pixels, or with `holdout` those [`is_held_out`]
+    /// leaves in).
+    fn fits(&self, p: (usize, u32)) -> bool {
+        !self.holdout || !is_held_out(p)
     }
 
     /// What [`fit_candidates`] reports to its progress on `masks`: as [`fit`] with `holdout`.
@@ -307,16 +313,17 @@ pub fn fit(
         return fit_gradient(renderer, cameras, references, masks, settings, progress);
     }
     let grid = RingGrid::new(settings.rings);
-    let fit_pixel = |p| (!settings.holdout || !is_held_out(p)).then_some(0);
-    let targets = Targets {
-        grids: std::slice::from_ref(&grid),
-        sets: 1,
-        set_of: &fit_pixel,
-    };
+    let fit_pixel = |p| settings.fits(p).then_some(0);
+    let targets = Targets::one(&grid, &fit_pixel);
     let pass = nnls_pass(
         renderer, cameras, references, masks, settings, &grid, &targets, progress,
     );
-    solved(&pass.sums[0][0], &grid, settings, &pass)
+    solved(
+        &pass.sums[0][0],
+        &grid,
+        settings,
+        (pass.seconds, pass.bytes),
+    )
 }
 
 /// The sums of an NNLS transport pass, and what the pass cost.
@@ -357,11 +364,7 @@ fn nnls_pass(
             settings: part_seed(settings, rounds),
         };
         let in_set0 = |p| ((targets.set_of)(p) == Some(0) && in_pilot(p)).then_some(0);
-        let pilot_targets = Targets {
-            grids: std::slice::from_ref(pilot),
-            sets: 1,
-            set_of: &in_set0,
-        };
+        let pilot_targets = Targets::one(pilot, &in_set0);
         let ne = &accumulate(
             renderer,
             cameras,
@@ -424,8 +427,14 @@ fn new_channels() -> Vec<ChannelFit> {
         .collect()
 }
 
-/// The NNLS fit of `grid` on the sums `ne` of `pass`.
-fn solved(ne: &NormalEquations, grid: &RingGrid, settings: &FitSettings, pass: &Pass) -> Fit {
+/// The NNLS fit of `grid` on the sums `ne` of a pass that took `transport_seconds` and needs
+/// `transport_bytes`.
+fn solved(
+    ne: &NormalEquations,
+    grid: &RingGrid,
+    settings: &FitSettings,
+    (transport_seconds, transport_bytes): (f64, usize),
+) -> Fit {
     let t = Instant::now();
     let mut channels = new_channels();
     let zero = vec![vec![0.0f64; ne.cells]; 3];
@@ -436,9 +445,9 @@ fn solved(ne: &NormalEquations, grid: &RingGrid, settings: &FitSettings, pass: &
         envmap: Envmap::new(grid.rings(), radiance)
             .expect("solver output is finite and non-negative"),
         channels,
-        transport_seconds: pass.seconds,
+        transport_seconds,
         solve_seconds: t.elapsed().as_secs_f64(),
-        transport_bytes: pass.bytes,
+        transport_bytes,
         non_finite,
     }
 }
@@ -471,11 +480,7 @@ impl Candidates {
         let t0 = Instant::now();
         let grid = &self.grids[i];
         let held_out = |p| is_held_out(p).then_some(0);
-        let targets = Targets {
-            grids: std::slice::from_ref(grid),
-            sets: 1,
-            set_of: &held_out,
-        };
+        let targets = Targets::one(grid, &held_out);
         let mut all = accumulate(
             renderer,
             cameras,
@@ -489,13 +494,8 @@ impl Candidates {
         .swap_remove(0)
         .swap_remove(0);
         all.add(&self.pass.sums[0][i]);
-        let pass = Pass {
-            sums: Vec::new(),
-            parts: Vec::new(),
-            seconds: self.pass.seconds + t0.elapsed().as_secs_f64(),
-            bytes: self.pass.bytes,
-        };
-        solved(&all, grid, settings, &pass)
+        let seconds = self.pass.seconds + t0.elapsed().as_secs_f64();
+        solved(&all, grid, settings, (seconds, self.pass.bytes))
     }
 }
 
@@ -537,7 +537,7 @@ pub fn fit_candidates(
                 rings: g.rings(),
                 ..*template
             };
-            solved(&pass.sums[0][i], g, &settings, &pass)
+            solved(&pass.sums[0][i], g, &settings, (pass.seconds, pass.bytes))
         })
         .collect();
     Candidates { grids, fits, pass }
@@ -558,12 +558,8 @@ fn fit_gradient(
     let mut channels = new_channels();
     let (mut transport_seconds, mut solve_seconds) = (0.0, 0.0);
     let mut non_finite = false;
-    let fit_pixel = |p| (!settings.holdout || !is_held_out(p)).then_some(0);
-    let targets = Targets {
-        grids: std::slice::from_ref(&grid),
-        sets: 1,
-        set_of: &fit_pixel,
-    };
+    let fit_pixel = |p| settings.fits(p).then_some(0);
+    let targets = Targets::one(&grid, &fit_pixel);
     let (mut sampling, mut lambda) = (
         Envmap::constant(settings.rings, Vec3::ONE),
         vec![vec![0.0f64; n]; 3],

@@ -244,16 +244,7 @@ fn validate(
 /// NNLS, [`super::fit_candidates`]), each candidate's held-out pixels, and with NNLS the
 /// chosen one's refit on all pixels unless `template.holdout`.
 pub fn progress_units(template: &FitSettings, candidates: &[u32], masks: &[Vec<bool>]) -> u64 {
-    let held_out: u64 = masks
-        .iter()
-        .enumerate()
-        .map(|(v, m)| {
-            m.iter()
-                .enumerate()
-                .filter(|&(i, &b)| b && is_held_out((v, i as u32)))
-                .count() as u64
-        })
-        .sum();
+    let held_out = super::transport::progress_units(masks, &|p| is_held_out(p), 1);
     let fits = match template.solver {
         Solver::Nnls => template.candidates_progress_units(masks),
         Solver::Gradient => candidates

@@ -224,11 +224,6 @@ impl NormalEquations {
         self.yy[ch]
     }
 
-    /// Bytes held.
-    pub fn memory_bytes(&self) -> usize {
-        Self::memory_needed(self.cells)
-    }
-
     /// Bytes the sums of `cells` cells hold (a packed triangle and a vector, three channels
     /// each).
     pub fn memory_needed(cells: usize) -> usize {
@@ -515,6 +510,20 @@ pub struct Targets<'a> {
     /// The set a (view, pixel) belongs to, or `None` if the pass leaves it out. Only pixels
     /// the masks hold are asked about.
     pub set_of: &'a (dyn Fn((usize, u32)) -> Option<usize> + Sync),
+}
+
+impl<'a> Targets<'a> {
+    /// One grid, one set of pixels: those `set_of` places in set 0.
+    pub fn one(
+        grid: &'a RingGrid,
+        set_of: &'a (dyn Fn((usize, u32)) -> Option<usize> + Sync),
+    ) -> Self {
+        Targets {
+            grids: std::slice::from_ref(grid),
+            sets: 1,
+            set_of,
+        }
+    }
 }
 
 /// Renders the transport of `parts` over the pixels of each camera that its mask holds and
