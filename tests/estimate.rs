@@ -794,6 +794,7 @@ fn paths_walked_once_and_lit_again_render_what_a_fresh_render_does() {
         Lights {
             spheres: vec![moved],
             env: Some(three_ring_sky()),
+            alone: None,
         },
     ];
     for (i, lights) in lit.iter().enumerate() {
@@ -852,6 +853,61 @@ fn paths_walked_once_and_lit_again_render_what_a_fresh_render_does() {
 }
 
 #[test]
+fn one_light_alone_renders_its_share_of_every_lights_render() {
+    // The sphere model's trial geometries move one light and render it alone: its column
+    // must be the one it has among all the lights, bit for bit (same random numbers, the
+    // others still blocking it), at any depth, with or without an envmap beside it.
+    use lightprobe::estimate::transport::{EmitterKind, PerEmitterAccumulator};
+    let sc = scene(vec![NEAR_LIGHT]);
+    let none = Lights::default();
+    let base = Renderer::new(&sc, &none);
+    let cam = &sc.cameras[0];
+    // The second light sits in front of the first as seen from part of the table.
+    let blocker = SphereLight {
+        center: NEAR_LIGHT.center * 0.6,
+        radius: 0.15,
+        radiance: Vec3::ONE,
+    };
+    let spheres = vec![NEAR_LIGHT, blocker];
+    for env in [None, Some(three_ring_sky())] {
+        for max_bounces in [1, 4] {
+            let st = RenderSettings {
+                every_light: true,
+                max_bounces,
+                ..settings(8, 3)
+            };
+            let all = Lights {
+                spheres: spheres.clone(),
+                env: env.clone(),
+                alone: None,
+            };
+            let acc = PerEmitterAccumulator {
+                kind: EmitterKind::Spheres,
+                count: 2,
+            };
+            let full = base.with_lights(&all).render(cam, 9, &st, &acc, &|_| {});
+            let mut lit = [0.0f32; 2];
+            for j in 0..2 {
+                let alone = Lights {
+                    alone: Some(j as u32),
+                    ..all.clone()
+                };
+                let one = PerEmitterAccumulator {
+                    kind: EmitterKind::Sphere(j as u32),
+                    count: 1,
+                };
+                let column = base.with_lights(&alone).render(cam, 9, &st, &one, &|_| {});
+                for (a, b) in full.pixels.iter().zip(&column.pixels) {
+                    assert_eq!(a[j], b[0], "light {j}, {max_bounces} bounces");
+                    lit[j] += b[0].element_sum();
+                }
+            }
+            assert!(lit[0] > 0.0 && lit[1] > 0.0, "{lit:?}");
+        }
+    }
+}
+
+#[test]
 fn model_selection_puts_an_envmap_behind_a_near_light_under_a_sky() {
     // A near lamp under a dim sky (about a third of the light on the table): no few spheres
     // fit the sky and no envmap fits the lamp (parallax); the lamp with an envmap behind it
@@ -871,6 +927,7 @@ fn model_selection_puts_an_envmap_behind_a_near_light_under_a_sky() {
     let lights = Lights {
         spheres: sc.lights.clone(),
         env: Some(Envmap::new(5, sky).unwrap()),
+        alone: None,
     };
     let r = Renderer::new(&sc, &lights);
     let (refs, masks) = render_all(&r, &sc, 256, 1);

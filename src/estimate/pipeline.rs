@@ -582,6 +582,7 @@ fn outcome_of(
         let l = Lights {
             spheres: lights.clone(),
             env: fit.background.clone(),
+            alone: None,
         };
         renders = truth_renderer.with_lights(&l).render_views(
             obs.cameras,

@@ -103,6 +103,18 @@ impl SphereProblem {
     pub fn rows(&self) -> usize {
         self.y[0].len()
     }
+
+    /// This problem with column `j` replaced by `column`'s only one (same rows).
+    fn with_column(&self, j: usize, column: &SphereProblem) -> SphereProblem {
+        debug_assert_eq!((column.lights, column.rows()), (1, self.rows()));
+        let mut p = self.clone();
+        for ch in 0..3 {
+            for (row, &v) in p.t[ch].chunks_exact_mut(self.lights).zip(&column.t[ch]) {
+                row[j] = v;
+            }
+        }
+        p
+    }
 }
 
 /// Estimates the per-light transport of `geometry` (centres and radii; radiances ignored) and
@@ -112,6 +124,32 @@ pub fn sphere_problem(
     renderer: &Renderer,
     obs: &Observations,
     geometry: &[SphereLight],
+    settings: &RenderSettings,
+) -> SphereProblem {
+    transport(renderer, obs, geometry, None, settings)
+}
+
+/// Light `j`'s column of [`sphere_problem`] alone, at the cost of one light
+/// ([`Lights::alone`]; the other lights still block it, the background is left out). It has
+/// the random numbers the light gets among all of them, so it is that problem's column `j`,
+/// bit for bit; what it leaves out is how light `j` blocks the other columns, which is
+/// negligible for a trial geometry that moves light `j` alone by a small step.
+fn sphere_column(
+    renderer: &Renderer,
+    obs: &Observations,
+    geometry: &[SphereLight],
+    j: usize,
+    settings: &RenderSettings,
+) -> SphereProblem {
+    transport(renderer, obs, geometry, Some(j), settings)
+}
+
+/// [`sphere_problem`], or [`sphere_column`] `alone`.
+fn transport(
+    renderer: &Renderer,
+    obs: &Observations,
+    geometry: &[SphereLight],
+    alone: Option<usize>,
     settings: &RenderSettings,
 ) -> SphereProblem {
     let unit: Vec<SphereLight> = geometry
@@ -126,7 +164,13 @@ pub fn sphere_problem(
         kind: EmitterKind::Spheres,
         count: geometry.len(),
     };
-    if let Some(grid) = obs.background {
+    if let Some(j) = alone {
+        lights.alone = Some(j as u32);
+        acc = PerEmitterAccumulator {
+            kind: EmitterKind::Sphere(j as u32),
+            count: 1,
+        };
+    } else if let Some(grid) = obs.background {
         let cells = grid.cell_count();
         lights.env = Some(
             Envmap::new(grid.rings(), vec![Vec3::ONE; cells]).expect("a unit envmap is valid"),
@@ -356,20 +400,24 @@ pub fn refine(
     center: Vec3,
     settings: &RefineSettings,
 ) -> Refined {
-    let mut evaluations = 0;
-    let mut eval = |base: &[Polar], q: &[f64], at: &RenderSettings| {
-        evaluations += 1;
-        residuals(&sphere_problem(
-            renderer,
-            obs,
-            &lights_of(base, q, center),
-            at,
-        ))
+    // Renders made; a trial that moves one light renders that light alone
+    // ([`sphere_column`]) into the problem it moves from.
+    let evaluations = std::cell::Cell::new(0);
+    let problem = |base: &[Polar], q: &[f64], at: &RenderSettings| {
+        evaluations.set(evaluations.get() + 1);
+        sphere_problem(renderer, obs, &lights_of(base, q, center), at)
+    };
+    let moved_one = |from: &SphereProblem, base: &[Polar], q: &[f64], j, at: &RenderSettings| {
+        evaluations.set(evaluations.get() + 1);
+        let column = sphere_column(renderer, obs, &lights_of(base, q, center), j, at);
+        from.with_column(j, &column)
     };
     let mut base: Vec<Polar> = start.iter().map(|l| Polar::of(l, center)).collect();
     let n = 4 * base.len();
     let zero = vec![0.0; n];
-    let (mut r, mut radiance, mut rel) = eval(&base, &zero, &settings.residual);
+    // The problem at the current geometry, at the residual's settings.
+    let mut at_base = problem(&base, &zero, &settings.residual);
+    let (mut r, mut radiance, mut rel) = residuals(&at_base);
     let sse = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
     let mut f = sse(&r);
     let mut history = vec![f];
@@ -388,13 +436,14 @@ pub fn refine(
     for pass in 0..3 {
         while iterations < budget {
             iterations += 1;
-            let (r0, _, _) = eval(&base, &zero, &settings.jacobian);
+            let p0 = problem(&base, &zero, &settings.jacobian);
+            let (r0, _, _) = residuals(&p0);
             let mut jac: Vec<Vec<f64>> = Vec::with_capacity(m);
             for j in first..n {
                 let h = steps[j % 4];
                 let mut q = zero.clone();
                 q[j] = h;
-                let (rj, _, _) = eval(&base, &q, &settings.jacobian);
+                let (rj, _, _) = residuals(&moved_one(&p0, &base, &q, j / 4, &settings.jacobian));
                 jac.push(rj.iter().zip(&r0).map(|(a, b)| (a - b) / h).collect());
             }
             let mut g = vec![0.0; m];
@@ -421,9 +470,11 @@ pub fn refine(
                     let cap = if j % 4 < 2 { 0.17 } else { 0.4 };
                     *s = s.clamp(-cap, cap);
                 }
-                let (rq, lq, relq) = eval(&base, &step, &settings.residual);
+                let pq = problem(&base, &step, &settings.residual);
+                let (rq, lq, relq) = residuals(&pq);
                 let fq = sse(&rq);
                 if fq < f {
+                    at_base = pq;
                     // Gains below 0.05% are below the noise: with 10³–10⁴ binned residuals that
                     // is a step of about one standard deviation of the parameters.
                     improved = (f - fq) > 5e-4 * f;
@@ -461,9 +512,11 @@ pub fn refine(
                     for s in [sign, -sign] {
                         let mut q = zero.clone();
                         q[4 * j + 3] = s * h;
-                        let (rq, lq, relq) = eval(&base, &q, &settings.residual);
+                        let pq = moved_one(&at_base, &base, &q, j, &settings.residual);
+                        let (rq, lq, relq) = residuals(&pq);
                         let fq = sse(&rq);
                         if fq < f {
+                            at_base = pq;
                             base[j] = base[j].moved(&q[4 * j..4 * j + 4], center).0;
                             (r, radiance, rel, f) = (rq, lq, relq, fq);
                             history.push(f);
@@ -509,7 +562,7 @@ pub fn refine(
             spp: settings.radiance_spp,
             ..settings.residual
         };
-        (_, radiance, rel) = eval(&base, &zero, &at);
+        (_, radiance, rel) = residuals(&problem(&base, &zero, &at));
     }
     let lights = lights_of(&base, &zero, center)
         .into_iter()
@@ -521,7 +574,7 @@ pub fn refine(
         background: radiance.split_off(base.len()),
         rel_mae: rel,
         iterations,
-        evaluations,
+        evaluations: evaluations.get(),
         history,
         covariance,
     }

@@ -39,6 +39,8 @@ pub enum EmitterKind {
     Spheres,
     /// The sphere lights, then the envmap's cells (the sphere model with a background).
     SpheresThenCells { spheres: u32 },
+    /// Sphere light `i` alone, in the row's one column.
+    Sphere(u32),
 }
 
 /// Accumulates one row of a transport per pixel: the weight (per unit radiance) each emitter
@@ -62,6 +64,7 @@ impl Accumulator for PerEmitterAccumulator {
             (EmitterKind::SpheresThenCells { spheres }, Emitter::EnvCell(c)) => {
                 pixel[(spheres + c) as usize] += weight
             }
+            (EmitterKind::Sphere(j), Emitter::Sphere(i)) if i == j => pixel[0] += weight,
             _ => {}
         }
     }

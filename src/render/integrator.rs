@@ -427,6 +427,8 @@ impl Tracer<'_> {
             Strategy::BsdfOnly => (false, true),
         };
         let mis = use_light && use_bsdf;
+        // One light alone is sampled as every light is: its pdf has no choice of light in it.
+        let every_light = st.every_light || lights.alone.is_some();
 
         // ---- The camera rays: emitters seen directly ----
         let mut alive = [false; LANES];
@@ -464,24 +466,27 @@ impl Tracer<'_> {
             }
 
             // ---- Emitter sampling ----
-            if use_light && st.every_light {
-                // At a stratified vertex every light gets the stratified sample (each
-                // light's estimate is stratified; their correlation biases nothing).
-                let shared: [Option<(Vec2, Vec2)>; LANES] = std::array::from_fn(|j| {
-                    (j < n && k < STRATIFIED).then(|| s[lanes[j]].light_sample(k))
+            if use_light && every_light {
+                // Every light gets the vertex's one sample (each light's estimate is
+                // unbiased; their correlation biases nothing), so a light's share does not
+                // depend on which others are sampled beside it ([`Lights::alone`]).
+                let shared: [(Vec2, Vec2); LANES] = std::array::from_fn(|j| {
+                    if j < n {
+                        s[lanes[j]].light_sample(k)
+                    } else {
+                        Default::default()
+                    }
                 });
-                for i in 0..lights.len() {
+                let sampled = match lights.alone {
+                    Some(i) => i as usize..i as usize + 1,
+                    None => 0..lights.len(),
+                };
+                for i in sampled {
                     let mut q = LightQuery::default();
                     for (j, &l) in lanes.iter().enumerate() {
-                        let (u_cell, u) = match shared[j] {
-                            Some((pick, dir)) => (pick.y, dir),
-                            None => {
-                                let rng = s[l].light_rng();
-                                (rng.next_f32(), rng.next_2d())
-                            }
-                        };
+                        let (pick, u) = shared[j];
                         let v = &paths[l].verts[k];
-                        q.push(v.p, v.ns, Vec2::new(0.0, u_cell), u);
+                        q.push(v.p, v.ns, Vec2::new(0.0, pick.y), u);
                     }
                     let samples = lights.sample_lanes(&q, Some(i));
                     for (j, &l) in lanes.iter().enumerate() {
@@ -534,7 +539,7 @@ impl Tracer<'_> {
                 };
                 if use_bsdf {
                     let w = if mis {
-                        let light_pdf = if st.every_light {
+                        let light_pdf = if every_light {
                             lights.pdf_light(e, v.p)
                         } else {
                             lights.pdf(e, v.p, v.ns)
@@ -550,7 +555,7 @@ impl Tracer<'_> {
             }
         }
         for added in &added[..paths.len()] {
-            for &(e, d, w) in added {
+            for &(e, d, w) in added.iter().filter(|a| lights.delivers(a.0)) {
                 acc.add(px, e, d, w);
             }
         }

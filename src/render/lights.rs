@@ -40,6 +40,11 @@ pub struct Lights {
     pub spheres: Vec<SphereLight>,
     /// Light from infinitely far away; rays that escape the scene see it.
     pub env: Option<Envmap>,
+    /// Sphere `i` alone emits: the other spheres still block light, but are neither sampled
+    /// nor delivered, and the envmap delivers nothing. One light's share of a render (its
+    /// column of a transport) at the cost of one light, with the random numbers it gets
+    /// among all of them under [`super::RenderSettings::every_light`].
+    pub alone: Option<u32>,
 }
 
 /// Shading points whose light samples are drawn together ([`Lights::sample_lanes`]): eight
@@ -91,7 +96,11 @@ pub const MAX_WEIGHTED: usize = 16;
 impl Lights {
     /// Sphere lights only.
     pub fn new(spheres: Vec<SphereLight>) -> Lights {
-        Lights { spheres, env: None }
+        Lights {
+            spheres,
+            env: None,
+            alone: None,
+        }
     }
 
     /// An environment map only.
@@ -99,6 +108,7 @@ impl Lights {
         Lights {
             spheres: Vec::new(),
             env: Some(env),
+            alone: None,
         }
     }
 
@@ -109,6 +119,12 @@ impl Lights {
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+
+    /// Whether `emitter` delivers light in this render ([`Lights::alone`]).
+    #[inline]
+    pub fn delivers(&self, emitter: Emitter) -> bool {
+        self.alone.is_none_or(|i| emitter == Emitter::Sphere(i))
     }
 
     /// Emitted radiance of `emitter` (linear RGB).
