@@ -454,12 +454,24 @@ pub fn refine(
                 }
             }
             let mut improved = false;
-            for _ in 0..5 {
+            for attempt in 0..6 {
+                // Every second try holds the radii: a dim light's apparent size can be so
+                // weakly seen that its noisy derivative alone steers the step (s13: a 0.12 m
+                // light's size took every step while the centres waited), and the line
+                // search below moves sizes anyway.
+                let hold_radii = attempt % 2 == 1;
                 let mut damped = normal.clone();
+                let mut rhs: Vec<f64> = g.iter().map(|v| -v).collect();
                 for i in 0..m {
                     damped[i * m + i] += mu * normal[i * m + i].max(1e-12);
+                    if hold_radii && (first + i) % 4 == 3 {
+                        for k in 0..m {
+                            (damped[i * m + k], damped[k * m + i]) = (0.0, 0.0);
+                        }
+                        (damped[i * m + i], rhs[i]) = (1.0, 0.0);
+                    }
                 }
-                let Some(free_step) = solve_dense(damped, g.iter().map(|v| -v).collect()) else {
+                let Some(free_step) = solve_dense(damped, rhs) else {
                     mu *= 10.0;
                     continue;
                 };
@@ -486,47 +498,58 @@ pub fn refine(
                     (r, radiance, rel, f) = (rq, lq, relq, fq);
                     history.push(f);
                     mu = (mu / 3.0).max(1e-9);
+                    // A step the linear model got right but too short (the noisy Jacobian
+                    // underrates how far a penumbra can move) is taken again while it gains,
+                    // for one residual render each instead of a Jacobian's 4K + 1.
+                    for _ in 0..2 {
+                        let pq = problem(&base, &step, &settings.residual);
+                        let (rq, lq, relq) = residuals(&pq);
+                        let fq = sse(&rq);
+                        if fq >= f - 5e-4 * f {
+                            break;
+                        }
+                        at_base = pq;
+                        base = base
+                            .iter()
+                            .zip(step.chunks_exact(4))
+                            .map(|(b, q)| b.moved(q, center).0)
+                            .collect();
+                        (r, radiance, rel, f) = (rq, lq, relq, fq);
+                        history.push(f);
+                    }
                     break;
                 }
-                mu *= 4.0;
+                // Damping as small as the accepted steps left it barely changes the step:
+                // the next try must be a different one, not the same render again.
+                if hold_radii {
+                    mu = (mu * 4.0).max(1e-2);
+                }
             }
             if !improved {
                 break;
             }
         }
         // The apparent size is the slowest coordinate (a penumbra's width, traded against
-        // radiance): where the noisy Jacobian stalls, a pattern search along it on the residual
-        // renders themselves still goes downhill. It starts at ×2 in sin α, since a light that
-        // starts far too small barely moves its penumbrae under the Jacobian's 3% step (s50: a
-        // 0.42 m light stalled at 0.07 m, and a third light grew beside it to widen them), and
-        // halves its step when neither direction gains, down to ×1.05.
+        // radiance): where the noisy Jacobian stalls, a line search along it on the residual
+        // renders themselves still goes downhill ([`line_search`]). Its steps double while
+        // they gain, since a light that starts far too small barely moves its penumbrae under
+        // the Jacobian's 3% step (s50: a 0.42 m light stalled at 0.07 m, and a third light grew
+        // beside it to widen them).
         let before_polish = f;
         if settings.polish_radii {
             for j in settings.fixed.min(base.len())..base.len() {
-                let (mut h, mut sign) = (std::f64::consts::LN_2, 1.0);
-                for _ in 0..12 {
-                    if h < 0.05 {
-                        break;
-                    }
-                    let mut moved = false;
-                    for s in [sign, -sign] {
-                        let mut q = zero.clone();
-                        q[4 * j + 3] = s * h;
-                        let pq = moved_one(&at_base, &base, &q, j, &settings.residual);
-                        let (rq, lq, relq) = residuals(&pq);
-                        let fq = sse(&rq);
-                        if fq < f {
-                            at_base = pq;
-                            base[j] = base[j].moved(&q[4 * j..4 * j + 4], center).0;
-                            (r, radiance, rel, f) = (rq, lq, relq, fq);
-                            history.push(f);
-                            (sign, moved) = (s, true);
-                            break;
-                        }
-                    }
-                    if !moved {
-                        h /= 2.0;
-                    }
+                let at = |t: f64| {
+                    let mut q = zero.clone();
+                    q[4 * j + 3] = t;
+                    let pq = moved_one(&at_base, &base, &q, j, &settings.residual);
+                    let (rq, lq, relq) = residuals(&pq);
+                    (sse(&rq), (q, pq, rq, lq, relq))
+                };
+                if let Some((fq, (q, pq, rq, lq, relq))) = line_search(f, 0.35, at) {
+                    at_base = pq;
+                    base[j] = base[j].moved(&q[4 * j..4 * j + 4], center).0;
+                    (r, radiance, rel, f) = (rq, lq, relq, fq);
+                    history.push(f);
                 }
             }
         }
@@ -578,6 +601,66 @@ pub fn refine(
         history,
         covariance,
     }
+}
+
+/// The lowest point found of a smooth (if noisy) `f` along one coordinate from 0, where it is
+/// `f0`: steps of `h` either way, doubling downhill until a step loses, then one parabola
+/// through the last three points (or through −h, 0, h when neither first step gains). Returns
+/// the best value and what `f` returned with it, if any point beat `f0`; at most 11
+/// evaluations, typically 3–5 (a fixed-step pattern search took 8–14).
+fn line_search<T>(f0: f64, h: f64, mut f: impl FnMut(f64) -> (f64, T)) -> Option<(f64, T)> {
+    let mut best: Option<(f64, T)> = None;
+    let keep = |v: f64, payload: T, best: &mut Option<(f64, T)>| {
+        if v < best.as_ref().map_or(f0, |b| b.0) {
+            *best = Some((v, payload));
+        }
+    };
+    // Parabola vertex through three points (None if they are collinear or open downward).
+    let vertex = |(a, fa): (f64, f64), (b, fb): (f64, f64), (c, fc): (f64, f64)| {
+        let den = (b - a) * (fb - fc) - (b - c) * (fb - fa);
+        let num = (b - a).powi(2) * (fb - fc) - (b - c).powi(2) * (fb - fa);
+        let curvature = ((fc - fb) / (c - b) - (fb - fa) / (b - a)) / (c - a);
+        (den.abs() > 0.0 && curvature > 0.0)
+            .then(|| b - 0.5 * num / den)
+            .filter(|t| t.is_finite())
+    };
+    let (fp, payload) = f(h);
+    let (dir, f1) = if fp < f0 {
+        keep(fp, payload, &mut best);
+        (1.0, fp)
+    } else {
+        let (fm, payload) = f(-h);
+        if fm >= f0 {
+            // Bracketed about 0: one parabola step, if it lands away from 0.
+            if let Some(t) = vertex((-h, fm), (0.0, f0), (h, fp)).filter(|t| t.abs() > 0.1 * h) {
+                let (v, payload) = f(t.clamp(-h, h));
+                keep(v, payload, &mut best);
+            }
+            return best;
+        }
+        keep(fm, payload, &mut best);
+        (-1.0, fm)
+    };
+    // Downhill from (0, f0) to (dir·h, f1): double the step while it gains.
+    let (mut a, mut b) = ((0.0, f0), (dir * h, f1));
+    let mut step = h;
+    for _ in 0..8 {
+        step *= 2.0;
+        let t = b.0 + dir * step;
+        let (v, payload) = f(t);
+        if v < b.1 {
+            keep(v, payload, &mut best);
+            (a, b) = (b, (t, v));
+            continue;
+        }
+        if let Some(t) = vertex(a, b, (t, v)).filter(|x| (x - b.0).abs() > 0.1 * h) {
+            let (lo, hi) = (a.0.min(b.0 + dir * step), a.0.max(b.0 + dir * step));
+            let (v, payload) = f(t.clamp(lo, hi));
+            keep(v, payload, &mut best);
+        }
+        break;
+    }
+    best
 }
 
 /// `base`'s lights and `extra`'s as one problem (same rows: the same observations).
@@ -1199,21 +1282,32 @@ pub fn fit_sphere_models(
             iterations += r.iterations;
             begin = r.lights;
         }
-        let mut refined = refine(renderer, obs, &begin, center, &settings.refine);
-        renders += refined.evaluations;
-        iterations += refined.iterations;
         // A greedy start can stay in the compromise the smaller model found between two
-        // lights; the best set of k candidates, chosen together, competes, and the lower
-        // objective wins.
+        // lights; the best set of k candidates, chosen together, competes. Both take a few
+        // steps, and the one lower then is refined to the end (refining both to the end cost
+        // twice as much; the sphere study's lights came out as accurate with the race).
         if k > 1 {
             let together = joint_start(k, &mut renders);
-            let other = refine(renderer, obs, &together, center, &settings.refine);
-            renders += other.evaluations;
-            iterations += other.iterations;
-            if other.history.last() < refined.history.last() {
-                (refined, start) = (other, together);
-            }
+            let race = RefineSettings {
+                max_iterations: 4,
+                polish_radii: false,
+                radiance_spp: 0,
+                ..settings.refine
+            };
+            let greedy = refine(renderer, obs, &begin, center, &race);
+            let joint = refine(renderer, obs, &together, center, &race);
+            renders += greedy.evaluations + joint.evaluations;
+            iterations += greedy.iterations + joint.iterations;
+            begin = if joint.history.last() < greedy.history.last() {
+                start = together;
+                joint.lights
+            } else {
+                greedy.lights
+            };
         }
+        let refined = refine(renderer, obs, &begin, center, &settings.refine);
+        renders += refined.evaluations;
+        iterations += refined.iterations;
         let (fitted, r) = judge(renderer, obs, &refined, center, &settings.refine.residual);
         renders += r;
         let done = fitted.iter().any(|f| {
@@ -1386,4 +1480,29 @@ pub fn judge(
         });
     }
     (fitted, renders)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::line_search;
+
+    #[test]
+    fn line_search_walks_down_to_a_far_minimum_and_refines_a_near_one() {
+        let mut calls = 0;
+        // Far downhill: the steps double (0.35, 1.05, 2.45) past 1.3, then the parabola
+        // through the last three points lands on the quadratic's minimum exactly.
+        let (v, t) = line_search(1.69, 0.35, |t| {
+            calls += 1;
+            ((t - 1.3) * (t - 1.3), t)
+        })
+        .unwrap();
+        assert!((t - 1.3).abs() < 1e-9 && v < 1e-12, "{t} {v}");
+        assert_eq!(calls, 4);
+        // Bracketed about 0 (the minimum at −0.1, within the first steps): one parabola.
+        let (_, t) = line_search(0.01, 0.35, |t| ((t + 0.1) * (t + 0.1), t)).unwrap();
+        assert!((t + 0.1).abs() < 1e-9, "{t}");
+        // Already at the minimum, or flat: nothing beats f0.
+        assert!(line_search(0.0, 0.35, |t| (t * t, t)).is_none());
+        assert!(line_search(1.0, 0.35, |t| (1.0, t)).is_none());
+    }
 }
