@@ -400,6 +400,18 @@ pub fn refine(
     center: Vec3,
     settings: &RefineSettings,
 ) -> Refined {
+    // A light rendered alone is always sampled as under `every_light` (a pick would draw its
+    // direction from other numbers), so the whole fit is: every trial then compares the same
+    // estimator.
+    let every = |at: RenderSettings| RenderSettings {
+        every_light: true,
+        ..at
+    };
+    let settings = &RefineSettings {
+        residual: every(settings.residual),
+        jacobian: every(settings.jacobian),
+        ..*settings
+    };
     // Renders made; a trial that moves one light renders that light alone
     // ([`sphere_column`]) into the problem it moves from.
     let evaluations = std::cell::Cell::new(0);
@@ -457,8 +469,8 @@ pub fn refine(
             for attempt in 0..6 {
                 // Every second try holds the radii: a dim light's apparent size can be so
                 // weakly seen that its noisy derivative alone steers the step (s13: a 0.12 m
-                // light's size took every step while the centres waited), and the line
-                // search below moves sizes anyway.
+                // light's size took every step while the centres waited); the other tries
+                // still move sizes, as does the line search where it runs.
                 let hold_radii = attempt % 2 == 1;
                 let mut damped = normal.clone();
                 let mut rhs: Vec<f64> = g.iter().map(|v| -v).collect();
@@ -487,9 +499,7 @@ pub fn refine(
                 let fq = sse(&rq);
                 if fq < f {
                     at_base = pq;
-                    // Gains below 0.05% are below the noise: with 10³–10⁴ binned residuals that
-                    // is a step of about one standard deviation of the parameters.
-                    improved = (f - fq) > 5e-4 * f;
+                    let f_before = f;
                     base = base
                         .iter()
                         .zip(step.chunks_exact(4))
@@ -517,6 +527,9 @@ pub fn refine(
                         (r, radiance, rel, f) = (rq, lq, relq, fq);
                         history.push(f);
                     }
+                    // Gains below 0.05% are below the noise: with 10³–10⁴ binned residuals that
+                    // is a step of about one standard deviation of the parameters.
+                    improved = (f_before - f) > 5e-4 * f_before;
                     break;
                 }
                 // Damping as small as the accepted steps left it barely changes the step:
@@ -551,6 +564,15 @@ pub fn refine(
                     (r, radiance, rel, f) = (rq, lq, relq, fq);
                     history.push(f);
                 }
+            }
+            // The line search may grow or shrink a light several-fold, beyond what a
+            // one-light trial may leave out (how it blocks the others): where it moved any,
+            // the problem is rendered whole again, so what follows starts from the truth.
+            if f < before_polish {
+                at_base = problem(&base, &zero, &settings.residual);
+                (r, radiance, rel) = residuals(&at_base);
+                f = sse(&r);
+                history.push(f);
             }
         }
         if !settings.polish_radii || pass == 2 || f >= before_polish * (1.0 - 5e-4) {

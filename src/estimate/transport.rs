@@ -39,7 +39,7 @@ pub enum EmitterKind {
     Spheres,
     /// The sphere lights, then the envmap's cells (the sphere model with a background).
     SpheresThenCells { spheres: u32 },
-    /// Sphere light `i` alone, in the row's one column.
+    /// Sphere light `j` alone, in the row's one column.
     Sphere(u32),
 }
 
