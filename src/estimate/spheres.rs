@@ -498,26 +498,14 @@ pub fn refine(
                 let (rq, lq, relq) = residuals(&pq);
                 let fq = sse(&rq);
                 if fq < f {
-                    at_base = pq;
                     let f_before = f;
-                    base = base
-                        .iter()
-                        .zip(step.chunks_exact(4))
-                        .map(|(b, q)| b.moved(q, center).0)
-                        .collect();
-                    (r, radiance, rel, f) = (rq, lq, relq, fq);
-                    history.push(f);
-                    mu = (mu / 3.0).max(1e-9);
                     // A step the linear model got right but too short (the noisy Jacobian
                     // underrates how far a penumbra can move) is taken again while it gains,
-                    // for one residual render each instead of a Jacobian's 4K + 1.
-                    for _ in 0..2 {
-                        let pq = problem(&base, &step, &settings.residual);
-                        let (rq, lq, relq) = residuals(&pq);
-                        let fq = sse(&rq);
-                        if fq >= f - 5e-4 * f {
-                            break;
-                        }
+                    // at most twice, for one residual render each instead of a Jacobian's
+                    // 4K + 1.
+                    let mut accepted = (pq, rq, lq, relq, fq);
+                    for again in 0..3 {
+                        let (pq, rq, lq, relq, fq) = accepted;
                         at_base = pq;
                         base = base
                             .iter()
@@ -526,7 +514,18 @@ pub fn refine(
                             .collect();
                         (r, radiance, rel, f) = (rq, lq, relq, fq);
                         history.push(f);
+                        if again == 2 {
+                            break;
+                        }
+                        let pq = problem(&base, &step, &settings.residual);
+                        let (rq, lq, relq) = residuals(&pq);
+                        let fq = sse(&rq);
+                        if fq >= f - 5e-4 * f {
+                            break;
+                        }
+                        accepted = (pq, rq, lq, relq, fq);
                     }
+                    mu = (mu / 3.0).max(1e-9);
                     // Gains below 0.05% are below the noise: with 10³–10⁴ binned residuals that
                     // is a step of about one standard deviation of the parameters.
                     improved = (f_before - f) > 5e-4 * f_before;
