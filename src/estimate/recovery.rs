@@ -33,12 +33,7 @@ pub struct LightRecovery {
 pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<LightRecovery> {
     let mut order: Vec<(f32, &SphereLight)> = lights
         .iter()
-        .map(|l| {
-            let d = (l.center - scene_center).length();
-            let sin2 = (l.radius / d).powi(2).min(1.0);
-            let omega = std::f32::consts::TAU * sin2 / (1.0 + (1.0 - sin2).sqrt());
-            (luminance(l.radiance) * omega, l)
-        })
+        .map(|l| (luminance(l.radiance) * l.solid_angle_from(scene_center), l))
         .collect();
     order.sort_by(|a, b| b.0.total_cmp(&a.0));
     let clusters: Vec<(Vec3, f32, usize)> = clusters(env)
@@ -158,7 +153,7 @@ pub struct SphereRecovery {
     pub centre_error_fraction_of_distance: Option<f32>,
     pub radius: Option<f32>,
     pub true_radius: f32,
-    /// Estimated power / true power (luminance × radius²).
+    /// Estimated power / true power (luminance of the radiant intensity, π r² L).
     pub power_ratio: Option<f32>,
 }
 
@@ -168,7 +163,7 @@ pub fn recover_spheres(
     truth: &[SphereLight],
     scene_center: Vec3,
 ) -> Vec<SphereRecovery> {
-    let power = |l: &SphereLight| luminance(l.radiance) * l.radius * l.radius;
+    let power = |l: &SphereLight| luminance(l.intensity());
     let mut order: Vec<&SphereLight> = truth.iter().collect();
     order.sort_by(|a, b| power(b).total_cmp(&power(a)));
     let mut used = vec![false; estimated.len()];

@@ -587,7 +587,7 @@ impl Tracer<'_> {
         {
             return;
         }
-        let w = if mis {
+        let w = if mis && !ls.delta {
             power_heuristic(ls.pdf, cos_s * INV_PI)
         } else {
             1.0

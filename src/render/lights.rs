@@ -2,7 +2,8 @@
 //! keeps sampling, pdf and evaluation side by side.
 //!
 //! Sphere lights are sampled uniformly in the cone they subtend (pbrt's "sample by solid
-//! angle"); the envmap by its cell distribution. A light is picked in proportion to how
+//! angle"), point lights (radius 0) in their one direction; the envmap by its cell
+//! distribution. A light is picked in proportion to how
 //! strongly it lights the shading point (luminance × solid angle); pdfs are per unit solid
 //! angle at the shading point and include the probability of picking the light.
 
@@ -30,8 +31,13 @@ pub struct LightSample {
     pub wi: Vec3,
     /// Distance to the emitting surface, metres (infinite for the envmap).
     pub dist: f32,
-    /// Probability density per unit solid angle (including the choice of light).
+    /// Probability density per unit solid angle (including the choice of light). For a point
+    /// light, which has no density, d² times the choice's probability: so that the intensity
+    /// over `pdf` is the irradiance factor I/d² of that choice.
     pub pdf: f32,
+    /// A point light: no other strategy can reach it, so multiple importance sampling gives
+    /// this sample the whole weight.
+    pub delta: bool,
 }
 
 /// The set of lights of a render.
@@ -244,6 +250,7 @@ impl Lights {
                         wi: Vec3::new(wi[0][l], wi[1][l], wi[2][l]),
                         dist: dist[l],
                         pdf: pdf[l],
+                        delta: radius[l] == 0.0,
                     });
                 }
             }
@@ -256,6 +263,7 @@ impl Lights {
                     wi,
                     dist: f32::INFINITY,
                     pdf: pdf * prob[l],
+                    delta: false,
                 });
             }
         }
@@ -411,6 +419,8 @@ struct Cone {
     /// The point is inside the sphere (or on it): there is no cone, and the other fields are
     /// meaningless.
     inside: bool,
+    /// The light is a point (radius 0): the cone is its axis alone.
+    point: bool,
 }
 
 impl Cone {
@@ -440,6 +450,7 @@ impl Cone {
             sin_a: radius / dist,
             cos_a,
             inside,
+            point: radius == 0.0,
         }
     }
 
@@ -454,10 +465,22 @@ impl Cone {
         if cos_t >= self.cos_a { 1.0 } else { rim }
     }
 
-    /// Pdf per unit solid angle of uniform cone sampling.
+    /// The solid angle of the cone, 2π(1 − cos α), sr; for a point light 1/d², m⁻² (what
+    /// turns its intensity into irradiance, as the solid angle turns a sphere's radiance).
+    #[inline]
+    fn solid_angle(&self) -> f32 {
+        if self.point {
+            1.0 / (self.dist * self.dist)
+        } else {
+            std::f32::consts::TAU * self.omc
+        }
+    }
+
+    /// Pdf per unit solid angle of uniform cone sampling; for a point light d²
+    /// ([`LightSample::pdf`]).
     #[inline]
     fn pdf(&self) -> f32 {
-        1.0 / (std::f32::consts::TAU * self.omc)
+        1.0 / self.solid_angle()
     }
 
     /// A uniform direction in the cone from `u`: (direction, distance to the surface of the
@@ -479,10 +502,7 @@ impl Cone {
 #[inline(always)]
 fn pick_weight(s: &SphereLight, p: Vec3, n: Vec3) -> f32 {
     let c = Cone::at(s.center, s.radius, p);
-    let w = crate::imageio::luminance(s.radiance).max(0.0)
-        * std::f32::consts::TAU
-        * c.omc
-        * c.max_cosine(n);
+    let w = crate::imageio::luminance(s.radiance).max(0.0) * c.solid_angle() * c.max_cosine(n);
     if c.inside { 0.0 } else { w }
 }
 
@@ -505,15 +525,20 @@ pub fn sample_sphere(s: &SphereLight, p: Vec3, u: Vec2) -> Option<(Vec3, f32, f3
     Cone::of(s, p).map(|c| c.sample(s.radius, u))
 }
 
-/// The cone-sampling pdf of any direction that hits `s` from `p` (0 from inside).
+/// The cone-sampling pdf of any direction that hits `s` from `p` (0 from inside, and for a
+/// point light, which no direction hits).
 #[inline]
 pub fn cone_pdf(s: &SphereLight, p: Vec3) -> f32 {
-    Cone::of(s, p).map_or(0.0, |c| c.pdf())
+    Cone::of(s, p).filter(|c| !c.point).map_or(0.0, |c| c.pdf())
 }
 
-/// The first crossing of a unit ray with the sphere's surface beyond `t_min`.
+/// The first crossing of a unit ray with the sphere's surface beyond `t_min` (none for a point
+/// light: it has no surface).
 #[inline]
 pub fn intersect_sphere(s: &SphereLight, o: Vec3, d: Vec3, t_min: f32) -> Option<f32> {
+    if s.is_point() {
+        return None;
+    }
     let oc = o - s.center;
     let b = oc.dot(d);
     // r² − |oc − b·d|² is the discriminant, computed without the cancellation of b² − c.
@@ -790,6 +815,40 @@ mod tests {
             }
         }
         assert!(same > 1000, "too few samples compared: {same}");
+    }
+
+    #[test]
+    fn a_point_light_is_sampled_in_its_one_direction_and_never_hit() {
+        let s = SphereLight::point(Vec3::new(0.3, 2.0, -0.5), Vec3::splat(4.0));
+        let p = Vec3::new(0.1, 0.0, 0.2);
+        let lights = Lights::new(vec![s]);
+        let ls = lights
+            .sample_light(0, p, 0.5, Vec2::new(0.37, 0.81))
+            .unwrap();
+        let to = s.center - p;
+        assert!((ls.wi - to.normalize()).length() < 1e-6, "{:?}", ls.wi);
+        assert!((ls.dist - to.length()).abs() < 1e-5);
+        assert!(ls.delta);
+        // Intensity over "pdf" is the irradiance factor I / d².
+        assert!((ls.pdf - to.length_squared()).abs() < 1e-5 * to.length_squared());
+        assert_eq!(intersect_sphere(&s, p, to.normalize(), 0.0), None);
+        assert!(!lights.occludes(p, to.normalize(), 10.0, Emitter::EnvCell(0)));
+        assert_eq!(cone_pdf(&s, p), 0.0);
+        assert!((s.solid_angle_from(p) - 1.0 / to.length_squared()).abs() < 1e-6);
+        assert_eq!(s.intensity(), Vec3::splat(4.0));
+        // Picked by how strongly it lights the point: luminance × 1/d² × cosine, as a tiny
+        // sphere of the same intensity at the same place is (its cone widens the cosine by
+        // about r/d).
+        let sphere = SphereLight {
+            radius: 1e-3,
+            radiance: Vec3::splat(4.0 / (std::f32::consts::PI * 1e-6)),
+            ..s
+        };
+        let (a, b) = (
+            pick_weight(&s, p, Vec3::Y),
+            pick_weight(&sphere, p, Vec3::Y),
+        );
+        assert!((a / b - 1.0).abs() < 1e-3, "{a} vs {b}");
     }
 
     #[test]

@@ -113,15 +113,60 @@ impl Material {
     }
 }
 
-/// A spherical area light emitting uniform radiance from its whole surface.
+/// A spherical area light emitting uniform radiance from its whole surface, or with radius 0
+/// a point light (glTF's `KHR_lights_punctual` point): the limit of a sphere shrinking at
+/// fixed radiant intensity, which no ray can hit and which casts hard shadows.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SphereLight {
     /// Centre, world space (metres).
     pub center: Vec3,
-    /// Radius in metres (> 0).
+    /// Radius in metres (≥ 0; 0 is a point light).
     pub radius: f32,
-    /// Emitted radiance, linear RGB.
+    /// Linear RGB: the emitted radiance (W·sr⁻¹·m⁻² per channel) of a sphere; of a point light
+    /// (radius 0), its radiant intensity (W·sr⁻¹ per channel).
     pub radiance: Vec3,
+}
+
+impl SphereLight {
+    /// A point light of radiant intensity `intensity` (W·sr⁻¹, linear RGB) at `center`.
+    pub fn point(center: Vec3, intensity: Vec3) -> SphereLight {
+        SphereLight {
+            center,
+            radius: 0.0,
+            radiance: intensity,
+        }
+    }
+
+    /// Whether this is a point light (radius 0).
+    #[inline]
+    pub fn is_point(&self) -> bool {
+        self.radius == 0.0
+    }
+
+    /// Radiant intensity seen from far away, W·sr⁻¹ per channel: π r² L for a sphere, the
+    /// intensity itself for a point light.
+    pub fn intensity(&self) -> Vec3 {
+        if self.is_point() {
+            self.radiance
+        } else {
+            std::f32::consts::PI * self.radius * self.radius * self.radiance
+        }
+    }
+
+    /// What turns [`SphereLight::radiance`] into irradiance on a surface facing the light at
+    /// `p`: the solid angle the sphere subtends there, 2π(1 − cos α), sr; for a point light
+    /// 1/d², m⁻². Zero from inside the sphere.
+    pub fn solid_angle_from(&self, p: Vec3) -> f32 {
+        let d2 = (self.center - p).length_squared();
+        if self.is_point() {
+            return 1.0 / d2;
+        }
+        let sin2 = self.radius * self.radius / d2;
+        if sin2 >= 1.0 {
+            return 0.0;
+        }
+        std::f32::consts::TAU * sin2 / (1.0 + (1.0 - sin2).sqrt())
+    }
 }
 
 /// World-space triangles with per-vertex normals and texture coordinates.
