@@ -162,6 +162,32 @@ pub fn read_exr(path: &Path) -> Result<Image> {
     read_exr_bytes(&bytes, path)
 }
 
+/// The image size of an EXR file, from its header alone (the first layer's, as [`read_exr`]
+/// reads it).
+pub fn exr_size(path: &Path) -> Result<(u32, u32)> {
+    if !path.exists() {
+        return Err(Error::file(path, "no such file"));
+    }
+    let meta = exr::meta::MetaData::read_from_file(path, false)
+        .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
+    let header = meta
+        .headers
+        .first()
+        .ok_or_else(|| Error::file(path, "has no image layer"))?;
+    let size = header.layer_size;
+    if size.width() > MAX_SIDE || size.height() > MAX_SIDE || size.area() == 0 {
+        return Err(Error::file(
+            path,
+            format!(
+                "declares a {}×{} image; 1×1 to {MAX_SIDE}×{MAX_SIDE} is read",
+                size.width(),
+                size.height()
+            ),
+        ));
+    }
+    Ok((size.width() as u32, size.height() as u32))
+}
+
 /// [`read_exr`] on the bytes of an EXR file (`path` names it in errors).
 pub fn read_exr_bytes(bytes: &[u8], path: &Path) -> Result<Image> {
     check_exr_header(bytes, path)?;

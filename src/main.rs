@@ -30,15 +30,15 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Path-trace reference images of a scene under its sphere lights: one linear f32 EXR per
-    /// view (alpha = fraction of samples that saw geometry), a PNG preview and render.json.
+    /// Path-trace reference images of a scene under its lights: one linear f32 EXR per view
+    /// (alpha = fraction of samples that saw geometry), a PNG preview and render.json.
     RenderReference(cli::render::Args),
     /// Photometric error of an image against a reference (relMAE, MAE, RMSE, relMSE, PSNR),
     /// over the pixels where the reference's alpha is > 0 (its geometry mask).
     Compare(cli::compare::Args),
-    /// Estimate the ring environment map that best explains reference images (rendered from
-    /// the sidecar's sphere lights, or given with --reference), re-render it with a fresh seed
-    /// and report the photometric error against the Monte Carlo noise floor.
+    /// Estimate the ring environment map (or sphere lights) that best explains reference
+    /// images (rendered from the scene's lights, or given with --reference), re-render it with
+    /// a fresh seed and report the photometric error against the Monte Carlo noise floor.
     Estimate(cli::estimate::Args),
     /// Write a ring envmap (envmap.ron) as a lat-long OpenEXR that another renderer loads the
     /// right way up (default: Mitsuba 3's `envmap`, +Y up, poles on the first and last rows).
@@ -48,10 +48,7 @@ enum Command {
     ImportEnvmap(cli::envmap::ImportArgs),
     /// Print what lightprobe loaded from a scene as JSON: triangle count, bounds, surface
     /// area, materials, cameras (pose, field of view), lights and settings.
-    Info {
-        /// The scene sidecar (.ron).
-        scene: PathBuf,
-    },
+    Info(cli::info::Args),
     /// Generate random illumination scenarios of a scene (the paper's experiment): one sidecar
     /// per scenario with one or two sphere lights, and scenarios.json describing them.
     Scenarios(cli::experiment::ScenariosArgs),
@@ -121,7 +118,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Estimate(a) => cli::estimate::run(a),
         Command::ExportEnvmap(a) => cli::envmap::export(a),
         Command::ImportEnvmap(a) => cli::envmap::import(a),
-        Command::Info { scene } => cli::info::run(&scene),
+        Command::Info(a) => cli::info::run(a),
         Command::Scenarios(a) => cli::experiment::scenarios(a),
         Command::Sweep(a) => cli::experiment::sweep(a),
         Command::Report { dir, json } => cli::experiment::report(&dir, json),

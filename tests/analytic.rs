@@ -18,13 +18,13 @@ fn scene(mesh: Mesh, albedo: Vec3, camera: Camera, lights: Vec<SphereLight>) -> 
         cameras: vec![camera],
         lights,
         settings: SceneSettings {
-            width: 8,
-            height: 8,
             spp: 1,
             max_bounces: 1,
             seed: 1,
             rings: 1,
         },
+        size_given: true,
+        ignored: Vec::new(),
         source: Default::default(),
     }
 }

@@ -718,7 +718,7 @@ fn cases() -> Vec<Case> {
                 "--quiet",
             ]
             .to_vec(),
-            "cam_front.exr: is 8×6, but the sidecar's image is 16×12",
+            "cam_front.exr: is 8×6, but view \"cam_front\" renders 16×12",
         ),
         c(
             "view listed twice in the sidecar",

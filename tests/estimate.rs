@@ -79,13 +79,13 @@ fn scene(lights: Vec<SphereLight>) -> Scene {
         ],
         lights,
         settings: SceneSettings {
-            width: w,
-            height: h,
             spp: 256,
             max_bounces: 2,
             seed: 1,
             rings: 5,
         },
+        size_given: true,
+        ignored: Vec::new(),
         source: Default::default(),
     }
 }

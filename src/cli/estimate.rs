@@ -15,7 +15,7 @@ use lightprobe::output;
 use lightprobe::render::{Lights, RenderSettings, Renderer};
 use lightprobe::scene::{Scene, sidecar};
 
-use super::{Bars, SolverArg, check_memory, outln, prepare_out_dir, say};
+use super::{Bars, SceneArgs, SolverArg, check_memory, outln, prepare_out_dir, say};
 
 /// `--model`: the envmap, K sphere lights (None: 1 to 3, chosen on held-out pixels), or
 /// chosen from the data.
@@ -51,13 +51,14 @@ fn parse_rings(s: &str) -> Result<RingsArg, String> {
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// The scene sidecar (.ron).
-    scene: PathBuf,
+    #[command(flatten)]
+    scene: SceneArgs,
     /// Output folder (created if missing).
     #[arg(long, short)]
     out: PathBuf,
-    /// Folder of reference EXRs named <view>.exr (default: render them from the sidecar's
-    /// sphere lights into OUT/reference/).
+    /// Folder of reference EXRs named <view>.exr, which also set the views' image size when
+    /// neither the sidecar nor --height does (default: render them from the scene's lights
+    /// into OUT/reference/).
     #[arg(long)]
     reference: Option<PathBuf>,
     /// Only these views (comma-separated camera node names; default: the sidecar's).
@@ -185,24 +186,38 @@ impl Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let t_all = Instant::now();
-    let mut scene = Scene::load(&a.scene)?;
-    super::keep_views(&mut scene, &a.views, &a.scene)?;
+    let mut scene = a.scene.load()?;
+    let path = &a.scene.scene;
+    super::keep_views(&mut scene, &a.views, path)?;
+    if let Some(dir) = a.reference.as_ref().filter(|_| !scene.size_given) {
+        let sizes = lightprobe::estimate::pipeline::reference_sizes(dir, &scene.cameras)?;
+        let files: Vec<_> = scene
+            .cameras
+            .iter()
+            .map(|c| lightprobe::estimate::pipeline::reference_path(dir, c))
+            .collect();
+        scene.size_views(&sizes, |i| files[i].clone())?;
+    }
     let settings = a.settings(&scene);
     settings.check().map_err(|e| a.flag_error(e))?;
     anyhow::ensure!(
         a.reference.is_some() || !scene.lights.is_empty(),
-        "{}: has no sphere lights to render references from; pass --reference DIR",
-        a.scene.display()
+        "{}: has no sphere or point lights to render references from; pass --reference DIR",
+        path.display()
     );
-    let (w, h) = (scene.settings.width as u64, scene.settings.height as u64);
     let views = scene.cameras.len() as u64;
+    let pixels = scene.pixel_count();
+    let size = match scene.common_size() {
+        Some((w, h)) => format!("{w}×{h} × {views} views"),
+        None => format!("{pixels} pixels in {views} views"),
+    };
     let rings = settings.ring_counts().iter().copied().max().unwrap_or(1);
     let spheres = settings.model.max_lights() > 0;
     check_memory(
-        settings.memory_needed(w * h * views, scene.settings.max_bounces),
+        settings.memory_needed(pixels, scene.settings.max_bounces),
         || match spheres {
-            true => format!("sphere lights and {rings} rings at {w}×{h} × {views} views"),
-            false => format!("{rings} rings at {w}×{h} × {views} views"),
+            true => format!("sphere lights and {rings} rings at {size}"),
+            false => format!("{rings} rings at {size}"),
         },
         match spheres {
             // The sphere model keeps its camera paths: they grow with the pixels.
@@ -221,7 +236,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         Some(dir) => References::Folder(dir),
         None => References::Render,
     };
-    let in_scene = || a.scene.display().to_string();
+    let in_scene = || path.display().to_string();
     let seen = job::observe(&renderer, &render, references, &bars).with_context(in_scene)?;
     bars.finish();
     for name in &seen.blind {
@@ -234,7 +249,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let mut estimate = job::run(&job, &bars).with_context(in_scene)?;
     bars.finish();
     let report = &mut estimate.report;
-    report.scene = a.scene.clone();
+    report.scene = path.clone();
     for (ch, c) in report.channels.iter().enumerate() {
         if !c.converged {
             say(&format!(

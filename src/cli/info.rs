@@ -1,14 +1,19 @@
 //! `info`: what lightprobe loaded from a scene, as JSON.
 
-use std::path::Path;
-
 use serde_json::json;
 
-use super::outln;
-use lightprobe::scene::{Albedo, Scene};
+use super::{SceneArgs, outln};
+use lightprobe::scene::Albedo;
 
-pub fn run(path: &Path) -> anyhow::Result<()> {
-    let scene = Scene::load(path)?;
+#[derive(clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    scene: SceneArgs,
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let path = &a.scene.scene;
+    let scene = a.scene.load()?;
     let (lo, hi) = scene.mesh.bounds();
     let materials: Vec<_> = scene
         .materials
@@ -47,10 +52,15 @@ pub fn run(path: &Path) -> anyhow::Result<()> {
         "surface_area": scene.mesh.surface_area(),
         "materials": materials,
         "cameras": cameras,
-        "lights": scene.lights.iter().map(|l| json!({
-            "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })).collect::<Vec<_>>(),
+        "lights": scene.lights.iter().map(|l| if l.is_point() {
+            json!({ "center": l.center.to_array(), "radius": 0.0, "intensity": l.radiance.to_array() })
+        } else {
+            json!({ "center": l.center.to_array(), "radius": l.radius, "radiance": l.radiance.to_array() })
+        }).collect::<Vec<_>>(),
+        "ignored": scene.ignored,
         "settings": {
-            "width": scene.settings.width, "height": scene.settings.height, "spp": scene.settings.spp,
+            "width": scene.common_size().map(|s| s.0), "height": scene.common_size().map(|s| s.1),
+            "spp": scene.settings.spp,
             "max_bounces": scene.settings.max_bounces, "seed": scene.settings.seed, "rings": scene.settings.rings,
         },
     });

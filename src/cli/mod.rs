@@ -163,6 +163,42 @@ pub fn prepare_out_dir(dir: &Path, lock_name: &str) -> anyhow::Result<lightprobe
     Ok(lightprobe::output::prepare_dir(dir, lock_name)?)
 }
 
+/// The scene a command works on, and how large its views are.
+#[derive(clap::Args)]
+pub struct SceneArgs {
+    /// The scene: a glTF 2.0 file (.gltf/.glb: its cameras are the views, its point lights
+    /// the lights), or a RON sidecar that names one and sets views, image size, albedo, lights
+    /// and render settings.
+    pub scene: std::path::PathBuf,
+    /// Image height of every view in pixels, the width following the sidecar's image or the
+    /// camera's glTF aspectRatio (4:3 where it has none). Default: the sidecar's image; else
+    /// the references' size (estimate --reference); else 480.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=lightprobe::scene::sidecar::MAX_IMAGE_SIDE as i64))]
+    pub height: Option<u32>,
+}
+
+impl SceneArgs {
+    /// Loads the scene and says once, on stderr, what its files hold that the model leaves
+    /// out.
+    pub fn load(&self) -> anyhow::Result<lightprobe::scene::Scene> {
+        let scene = lightprobe::scene::Scene::load_with(
+            &self.scene,
+            lightprobe::scene::LoadOptions {
+                height: self.height,
+            },
+        )?;
+        for i in &scene.ignored {
+            say(&format!(
+                "lightprobe: note: {}: {} is rendered Lambertian; left out: {}",
+                self.scene.display(),
+                i.what,
+                i.properties.join("; ")
+            ));
+        }
+        Ok(scene)
+    }
+}
+
 /// Keeps only the views `--views` names (all when it names none).
 pub fn keep_views(
     scene: &mut lightprobe::scene::Scene,

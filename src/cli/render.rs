@@ -13,14 +13,14 @@ use lightprobe::render::report::{
     EnvmapReport, ImageSize, LightReport, RenderReport, RenderTimings, ViewRender,
 };
 use lightprobe::render::{Lights, RenderSettings, Renderer, view_stream};
-use lightprobe::scene::{Camera, Scene, sidecar};
+use lightprobe::scene::{Camera, sidecar};
 
-use super::{Bars, StrategyArg, check_memory, outln, prepare_out_dir};
+use super::{Bars, SceneArgs, StrategyArg, check_memory, outln, prepare_out_dir};
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// The scene sidecar (.ron), which names the glTF file.
-    scene: PathBuf,
+    #[command(flatten)]
+    scene: SceneArgs,
     /// Output folder (created if missing).
     #[arg(long, short)]
     out: PathBuf,
@@ -42,7 +42,7 @@ pub struct Args {
     /// Also light the scene with this ring envmap (envmap.ron); escaping rays see it.
     #[arg(long)]
     envmap: Option<PathBuf>,
-    /// Leave out the sidecar's sphere lights (e.g. to light with --envmap alone).
+    /// Leave out the scene's sphere and point lights (e.g. to light with --envmap alone).
     #[arg(long)]
     no_sphere_lights: bool,
     /// Only these views (comma-separated camera node names; default: the sidecar's).
@@ -61,7 +61,7 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let t_load = Instant::now();
-    let mut scene = Scene::load(&a.scene)?;
+    let mut scene = a.scene.load()?;
     let mut settings = RenderSettings::from_scene(&scene.settings);
     if let Some(spp) = a.spp {
         settings.spp = spp;
@@ -79,7 +79,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     settings.strategy = a.strategy.into();
     settings.hide_emitters = !a.show_emitters;
-    super::keep_views(&mut scene, &a.views, &a.scene)?;
+    super::keep_views(&mut scene, &a.views, &a.scene.scene)?;
     let mut lights = Lights::new(if a.no_sphere_lights {
         Vec::new()
     } else {
@@ -90,11 +90,16 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     anyhow::ensure!(
         !lights.is_empty(),
-        "{}: nothing lights the scene (no sphere lights and no --envmap)",
-        a.scene.display()
+        "{}: nothing lights the scene (no sphere or point lights and no --envmap)",
+        a.scene.scene.display()
     );
     // One view at a time: its image (RGB + coverage), the per-tile results and the encoder.
-    let (w, h) = (scene.settings.width, scene.settings.height);
+    let (w, h) = scene
+        .cameras
+        .iter()
+        .map(|c| (c.width, c.height))
+        .max_by_key(|&(w, h)| w as u64 * h as u64)
+        .unwrap_or((1, 1));
     check_memory(w as u64 * h as u64 * 40, || format!("{w}×{h} images"), "")?;
     let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
     let load_seconds = t_load.elapsed().as_secs_f64();
@@ -103,13 +108,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let renderer = Renderer::new(&scene, &lights);
     let bvh_seconds = t_bvh.elapsed().as_secs_f64();
 
-    let pixels_per_view = (w * h) as u64;
-    let samples_per_view = pixels_per_view as f64 * settings.spp as f64;
-    let bars = Bars::single(
-        a.quiet,
-        "rendering",
-        pixels_per_view * scene.cameras.len() as u64,
-    );
+    let bars = Bars::single(a.quiet, "rendering", scene.pixel_count());
     let mut views = Vec::new();
     let t_all = Instant::now();
     for cam in &scene.cameras {
@@ -117,15 +116,14 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     bars.finish();
     let render_seconds = t_all.elapsed().as_secs_f64();
-    let total_samples = samples_per_view * scene.cameras.len() as f64;
+    let total_samples = scene.pixel_count() as f64 * settings.spp as f64;
     let report = RenderReport {
         lightprobe_version: lightprobe::VERSION.to_string(),
-        scene: a.scene.clone(),
+        scene: a.scene.scene.clone(),
         triangles: scene.mesh.triangle_count(),
-        image: ImageSize {
-            width: w,
-            height: h,
-        },
+        image: scene
+            .common_size()
+            .map(|(width, height)| ImageSize { width, height }),
         lights: lights
             .spheres
             .iter()
@@ -197,7 +195,7 @@ fn render_view(
         "view {:?}: the render produced non-finite pixels from {} (its lights or materials \
          overflow; a bug if every value in it is moderate)",
         cam.name,
-        a.scene.display()
+        a.scene.scene.display()
     );
     let file = |suffix: &str| a.out.join(format!("{}.{suffix}", cam.name));
     let (exr, png) = (file("exr"), file("png"));
@@ -222,6 +220,8 @@ fn render_view(
     });
     Ok(ViewRender {
         view: cam.name.clone(),
+        width: cam.width,
+        height: cam.height,
         exr,
         png,
         aov,

@@ -218,7 +218,7 @@ impl EstimateSettings {
 pub enum References<'p> {
     /// Rendered from the truth renderer's lights with the scene's settings.
     Render,
-    /// `<view>.exr` in this folder, each the size of the scene's image.
+    /// `<view>.exr` in this folder, each the size of its view's image.
     Folder(&'p Path),
     /// Given, one per view of the scene in order.
     Images(Vec<Image>),
@@ -246,7 +246,6 @@ pub fn observe<'a>(
 ) -> Result<SeenViews<'a>> {
     let scene: &'a crate::scene::Scene = truth.scene;
     let views: Vec<&'a Camera> = scene.cameras.iter().collect();
-    let (w, h) = (scene.settings.width, scene.settings.height);
     let why = match &references {
         References::Render => "it sees no scene geometry".to_string(),
         References::Folder(dir) => format!(
@@ -257,15 +256,14 @@ pub fn observe<'a>(
     };
     let t = Instant::now();
     let images = match references {
-        References::Folder(dir) => pipeline::load_references(dir, &views, w, h)?,
+        References::Folder(dir) => pipeline::load_references(dir, &views)?,
         References::Images(images) => {
             let size = |i: &Image| (i.width, i.height);
-            if images.len() != views.len() || images.iter().any(|i| size(i) != (w, h)) {
+            let want: Vec<_> = views.iter().map(|c| (c.width, c.height)).collect();
+            if images.iter().map(size).collect::<Vec<_>>() != want {
                 return Err(Error::Invalid(format!(
-                    "{} references of {:?} for {} views of {w}×{h}",
-                    images.len(),
+                    "references of {:?} for views of {want:?}",
                     images.iter().map(size).collect::<Vec<_>>(),
-                    views.len()
                 )));
             }
             images
@@ -276,7 +274,7 @@ pub fn observe<'a>(
                     "the scene has no lights to render references from; give references".into(),
                 ));
             }
-            progress.phase("references", (w * h) as u64 * views.len() as u64);
+            progress.phase("references", scene.pixel_count());
             truth.render_views(&views, render, &|k| progress.advance(k))
         }
     };
@@ -346,6 +344,9 @@ pub struct EstimateReport {
     pub lightprobe_version: String,
     /// The scene file, as given.
     pub scene: PathBuf,
+    /// What the scene's files hold that the model leaves out (specular, emission, …): the
+    /// fit explains the images without it.
+    pub ignored: Vec<crate::scene::Ignored>,
     /// Rings of the envmap (the chosen ones with `--rings auto`).
     pub rings: u32,
     pub rings_selection: Option<Selection>,
@@ -553,6 +554,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     let report = EstimateReport {
         lightprobe_version: crate::VERSION.to_string(),
         scene: job.truth.scene.source.clone(),
+        ignored: job.truth.scene.ignored.clone(),
         rings,
         cells: fit.envmap.grid.cell_count(),
         solver: s.solver,

@@ -23,12 +23,44 @@ use crate::scene::sidecar::MAX_SPP;
 use crate::scene::{Camera, SphereLight};
 
 /// Reads `<dir>/<view>.exr` for each view, checking size and finiteness.
-pub fn load_references(
-    dir: &Path,
-    views: &[&Camera],
-    width: u32,
-    height: u32,
-) -> Result<Vec<Image>> {
+pub fn load_references(dir: &Path, views: &[&Camera]) -> Result<Vec<Image>> {
+    check_reference_dir(dir)?;
+    views
+        .iter()
+        .map(|cam| {
+            let p = reference_path(dir, cam);
+            let img = imageio::read_exr(&p)?;
+            let (width, height) = (cam.width, cam.height);
+            if (img.width, img.height) != (width, height) {
+                return Err(Error::file(
+                    &p,
+                    format!(
+                        "is {}×{}, but view {:?} renders {width}×{height} (the sidecar's image, or --height)",
+                        img.width, img.height, cam.name
+                    ),
+                ));
+            }
+            imageio::check_radiance(&p, &img, false)?;
+            Ok(img)
+        })
+        .collect()
+}
+
+/// The reference of view `cam` in `dir`.
+pub fn reference_path(dir: &Path, cam: &Camera) -> std::path::PathBuf {
+    dir.join(format!("{}.exr", cam.name))
+}
+
+/// The image size of each view's reference in `dir`, read from the files' headers.
+pub fn reference_sizes(dir: &Path, views: &[Camera]) -> Result<Vec<(u32, u32)>> {
+    check_reference_dir(dir)?;
+    views
+        .iter()
+        .map(|cam| imageio::exr_size(&reference_path(dir, cam)))
+        .collect()
+}
+
+fn check_reference_dir(dir: &Path) -> Result<()> {
     if !dir.is_dir() {
         let what = if dir.exists() {
             "is not a folder (--reference names a folder of <view>.exr)"
@@ -37,24 +69,7 @@ pub fn load_references(
         };
         return Err(Error::file(dir, what));
     }
-    views
-        .iter()
-        .map(|cam| {
-            let p = dir.join(format!("{}.exr", cam.name));
-            let img = imageio::read_exr(&p)?;
-            if (img.width, img.height) != (width, height) {
-                return Err(Error::file(
-                    &p,
-                    format!(
-                        "is {}×{}, but the sidecar's image is {width}×{height}",
-                        img.width, img.height
-                    ),
-                ));
-            }
-            imageio::check_radiance(&p, &img, false)?;
-            Ok(img)
-        })
-        .collect()
+    Ok(())
 }
 
 /// The pixels every error counts: the reference's coverage alpha where it has one, else the

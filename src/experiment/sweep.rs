@@ -851,15 +851,13 @@ fn check_memory(
         let Some(scene) = &scenes[scenarios[t.scenario].group] else {
             continue;
         };
-        let per_view = scene.settings.width as u64 * scene.settings.height as u64;
+        let pixels = scene.pixel_count();
         let rings = match t.rings {
             Some(r) => Rings::Fixed(r),
             None => Rings::Auto(axes.rings.clone()),
         };
-        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres).memory_needed(
-            per_view * scene.cameras.len() as u64,
-            scene.settings.max_bounces,
-        );
+        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres)
+            .memory_needed(pixels, scene.settings.max_bounces);
         crate::memory::reserve(need, || format!("trial {}", id(t)))?;
     }
     Ok(())
@@ -1082,10 +1080,9 @@ fn observe<'a>(
         .ok()
         .and_then(|t| serde_json::from_str::<NoiseFile>(&t).ok())
         .filter(|n| n.views == names && (n.scenario.is_empty() || n.scenario == fingerprint));
-    let (w, h) = (views[0].width, views[0].height);
     let (references, noise_floor): (Vec<_>, Vec<f64>) = match cached {
         Some(n) => (
-            pipeline::load_references(dir, views, w, h)?,
+            pipeline::load_references(dir, views)?,
             n.noise_floor_rel_mae
                 .iter()
                 .map(|x| x.unwrap_or(f64::INFINITY))

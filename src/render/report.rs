@@ -13,8 +13,9 @@ pub struct RenderReport {
     /// The scene file, as given.
     pub scene: PathBuf,
     pub triangles: usize,
-    pub image: ImageSize,
-    /// The sphere lights rendered.
+    /// The image size every view shares (null when views differ: see each view's).
+    pub image: Option<ImageSize>,
+    /// The sphere and point lights rendered.
     pub lights: Vec<LightReport>,
     /// The ring envmap rendered, if any.
     pub envmap: Option<EnvmapReport>,
@@ -34,7 +35,8 @@ pub struct ImageSize {
     pub height: u32,
 }
 
-/// A sphere light: centre (world, metres), radius (metres), linear RGB radiance.
+/// A sphere light: centre (world, metres), radius (metres), linear RGB radiance; radius 0 is
+/// a point light, whose `radiance` is its radiant intensity (W·sr⁻¹).
 #[derive(Debug, Clone, Serialize)]
 pub struct LightReport {
     pub center: [f32; 3],
@@ -61,6 +63,9 @@ pub struct RenderTimings {
 #[derive(Debug, Clone, Serialize)]
 pub struct ViewRender {
     pub view: String,
+    /// Image size, pixels.
+    pub width: u32,
+    pub height: u32,
     pub exr: PathBuf,
     pub png: PathBuf,
     /// Geometry buffers written, by name (`depth`, `normal`, `albedo`).

@@ -19,6 +19,9 @@ pub struct Camera {
     pub width: u32,
     /// Image height in pixels.
     pub height: u32,
+    /// The glTF camera's `aspectRatio` (width / height), if it states one. The image size
+    /// decides the rendered aspect; this checks that images given for the view fit it.
+    pub aspect_ratio: Option<f32>,
 }
 
 impl Camera {
@@ -38,6 +41,7 @@ impl Camera {
             yfov,
             width,
             height,
+            aspect_ratio: None,
         }
     }
 
@@ -60,6 +64,7 @@ impl Camera {
             yfov,
             width,
             height,
+            aspect_ratio: None,
         }
     }
 

@@ -1,5 +1,7 @@
 //! glTF 2.0 loading: the default scene's node hierarchy multiplied out into world-space
-//! triangles, perspective camera nodes, and baseColor materials (factor × sRGB texture).
+//! triangles, perspective camera nodes, baseColor materials (factor × sRGB texture) and
+//! `KHR_lights_punctual` point lights. What the Lambertian model leaves out of a material is
+//! listed ([`Ignored`]), not silently dropped.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -7,8 +9,13 @@ use std::sync::Arc;
 use glam::{Mat3, Mat4, Vec2, Vec3};
 use gltf::mesh::Mode;
 
-use super::{Albedo, Camera, Material, Mesh, Texture};
+use super::{Albedo, Camera, Ignored, Material, Mesh, SphereLight, Texture, ViewSize};
 use crate::error::{Error, Result};
+
+/// Lumens per watt of KHR_lights_punctual's photometric units, as Blender's glTF importer and
+/// exporter convert them: a point light of `intensity` candela has a radiant intensity of
+/// `intensity / 683` W·sr⁻¹ (times its colour).
+pub const LUMENS_PER_WATT: f32 = 683.0;
 
 /// Deeper node hierarchies are refused (glTF forbids cycles, but a broken file may have one).
 const MAX_NODE_DEPTH: usize = 256;
@@ -17,10 +24,14 @@ pub(super) struct Loaded {
     pub mesh: Mesh,
     pub materials: Vec<Material>,
     pub cameras: Vec<Camera>,
+    /// The file's `KHR_lights_punctual` lights, world space.
+    pub lights: Vec<SphereLight>,
+    /// What the model leaves out, per material or light.
+    pub ignored: Vec<Ignored>,
 }
 
-/// Loads a `.gltf` or `.glb`; cameras get the image size (`width`, `height`).
-pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
+/// Loads a `.gltf` or `.glb`; cameras get their image size from `size`.
+pub(super) fn load(path: &Path, size: ViewSize) -> Result<Loaded> {
     // Checked before opening: a pipe would block the open, a device never ends.
     let len = crate::memory::regular_file(path)?.len();
     let mut head = [0u8; 12];
@@ -56,15 +67,15 @@ pub(super) fn load(path: &Path, width: u32, height: u32) -> Result<Loaded> {
         gltf::Error::Io(io) => Error::io(path, io),
         other => Error::file(path, format!("not a valid glTF 2.0 file: {other}")),
     })?;
-    contain(path, || build(path, imported, width, height))?
+    contain(path, || build(path, imported, size))?
 }
 
 /// Loads glTF or GLB bytes that need no external files (`label` names them in errors).
-pub(super) fn load_slice(bytes: &[u8], label: &Path, width: u32, height: u32) -> Result<Loaded> {
+pub(super) fn load_slice(bytes: &[u8], label: &Path, size: ViewSize) -> Result<Loaded> {
     check_glb_header(bytes, bytes.len() as u64, label)?;
     let imported = contain(label, || gltf::import_slice(bytes))?
         .map_err(|e| Error::file(label, format!("not a valid glTF 2.0 file: {e}")))?;
-    contain(label, || build(label, imported, width, height))?
+    contain(label, || build(label, imported, size))?
 }
 
 /// Runs the gltf crate's parser, turning a panic inside it into an error. gltf 1.4 indexes
@@ -200,7 +211,7 @@ type Imported = (
     Vec<gltf::image::Data>,
 );
 
-fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32) -> Result<Loaded> {
+fn build(path: &Path, (doc, buffers, images): Imported, size: ViewSize) -> Result<Loaded> {
     // Textures are kept as linear f32 RGB: 12 bytes a texel.
     let texels: u64 = images
         .iter()
@@ -224,6 +235,7 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
         albedo: Albedo::Constant(Vec3::ONE),
     }];
     let mut texcoord_set = vec![0u32];
+    let mut ignored = Vec::new();
     for m in doc.materials() {
         let pbr = m.pbr_metallic_roughness();
         let [r, g, b, _] = pbr.base_color_factor();
@@ -243,6 +255,13 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
                 Albedo::Constant(factor)
             }
         };
+        let left_out = left_out_of(&m);
+        if !left_out.is_empty() {
+            ignored.push(Ignored {
+                what: format!("material {name:?}"),
+                properties: left_out,
+            });
+        }
         materials.push(Material { name, albedo });
     }
 
@@ -256,6 +275,8 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
         mesh: Mesh::default(),
         materials,
         cameras: Vec::new(),
+        lights: Vec::new(),
+        ignored,
     };
     let mut placed = std::collections::HashSet::new();
     let mut stack: Vec<(gltf::Node, Mat4, usize)> =
@@ -323,14 +344,40 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
                     ),
                 ));
             }
+            let aspect = p.aspect_ratio();
+            if aspect.is_some_and(|a| !(a.is_finite() && a > 0.0)) {
+                return Err(Error::file(
+                    path,
+                    format!(
+                        "camera node {} has aspectRatio {}, not a number > 0",
+                        node_name(&node),
+                        aspect.unwrap_or_default()
+                    ),
+                ));
+            }
             // An unnamed camera still needs a name: it names the view's files and its random
             // stream.
             let name = node
                 .name()
                 .or(cam.name())
                 .map_or_else(|| format!("camera{}", node.index()), str::to_string);
-            out.cameras
-                .push(Camera::from_node(name, world, yfov, width, height));
+            let (width, height) = size
+                .for_aspect(aspect)
+                .map_err(|e| Error::file(path, format!("camera node {}: {e}", node_name(&node))))?;
+            let mut camera = Camera::from_node(name, world, yfov, width, height);
+            camera.aspect_ratio = aspect;
+            out.cameras.push(camera);
+        }
+        if let Some(light) = node.light() {
+            out.lights.push(punctual_light(path, &node, &light, world)?);
+            if let Some(range) = light.range() {
+                out.ignored.push(Ignored {
+                    what: format!("light {:?}", light.name().unwrap_or("")),
+                    properties: vec![format!(
+                        "range {range} m (a hint for real-time cut-offs: lightprobe's lights reach everywhere, as the extension's physical falloff says)"
+                    )],
+                });
+            }
         }
         let mut children: Vec<_> = node.children().map(|c| (c, world, depth + 1)).collect();
         children.reverse();
@@ -340,6 +387,135 @@ fn build(path: &Path, (doc, buffers, images): Imported, width: u32, height: u32)
         return Err(Error::file(path, "has no triangles in its scene"));
     }
     Ok(out)
+}
+
+/// A `KHR_lights_punctual` light on `node` (world transform `world`) as lightprobe renders it:
+/// a point light, or with a radius in the light's or the node's `extras` (`{"radius": r}`,
+/// metres) a sphere of the same radiant intensity. Spot and directional lights are refused.
+fn punctual_light(
+    path: &Path,
+    node: &gltf::Node,
+    light: &gltf::khr_lights_punctual::Light,
+    world: Mat4,
+) -> Result<SphereLight> {
+    use gltf::khr_lights_punctual::Kind;
+    let what = format!(
+        "light {:?} on node {}",
+        light.name().unwrap_or(""),
+        node_name(node)
+    );
+    match light.kind() {
+        Kind::Point => {}
+        Kind::Spot { .. } => {
+            return Err(Error::file(
+                path,
+                format!(
+                    "{what} is a spot light; lightprobe renders point and sphere lights only (make it a point light, or remove it and estimate the lighting instead)"
+                ),
+            ));
+        }
+        Kind::Directional => {
+            return Err(Error::file(
+                path,
+                format!(
+                    "{what} is a directional light; lightprobe renders point and sphere lights only (give a distant light as an envmap with render-reference --envmap, or remove it)"
+                ),
+            ));
+        }
+    }
+    let color = Vec3::from(light.color());
+    let cd = light.intensity();
+    if !(color.is_finite() && color.min_element() >= 0.0 && cd.is_finite() && cd >= 0.0) {
+        return Err(Error::file(
+            path,
+            format!("{what} has colour {color} and intensity {cd}: each must be finite and ≥ 0"),
+        ));
+    }
+    let center = world.transform_point3(Vec3::ZERO);
+    if !center.is_finite() {
+        return Err(Error::file(
+            path,
+            format!("{what} has a non-finite position"),
+        ));
+    }
+    let intensity = color * (cd / LUMENS_PER_WATT);
+    let radius = match extras_radius(light.extras()).or_else(|| extras_radius(node.extras())) {
+        None => 0.0,
+        Some(Ok(r)) => r,
+        Some(Err(got)) => {
+            return Err(Error::file(
+                path,
+                format!("{what}: extras radius {got} is not a length ≥ 0 in metres"),
+            ));
+        }
+    };
+    Ok(if radius > 0.0 {
+        SphereLight {
+            center,
+            radius,
+            radiance: intensity / (std::f32::consts::PI * radius * radius),
+        }
+    } else {
+        SphereLight::point(center, intensity)
+    })
+}
+
+/// `radius` from glTF `extras` (an object), if it has one: the value, or what it was instead
+/// of a finite number ≥ 0.
+fn extras_radius(extras: &gltf::json::Extras) -> Option<std::result::Result<f32, String>> {
+    let raw = extras.as_ref()?;
+    let value: serde_json::Value = serde_json::from_str(raw.get()).ok()?;
+    let r = value.get("radius")?;
+    Some(match r.as_f64() {
+        Some(v) if (0.0..1e30).contains(&v) => Ok(v as f32),
+        _ => Err(r.to_string()),
+    })
+}
+
+/// What a glTF material has that the Lambertian model leaves out (empty when it has nothing):
+/// lightprobe renders every surface diffuse, with the base colour as its albedo.
+fn left_out_of(m: &gltf::Material) -> Vec<String> {
+    let pbr = m.pbr_metallic_roughness();
+    let mut out = Vec::new();
+    let (metallic, roughness) = (pbr.metallic_factor(), pbr.roughness_factor());
+    if metallic > 0.0 || roughness < 1.0 || pbr.metallic_roughness_texture().is_some() {
+        out.push(format!(
+            "specular reflection (metallic {metallic}, roughness {roughness}{})",
+            if pbr.metallic_roughness_texture().is_some() {
+                ", textured"
+            } else {
+                ""
+            }
+        ));
+    }
+    if m.emissive_factor() != [0.0; 3] || m.emissive_texture().is_some() {
+        out.push(format!(
+            "emission (emissive factor {:?}{})",
+            m.emissive_factor(),
+            if m.emissive_texture().is_some() {
+                ", textured"
+            } else {
+                ""
+            }
+        ));
+    }
+    if m.alpha_mode() != gltf::material::AlphaMode::Opaque {
+        out.push(format!(
+            "transparency (alphaMode {:?}, base colour alpha {})",
+            m.alpha_mode(),
+            pbr.base_color_factor()[3]
+        ));
+    }
+    if m.normal_texture().is_some() {
+        out.push("normal map".into());
+    }
+    if m.occlusion_texture().is_some() {
+        out.push("occlusion map (the path tracer computes occlusion itself)".into());
+    }
+    if let Some(ext) = m.extensions() {
+        out.extend(ext.keys().map(|k| format!("extension {k}")));
+    }
+    out
 }
 
 /// Most node instances a scene may expand to (a node reached along two paths counts twice).

@@ -1,5 +1,7 @@
 //! The scene: world-space triangles with Lambertian materials, the cameras to render from, and
-//! the reference sphere lights, loaded from a glTF 2.0 file plus a RON sidecar.
+//! the reference sphere and point lights, loaded from a glTF 2.0 file by itself (its cameras,
+//! materials and `KHR_lights_punctual` lights) or through a RON sidecar that names one and
+//! overrides or adds to it.
 //!
 //! Conventions (glTF's): right-handed, +Y up, metres, linear RGB. Every triangle is stored in
 //! world space (the node hierarchy is multiplied out at load time). Surfaces are two-sided.
@@ -319,15 +321,65 @@ impl Mesh {
     }
 }
 
-/// Render settings from the sidecar.
+/// Render settings from the sidecar (defaults for a glTF alone). Image sizes are the views'
+/// ([`Camera::width`], [`Camera::height`]).
 #[derive(Debug, Clone, Copy)]
 pub struct SceneSettings {
-    pub width: u32,
-    pub height: u32,
     pub spp: u32,
     pub max_bounces: u32,
     pub seed: u64,
     pub rings: u32,
+}
+
+/// Height of a view's image when neither the sidecar, `--height` nor references give one.
+pub const DEFAULT_HEIGHT: u32 = 480;
+
+/// How large each view's image is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ViewSize {
+    /// Every view this size (the sidecar's `image`).
+    Fixed { width: u32, height: u32 },
+    /// This height, and the width of each camera's glTF aspectRatio (4:3 where it has none).
+    Height(u32),
+}
+
+impl ViewSize {
+    /// The image size of a camera of glTF aspect ratio `aspect`; an error says what is too
+    /// large.
+    pub fn for_aspect(self, aspect: Option<f32>) -> std::result::Result<(u32, u32), String> {
+        match self {
+            ViewSize::Fixed { width, height } => Ok((width, height)),
+            ViewSize::Height(h) => {
+                let a = aspect.unwrap_or(4.0 / 3.0) as f64;
+                let w = (h as f64 * a).round().max(1.0);
+                if w > sidecar::MAX_IMAGE_SIDE as f64 {
+                    return Err(format!(
+                        "aspect ratio {a} at a height of {h} pixels is {w} pixels wide, above the {} allowed",
+                        sidecar::MAX_IMAGE_SIDE
+                    ));
+                }
+                Ok((w as u32, h))
+            }
+        }
+    }
+}
+
+/// Something in the scene's files that lightprobe's model leaves out: said once on stderr,
+/// and listed in report.json.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, schemars::JsonSchema)]
+pub struct Ignored {
+    /// What has it: `material "name"` or `light "name"`.
+    pub what: String,
+    /// What is left out of it, each with its value.
+    pub properties: Vec<String>,
+}
+
+/// How to load a scene.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct LoadOptions {
+    /// Height of every view's image in pixels, overriding the sidecar's image (its aspect
+    /// kept) or the default, [`DEFAULT_HEIGHT`].
+    pub height: Option<u32>,
 }
 
 /// Why views could not be picked by name.
@@ -359,31 +411,122 @@ pub fn pick_views(
     Ok(picked)
 }
 
+/// The cameras `names` names (from the sidecar at `sidecar`), or every camera when it names
+/// none (then no two may share a name).
+fn pick_or_all(
+    cameras: Vec<Camera>,
+    names: &[String],
+    gltf_path: &Path,
+    sidecar: &Path,
+) -> Result<Vec<Camera>> {
+    if !names.is_empty() {
+        return pick_views(&cameras, names).map_err(|e| {
+            let message = match e {
+                PickError::Twice(v) => format!("view {v:?} is listed twice in `views`"),
+                PickError::Missing(v) => {
+                    let names: Vec<_> = cameras.iter().map(|c| c.name.as_str()).collect();
+                    format!(
+                        "view {v:?} is not a perspective camera node of {} (it has {names:?})",
+                        gltf_path.display()
+                    )
+                }
+            };
+            Error::file(sidecar, message)
+        });
+    }
+    if cameras.is_empty() {
+        return Err(Error::file(
+            gltf_path,
+            "has no perspective camera to render from (add one, or give views in a sidecar)",
+        ));
+    }
+    for (i, c) in cameras.iter().enumerate() {
+        if cameras[..i].iter().any(|d| d.name == c.name) {
+            // Their files and random streams would collide.
+            return Err(Error::file(
+                gltf_path,
+                format!(
+                    "has two camera nodes named {:?}; rename one, or pick views by name in a sidecar's `views`",
+                    c.name
+                ),
+            ));
+        }
+    }
+    Ok(cameras)
+}
+
 /// A loaded scene, ready to build an acceleration structure over and render.
 #[derive(Debug, Clone)]
 pub struct Scene {
     pub mesh: Mesh,
     pub materials: Vec<Material>,
-    /// The views, in the sidecar's order.
+    /// The views, in the sidecar's order (a glTF alone: the file's camera nodes in order).
     pub cameras: Vec<Camera>,
-    /// The reference illumination.
+    /// The reference illumination: the sidecar's lights, or the glTF's own.
     pub lights: Vec<SphereLight>,
     pub settings: SceneSettings,
-    /// The sidecar this came from (empty for scenes built in code).
+    /// Whether the views' image size was given (the sidecar's `image`, or
+    /// [`LoadOptions::height`]) rather than the default: references may then not set it.
+    pub size_given: bool,
+    /// What the files hold that the model leaves out.
+    pub ignored: Vec<Ignored>,
+    /// The file this came from: a sidecar or a glTF (empty for scenes built in code).
     pub source: PathBuf,
 }
 
+/// Whether `path` is a glTF file rather than a RON sidecar: by its extension, else by its
+/// first bytes (binary glTF's magic, or JSON's brace).
+pub fn is_gltf(path: &Path) -> bool {
+    match path.extension().and_then(|e| e.to_str()) {
+        Some(e) if e.eq_ignore_ascii_case("gltf") || e.eq_ignore_ascii_case("glb") => true,
+        Some(e) if e.eq_ignore_ascii_case("ron") => false,
+        _ => {
+            let mut head = [0u8; 16];
+            let n = std::fs::File::open(path)
+                .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+                .unwrap_or(0);
+            head[..n].starts_with(b"glTF")
+                || head[..n]
+                    .iter()
+                    .find(|b| !b.is_ascii_whitespace())
+                    .is_some_and(|&b| b == b'{')
+        }
+    }
+}
+
 impl Scene {
-    /// Loads a sidecar and the glTF it names, applies albedo overrides and selects the views.
-    pub fn load(sidecar_path: &Path) -> Result<Scene> {
+    /// Loads a scene with default options ([`Scene::load_with`]).
+    pub fn load(path: &Path) -> Result<Scene> {
+        Scene::load_with(path, LoadOptions::default())
+    }
+
+    /// Loads a glTF (`.gltf`/`.glb`) by itself, or a sidecar and the glTF it names, applies
+    /// the sidecar's albedo overrides and selects its views.
+    pub fn load_with(path: &Path, options: LoadOptions) -> Result<Scene> {
+        if is_gltf(path) {
+            return Scene::from_gltf(path, options);
+        }
+        let sidecar_path = path;
         let sidecar = Sidecar::load(sidecar_path)?;
         let base = Sidecar::base_dir(sidecar_path);
         let gltf_path = base.join(&sidecar.gltf);
-        let (w, h) = (sidecar.image.width.0, sidecar.image.height.0);
-        let loaded = gltf::load(&gltf_path, w, h)?;
+        let size = match (sidecar.image, options.height) {
+            (Some(i), None) => ViewSize::Fixed {
+                width: i.width.0,
+                height: i.height.0,
+            },
+            (Some(i), Some(h)) => ViewSize::Fixed {
+                width: ((i.width.0 as f64 * h as f64 / i.height.0 as f64).round() as u32)
+                    .clamp(1, sidecar::MAX_IMAGE_SIDE),
+                height: h,
+            },
+            (None, h) => ViewSize::Height(h.unwrap_or(DEFAULT_HEIGHT)),
+        };
+        let loaded = gltf::load(&gltf_path, size)?;
 
         let mut materials = loaded.materials;
         let mut mesh = loaded.mesh;
+        let mut ignored = loaded.ignored;
         for (name, source) in &sidecar.albedo {
             let Some(index) = materials.iter().position(|m| &m.name == name) else {
                 return Err(Error::file(
@@ -406,61 +549,101 @@ impl Scene {
                 },
             };
         }
-
-        let cameras = if sidecar.views.is_empty() {
-            if loaded.cameras.is_empty() {
-                return Err(Error::file(
-                    &gltf_path,
-                    "has no perspective camera to render from",
-                ));
-            }
-            for (i, c) in loaded.cameras.iter().enumerate() {
-                if loaded.cameras[..i].iter().any(|d| d.name == c.name) {
-                    // Their files and random streams would collide.
-                    return Err(Error::file(
-                        &gltf_path,
-                        format!(
-                            "has two camera nodes named {:?}; rename one, or pick views by name in the sidecar's `views`",
-                            c.name
-                        ),
-                    ));
-                }
-            }
-            loaded.cameras
+        // The sidecar's lights are the reference illumination; the glTF's then play no part.
+        if !sidecar.lights.is_empty() {
+            ignored.retain(|i| !i.what.starts_with("light "));
+        }
+        let cameras = pick_or_all(loaded.cameras, &sidecar.views, &gltf_path, sidecar_path)?;
+        let lights = if sidecar.lights.is_empty() {
+            loaded.lights
         } else {
-            pick_views(&loaded.cameras, &sidecar.views).map_err(|e| {
-                let message = match e {
-                    PickError::Twice(v) => format!("view {v:?} is listed twice in `views`"),
-                    PickError::Missing(v) => {
-                        let names: Vec<_> =
-                            loaded.cameras.iter().map(|c| c.name.as_str()).collect();
-                        format!(
-                            "view {v:?} is not a perspective camera node of {} (it has {names:?})",
-                            gltf_path.display()
-                        )
-                    }
-                };
-                Error::file(sidecar_path, message)
-            })?
+            sidecar.sphere_lights()
         };
-
-        let lights = sidecar.sphere_lights();
-
         Ok(Scene {
             mesh,
             materials,
             cameras,
             lights,
             settings: SceneSettings {
-                width: w,
-                height: h,
                 spp: sidecar.render.spp.0,
                 max_bounces: sidecar.render.max_bounces.0,
                 seed: sidecar.render.seed,
                 rings: sidecar.envmap.rings.0,
             },
+            size_given: sidecar.image.is_some() || options.height.is_some(),
+            ignored,
             source: sidecar_path.to_path_buf(),
         })
+    }
+
+    /// A glTF by itself: every camera node a view, its materials, its point lights, the
+    /// sidecar's default settings.
+    fn from_gltf(path: &Path, options: LoadOptions) -> Result<Scene> {
+        let size = ViewSize::Height(options.height.unwrap_or(DEFAULT_HEIGHT));
+        let loaded = gltf::load(path, size)?;
+        let defaults = (
+            sidecar::RenderDesc::default(),
+            sidecar::EnvmapDesc::default(),
+        );
+        Ok(Scene {
+            mesh: loaded.mesh,
+            materials: loaded.materials,
+            cameras: pick_or_all(loaded.cameras, &[], path, path)?,
+            lights: loaded.lights,
+            settings: SceneSettings {
+                spp: defaults.0.spp.0,
+                max_bounces: defaults.0.max_bounces.0,
+                seed: defaults.0.seed,
+                rings: defaults.1.rings.0,
+            },
+            size_given: options.height.is_some(),
+            ignored: loaded.ignored,
+            source: path.to_path_buf(),
+        })
+    }
+
+    /// Sizes each view as its image in `sizes` (one per view, in order), checking it against
+    /// the camera's glTF aspect ratio (within a pixel of rounding). `what` names each image
+    /// in errors.
+    pub fn size_views(
+        &mut self,
+        sizes: &[(u32, u32)],
+        what: impl Fn(usize) -> PathBuf,
+    ) -> Result<()> {
+        for (i, (cam, &(w, h))) in self.cameras.iter_mut().zip(sizes).enumerate() {
+            if let Some(a) = cam.aspect_ratio {
+                // The width a camera of this aspect has at this height, ± a pixel of rounding.
+                if ((w as f32) - a * h as f32).abs() > 1.0 {
+                    return Err(Error::file(
+                        what(i),
+                        format!(
+                            "is {w}×{h}, but camera {:?} has aspect ratio {a} (an image {:.0}×{h}); crop or pad the image, or change the camera's aspectRatio",
+                            cam.name,
+                            a * h as f32
+                        ),
+                    ));
+                }
+            }
+            (cam.width, cam.height) = (w, h);
+        }
+        Ok(())
+    }
+
+    /// Pixels in all views together.
+    pub fn pixel_count(&self) -> u64 {
+        self.cameras
+            .iter()
+            .map(|c| c.width as u64 * c.height as u64)
+            .sum()
+    }
+
+    /// The one image size every view has, if they share one.
+    pub fn common_size(&self) -> Option<(u32, u32)> {
+        let first = self.cameras.first().map(|c| (c.width, c.height))?;
+        self.cameras
+            .iter()
+            .all(|c| (c.width, c.height) == first)
+            .then_some(first)
     }
 
     /// Keeps only the views named, in that order.
@@ -491,6 +674,10 @@ impl Sidecar {
                     radius: radius.0,
                     radiance: Vec3::new(radiance.0.0, radiance.0.1, radiance.0.2),
                 },
+                sidecar::LightDesc::Point { center, intensity } => SphereLight::point(
+                    Vec3::new(center.0.0, center.0.1, center.0.2),
+                    Vec3::new(intensity.0.0, intensity.0.1, intensity.0.2),
+                ),
             })
             .collect()
     }
@@ -504,7 +691,7 @@ pub fn load_gltf_bytes(
     width: u32,
     height: u32,
 ) -> Result<(Mesh, Vec<Material>, Vec<Camera>)> {
-    let l = gltf::load_slice(bytes, label, width, height)?;
+    let l = gltf::load_slice(bytes, label, ViewSize::Fixed { width, height })?;
     Ok((l.mesh, l.materials, l.cameras))
 }
 

@@ -45,8 +45,15 @@ pub struct Sidecar {
     /// glTF camera node names to render, in order. Empty or absent: every perspective camera.
     #[serde(default)]
     pub views: Vec<String>,
-    /// Output image size in pixels.
-    pub image: ImageSize,
+    /// Image size in pixels of every view. Absent: each view is `--height` (default 480)
+    /// pixels high at its glTF camera's aspectRatio (4:3 where it has none), or as large as
+    /// the references given for it.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "inline_some"
+    )]
+    pub image: Option<ImageSize>,
     /// Albedo overrides by glTF material name (linear RGB or an sRGB-encoded image).
     #[serde(default)]
     pub albedo: BTreeMap<String, AlbedoSource>,
@@ -59,6 +66,17 @@ pub struct Sidecar {
     /// Monte Carlo render settings.
     #[serde(default)]
     pub render: RenderDesc,
+}
+
+/// Writes `Some(x)` as `x`, as the parser (with RON's implicit `Some`) reads it back.
+fn inline_some<S: serde::Serializer, T: Serialize>(
+    value: &Option<T>,
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    match value {
+        Some(v) => v.serialize(s),
+        None => s.serialize_none(),
+    }
 }
 
 /// Image size in pixels.
@@ -93,6 +111,15 @@ pub enum LightDesc {
         radius: Positive,
         /// Emitted radiance, linear RGB (W·sr⁻¹·m⁻² per channel), each ≥ 0.
         radiance: Rgb,
+    },
+    /// A point light: what a sphere light becomes as it shrinks at fixed radiant intensity
+    /// (glTF's `KHR_lights_punctual` point light).
+    Point {
+        /// Position in world space (glTF frame: +Y up), metres.
+        center: Point,
+        /// Radiant intensity, linear RGB (W·sr⁻¹ per channel), each ≥ 0: a glTF light of
+        /// `intensity` candela and colour c has c × intensity / 683.
+        intensity: Rgb,
     },
 }
 
@@ -190,7 +217,9 @@ impl Sidecar {
 
     /// Parses sidecar text; `path` is only used in error messages.
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
+        // `image: (width: …, height: …)` for an optional field, without RON's `Some(…)`.
         ron::Options::default()
+            .with_default_extension(ron::extensions::Extensions::IMPLICIT_SOME)
             .from_str::<Sidecar>(text)
             .map_err(|e| {
                 let p = e.span.start;
@@ -256,6 +285,7 @@ mod tests {
         assert_eq!(s.render.seed, 7);
         match &s.lights[0] {
             LightDesc::Sphere { radius, .. } => assert_eq!(radius.0, 0.15),
+            LightDesc::Point { .. } => panic!("a sphere light was written"),
         }
     }
 
@@ -318,7 +348,6 @@ mod tests {
                 r#"Scene(gltf: "a.glb", image: (width: 4, height: 3), albedo: {"m": Constant((1.5, 0, 0))})"#,
                 "albedo",
             ),
-            (r#"Scene(gltf: "a.glb")"#, "image"),
             (
                 r#"Scene(gltf: "a.glb", image: (width: 4, height: 3)"#,
                 "test.ron:1:",

@@ -1,0 +1,401 @@
+//! A glTF file as a scene by itself: its cameras are the views, its `KHR_lights_punctual`
+//! lights the reference lights, its image size the camera's aspect at `--height` or the
+//! references'; what the Lambertian model leaves out of its materials is said, not dropped.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_lightprobe"))
+        .args(args)
+        .output()
+        .expect("the binary runs")
+}
+
+fn ok(o: &Output) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "{err}");
+    err
+}
+
+fn fails(o: &Output) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    err
+}
+
+/// A floor (4 m square at y = 0) and a closed cube (0.6 m) on it, seen by two cameras with
+/// aspect ratio 1.5, lit by `lights` (KHR_lights_punctual light objects, JSON) on nodes at
+/// `positions`. The floor's material is Lambertian as glTF can say it (metallic 0,
+/// roughness 1); the cube's is glTF's default metal-less-than-said: metallic and roughness
+/// unset (both 1) and an emissive factor, which the model leaves out.
+fn lit_scene(dir: &Path, lights: &[&str], positions: &[[f32; 3]]) -> PathBuf {
+    let mut bin: Vec<u8> = Vec::new();
+    let push_f32 =
+        |bin: &mut Vec<u8>, v: &[f32]| v.iter().for_each(|x| bin.extend(x.to_le_bytes()));
+    // Floor: 4 vertices, 6 indices.
+    let floor = [
+        [-2.0f32, 0.0, -2.0],
+        [2.0, 0.0, -2.0],
+        [2.0, 0.0, 2.0],
+        [-2.0, 0.0, 2.0],
+    ];
+    for p in floor {
+        push_f32(&mut bin, &p);
+    }
+    let floor_idx = [0u32, 2, 1, 0, 3, 2];
+    for i in floor_idx {
+        bin.extend(i.to_le_bytes());
+    }
+    // Cube: 8 corners, 12 triangles, flat shaded (no normals).
+    let h = 0.3f32;
+    let corners: Vec<[f32; 3]> = (0..8)
+        .map(|i| {
+            [
+                if i & 1 == 0 { -h } else { h },
+                if i & 2 == 0 { 0.0 } else { 2.0 * h },
+                if i & 4 == 0 { -h } else { h },
+            ]
+        })
+        .collect();
+    let cube_at = bin.len();
+    for p in &corners {
+        push_f32(&mut bin, p);
+    }
+    let cube_idx: [u32; 36] = [
+        0, 1, 3, 0, 3, 2, 4, 6, 7, 4, 7, 5, 0, 4, 5, 0, 5, 1, 2, 3, 7, 2, 7, 6, 0, 2, 6, 0, 6, 4,
+        1, 5, 7, 1, 7, 3,
+    ];
+    let cube_idx_at = bin.len();
+    for i in cube_idx {
+        bin.extend(i.to_le_bytes());
+    }
+    std::fs::write(dir.join("lit.bin"), &bin).unwrap();
+    let light_nodes: Vec<String> = positions
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            format!(
+                r#"{{"name": "lamp{k}", "translation": [{}, {}, {}], "extensions": {{"KHR_lights_punctual": {{"light": {k}}}}}}}"#,
+                p[0], p[1], p[2]
+            )
+        })
+        .collect();
+    let node_ids: Vec<String> = (0..4 + positions.len()).map(|i| i.to_string()).collect();
+    let gltf = format!(
+        r#"{{"asset": {{"version": "2.0"}},
+        "extensionsUsed": ["KHR_lights_punctual"],
+        "extensions": {{"KHR_lights_punctual": {{"lights": [{lights}]}}}},
+        "buffers": [{{"uri": "lit.bin", "byteLength": {len}}}],
+        "bufferViews": [{{"buffer": 0, "byteOffset": 0, "byteLength": 48}},
+                        {{"buffer": 0, "byteOffset": 48, "byteLength": 24}},
+                        {{"buffer": 0, "byteOffset": {cube_at}, "byteLength": 96}},
+                        {{"buffer": 0, "byteOffset": {cube_idx_at}, "byteLength": 144}}],
+        "accessors": [{{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3",
+                        "min": [-2, 0, -2], "max": [2, 0, 2]}},
+                      {{"bufferView": 1, "componentType": 5125, "count": 6, "type": "SCALAR"}},
+                      {{"bufferView": 2, "componentType": 5126, "count": 8, "type": "VEC3",
+                        "min": [-0.3, 0, -0.3], "max": [0.3, 0.6, 0.3]}},
+                      {{"bufferView": 3, "componentType": 5125, "count": 36, "type": "SCALAR"}}],
+        "materials": [{{"name": "floor", "pbrMetallicRoughness": {{"baseColorFactor": [0.6, 0.6, 0.6, 1], "metallicFactor": 0, "roughnessFactor": 1}}}},
+                      {{"name": "cube", "pbrMetallicRoughness": {{"baseColorFactor": [0.8, 0.3, 0.2, 1]}}, "emissiveFactor": [0.1, 0, 0]}}],
+        "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}, "indices": 1, "material": 0}}]}},
+                   {{"primitives": [{{"attributes": {{"POSITION": 2}}, "indices": 3, "material": 1}}]}}],
+        "cameras": [{{"type": "perspective", "perspective": {{"yfov": 0.8, "aspectRatio": 1.5, "znear": 0.01}}}}],
+        "nodes": [{{"mesh": 0}}, {{"mesh": 1}},
+                  {{"name": "front", "camera": 0, "translation": [0, 1.2, 3], "rotation": [-0.19509, 0, 0, 0.98079]}},
+                  {{"name": "side", "camera": 0, "translation": [3, 1.2, 0], "rotation": [-0.13795, 0.69352, 0.13795, 0.69352]}}
+                  {comma}{light_nodes}],
+        "scenes": [{{"nodes": [{node_ids}]}}], "scene": 0}}"#,
+        lights = lights.join(", "),
+        len = bin.len(),
+        comma = if positions.is_empty() { "" } else { "," },
+        light_nodes = light_nodes.join(", "),
+        node_ids = node_ids.join(", "),
+    );
+    let path = dir.join("lit.gltf");
+    std::fs::write(&path, gltf).unwrap();
+    path
+}
+
+const KEY: &str = r#"{"type": "point", "color": [1.0, 0.9, 0.8], "intensity": 2000}"#;
+const FILL: &str =
+    r#"{"type": "point", "color": [0.5, 0.6, 1.0], "intensity": 800, "extras": {"radius": 0.1}}"#;
+
+fn lit(dir: &Path) -> PathBuf {
+    lit_scene(dir, &[KEY, FILL], &[[-1.0, 2.5, 1.5], [1.8, 1.2, -1.0]])
+}
+
+fn info(args: &[&str]) -> serde_json::Value {
+    let o = run(&[&["info"], args].concat());
+    ok(&o);
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+#[test]
+fn a_gltf_alone_gives_views_lights_and_what_its_materials_leave_out() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = lit(tmp.path());
+    let s = scene.to_str().unwrap();
+    let o = run(&["info", s]);
+    let err = ok(&o);
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // Views: every camera node, 480 high at the camera's aspect ratio 1.5.
+    let cams = v["cameras"].as_array().unwrap();
+    assert_eq!(cams.len(), 2);
+    assert_eq!(
+        (&cams[0]["name"], &cams[1]["name"]),
+        (&"front".into(), &"side".into())
+    );
+    assert_eq!(
+        (&cams[0]["width"], &cams[0]["height"]),
+        (&720.into(), &480.into())
+    );
+    let v30 = info(&[s, "--height", "30"]);
+    assert_eq!(v30["cameras"][1]["width"], 45);
+    assert_eq!(v30["settings"]["height"], 30);
+    // Lights: candela / 683 W/sr, times the colour; the second a sphere of that intensity.
+    let lights = v["lights"].as_array().unwrap();
+    assert_eq!(lights.len(), 2);
+    assert_eq!(lights[0]["radius"], 0.0);
+    let key = lights[0]["intensity"].as_array().unwrap();
+    for (c, want) in key.iter().zip([1.0, 0.9, 0.8]) {
+        let want = want * 2000.0 / 683.0;
+        assert!((c.as_f64().unwrap() - want).abs() < 1e-4 * want, "{key:?}");
+    }
+    assert_eq!(lights[0]["center"], serde_json::json!([-1.0, 2.5, 1.5]));
+    let fill = &lights[1];
+    assert!((fill["radius"].as_f64().unwrap() - 0.1).abs() < 1e-7);
+    let radiance = fill["radiance"][2].as_f64().unwrap();
+    let want = 800.0 / 683.0 / (std::f64::consts::PI * 0.01);
+    assert!((radiance - want).abs() < 1e-4 * want, "{fill}");
+    // The cube's material: glTF's defaults (metallic 1, roughness 1) and its emission are left
+    // out, said once on stderr and listed; the floor is Lambertian already.
+    let ignored = v["ignored"].as_array().unwrap();
+    assert_eq!(ignored.len(), 1, "{ignored:?}");
+    assert_eq!(ignored[0]["what"], "material \"cube\"");
+    let props = ignored[0]["properties"].to_string();
+    assert!(
+        props.contains("metallic 1") && props.contains("emission"),
+        "{props}"
+    );
+    assert_eq!(err.matches("note:").count(), 1, "{err}");
+    assert!(
+        err.contains("lit.gltf") && err.contains("\"cube\""),
+        "{err}"
+    );
+}
+
+#[test]
+fn gltf_lights_render_as_the_same_lights_written_in_a_sidecar() {
+    // The glTF's point light and sphere light, and a sidecar naming the same glTF with those
+    // lights written out (Point intensity = colour × cd / 683; Sphere radiance = that / πr²),
+    // render the same bytes: the conversion is the documented one.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = lit(tmp.path());
+    let ron = tmp.path().join("same.ron");
+    // The loader's arithmetic, in its order: colour × (cd / 683), then / (π r r).
+    let k = 2000.0f32 / 683.0;
+    let f = |c: f32| c * (800.0f32 / 683.0) / (std::f32::consts::PI * 0.1f32 * 0.1f32);
+    std::fs::write(
+        &ron,
+        format!(
+            "Scene(gltf: \"lit.gltf\", image: (width: 36, height: 24), lights: [\
+             Point(center: (-1.0, 2.5, 1.5), intensity: ({}, {}, {})), \
+             Sphere(center: (1.8, 1.2, -1.0), radius: 0.1, radiance: ({}, {}, {}))])",
+            1.0 * k,
+            0.9f32 * k,
+            0.8f32 * k,
+            f(0.5),
+            f(0.6),
+            f(1.0)
+        ),
+    )
+    .unwrap();
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    for (src, out) in [(&scene, &a), (&ron, &b)] {
+        ok(&run(&[
+            "render-reference",
+            src.to_str().unwrap(),
+            "--height",
+            "24",
+            "--spp",
+            "16",
+            "--out",
+            out.to_str().unwrap(),
+            "--quiet",
+        ]));
+    }
+    for view in ["front", "side"] {
+        let x = std::fs::read(a.join(format!("{view}.exr"))).unwrap();
+        let y = std::fs::read(b.join(format!("{view}.exr"))).unwrap();
+        assert!(
+            x == y,
+            "{view}: the glTF's lights and the sidecar's render differently"
+        );
+    }
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(a.join("render.json")).unwrap()).unwrap();
+    assert_eq!(
+        report["image"],
+        serde_json::json!({"width": 36, "height": 24})
+    );
+    assert_eq!(report["views"][1]["width"], 36);
+    // The point light lights the floor: the image is not black.
+    let mean = report["views"][0]["mean_rgb"][0].as_f64().unwrap();
+    assert!(mean > 1e-3, "{report}");
+}
+
+#[test]
+fn estimate_takes_a_gltf_and_sizes_its_views_from_the_references() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = lit(tmp.path());
+    let s = scene.to_str().unwrap();
+    let refs = tmp.path().join("refs");
+    ok(&run(&[
+        "render-reference",
+        s,
+        "--height",
+        "18",
+        "--spp",
+        "64",
+        "--out",
+        refs.to_str().unwrap(),
+        "--quiet",
+    ]));
+    // No --height: the views take the references' 27×18.
+    let out = tmp.path().join("out");
+    let o = run(&[
+        "estimate",
+        s,
+        "--reference",
+        refs.to_str().unwrap(),
+        "--spp",
+        "16",
+        "--rings",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+        "--quiet",
+    ]);
+    ok(&o);
+    let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(report["views"].as_array().unwrap().len(), 2);
+    assert!(report["rel_mae"].as_f64().unwrap() < 1.0, "{report}");
+    assert_eq!(report["ignored"][0]["what"], "material \"cube\"");
+    let envmap = std::fs::read_to_string(out.join("envmap.ron")).unwrap();
+    assert!(envmap.contains("rings: 3"), "{envmap}");
+    // A reference whose shape the camera's aspect ratio cannot have is refused by name.
+    let bad = tmp.path().join("bad");
+    std::fs::create_dir(&bad).unwrap();
+    std::fs::copy(refs.join("front.exr"), bad.join("front.exr")).unwrap();
+    let square = tmp.path().join("sq");
+    ok(&run(&[
+        "render-reference",
+        s,
+        "--height",
+        "18",
+        "--spp",
+        "1",
+        "--out",
+        square.to_str().unwrap(),
+        "--quiet",
+    ]));
+    let ron = tmp.path().join("sq.ron");
+    std::fs::write(
+        &ron,
+        "Scene(gltf: \"lit.gltf\", image: (width: 18, height: 18))",
+    )
+    .unwrap();
+    let sq = tmp.path().join("sqr");
+    ok(&run(&[
+        "render-reference",
+        ron.to_str().unwrap(),
+        "--spp",
+        "1",
+        "--out",
+        sq.to_str().unwrap(),
+        "--quiet",
+    ]));
+    std::fs::copy(sq.join("side.exr"), bad.join("side.exr")).unwrap();
+    let out2 = tmp.path().join("out2");
+    let err = fails(&run(&[
+        "estimate",
+        s,
+        "--reference",
+        bad.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+        "--quiet",
+    ]));
+    assert!(
+        err.contains("side.exr") && err.contains("18×18") && err.contains("aspect ratio 1.5"),
+        "{err}"
+    );
+    assert!(!out2.exists(), "a refused estimate left {out2:?}");
+    // Without references, the glTF's own lights render them (here at --height 12).
+    let out3 = tmp.path().join("out3");
+    let o = run(&[
+        "estimate",
+        s,
+        "--height",
+        "12",
+        "--spp",
+        "8",
+        "--rings",
+        "3",
+        "--fit-only",
+        "--out",
+        out3.to_str().unwrap(),
+        "--quiet",
+    ]);
+    ok(&o);
+    assert!(out3.join("reference/front.exr").exists());
+}
+
+#[test]
+fn lights_lightprobe_cannot_render_are_refused_by_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    for (light, needle) in [
+        (
+            r#"{"type": "spot", "name": "torch", "spot": {"outerConeAngle": 0.5}}"#,
+            "\"torch\" on node \"lamp0\" (#4) is a spot light",
+        ),
+        (
+            r#"{"type": "directional", "name": "sun"}"#,
+            "is a directional light",
+        ),
+        (
+            r#"{"type": "point", "extras": {"radius": -1}}"#,
+            "extras radius -1 is not a length",
+        ),
+        (
+            r#"{"type": "point", "intensity": -5}"#,
+            "intensity -5: each must be finite and ≥ 0",
+        ),
+    ] {
+        let scene = lit_scene(tmp.path(), &[light], &[[0.0, 2.0, 0.0]]);
+        let err = fails(&run(&["info", scene.to_str().unwrap()]));
+        assert!(
+            err.contains("lit.gltf") && err.contains(needle),
+            "{light}\n-> {err}"
+        );
+        assert_eq!(err.lines().count(), 1, "{err}");
+    }
+    // A glTF without lights renders nothing: said, with what to do.
+    let scene = lit_scene(tmp.path(), &[], &[]);
+    let out = tmp.path().join("out");
+    let err = fails(&run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--height",
+        "8",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    assert!(
+        err.contains("no sphere or point lights") && err.contains("--reference"),
+        "{err}"
+    );
+}
