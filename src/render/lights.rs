@@ -469,11 +469,12 @@ impl Cone {
     /// turns its intensity into irradiance, as the solid angle turns a sphere's radiance).
     #[inline]
     fn solid_angle(&self) -> f32 {
-        if self.point {
-            1.0 / (self.dist * self.dist)
-        } else {
-            std::f32::consts::TAU * self.omc
-        }
+        // Both computed, one chosen: a select, so that loops over lanes stay vectorised.
+        let (sphere, point) = (
+            std::f32::consts::TAU * self.omc,
+            1.0 / (self.dist * self.dist),
+        );
+        if self.point { point } else { sphere }
     }
 
     /// Pdf per unit solid angle of uniform cone sampling; for a point light d²
@@ -502,7 +503,15 @@ impl Cone {
 #[inline(always)]
 fn pick_weight(s: &SphereLight, p: Vec3, n: Vec3) -> f32 {
     let c = Cone::at(s.center, s.radius, p);
-    let w = crate::imageio::luminance(s.radiance).max(0.0) * c.solid_angle() * c.max_cosine(n);
+    let lum = crate::imageio::luminance(s.radiance).max(0.0);
+    // Each kind in its own order of operations (a shared factor would reorder the sphere's
+    // product, and with it the rounding of every sphere-lit image).
+    let cos = c.max_cosine(n);
+    let (sphere, point) = (
+        lum * std::f32::consts::TAU * c.omc * cos,
+        lum / (c.dist * c.dist) * cos,
+    );
+    let w = if c.point { point } else { sphere };
     if c.inside { 0.0 } else { w }
 }
 
@@ -536,15 +545,13 @@ pub fn cone_pdf(s: &SphereLight, p: Vec3) -> f32 {
 /// light: it has no surface).
 #[inline]
 pub fn intersect_sphere(s: &SphereLight, o: Vec3, d: Vec3, t_min: f32) -> Option<f32> {
-    if s.is_point() {
-        return None;
-    }
     let oc = o - s.center;
     let b = oc.dot(d);
-    // r² − |oc − b·d|² is the discriminant, computed without the cancellation of b² − c.
+    // r² − |oc − b·d|² is the discriminant, computed without the cancellation of b² − c. A
+    // point light's is never positive; a sphere's is zero only for rays that graze it.
     let perp = oc - b * d;
     let disc = s.radius * s.radius - perp.length_squared();
-    if disc < 0.0 {
+    if disc <= 0.0 {
         return None;
     }
     let q = disc.sqrt();
