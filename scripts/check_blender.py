@@ -368,8 +368,23 @@ def worker_main(job_file: str) -> int:
         nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
         mats_rep[mat.name] = entry
     rep["materials"] = mats_rep
+    # Lights: removed (the envmap check), or kept as the importer made them
+    # (check_blender_lights.py): recorded, then made the glTF's punctual lights
+    # (radius 0: a new Blender light gets 0.25 m, which the importer leaves).
+    rep["lights"] = {}
     for ob in [o for o in scene.objects if o.type == "LIGHT"]:
-        bpy.data.objects.remove(ob)
+        if not job.get("keep_lights"):
+            bpy.data.objects.remove(ob)
+            continue
+        li = ob.data
+        rep["lights"][ob.name] = {
+            "type": li.type, "energy_W": li.energy, "color": list(li.color),
+            "location": list(ob.matrix_world.translation),
+            "imported_radius": li.shadow_soft_size}
+        li.shadow_soft_size = 0.0
+        if hasattr(li, "use_soft_falloff"):
+            li.use_soft_falloff = False
+    lamps = [(o.data, o.data.energy) for o in scene.objects if o.type == "LIGHT"]
 
     # ---- render settings
     r = scene.render
@@ -457,7 +472,13 @@ def worker_main(job_file: str) -> int:
     # ---- C / D renders
     r.resolution_x, r.resolution_y = info["settings"]["width"], info["settings"]["height"]
     for job_r in job["renders"]:
-        use_envmap(job_r["envmap"])
+        for li, energy in lamps:             # (a self-test mis-scales them)
+            li.energy = energy * float(job_r.get("energy_scale", 1.0))
+        if job_r["envmap"] is None:          # lights only: a black World
+            bg.inputs["Strength"].default_value = 0.0
+        else:
+            bg.inputs["Strength"].default_value = 1.0
+            use_envmap(job_r["envmap"])
         scene.camera = cams[job_r["view"]]
         cy.seed = int(job_r["seed"])
         cy.samples = int(job_r["spp"])

@@ -6,8 +6,10 @@
 //! OUT/envmap.ron, .exr        the ring envmap, and its lat-long EXR (Mitsuba's convention)
 //! OUT/reference/<view>.exr    references rendered from the scene's lights (none when given)
 //! OUT/estimate/<view>.exr     the envmap's re-render, a PNG preview and an error heat map
+//! OUT/scene.glb (or .gltf)   the scene's glTF with the envmap named in its scene's extras
 //! OUT/spheres/lights.ron      the sphere-light model as a sidecar fragment, its re-renders,
 //!                             and background.ron/.exr when an envmap is behind the lights
+//! OUT/spheres/scene.glb       the scene's glTF with the sphere lights as KHR point lights
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -19,19 +21,22 @@ use crate::estimate::job::{Estimate, EstimateReport};
 use crate::estimate::pipeline::{SeenViews, SphereOutcome};
 use crate::imageio::{self, Image};
 use crate::metrics;
+use crate::scene::export;
 
 /// Width of the lat-long EXR written beside each envmap: renderers interpolate between pixels,
 /// which blurs a cell's edges by half a pixel (measured in Mitsuba: the worst cell of 9 rings
 /// loses 0.7% of its power at 4096 pixels, 2.7% at 1024).
 pub const LATLONG_WIDTH: u32 = 4096;
 
-/// Writes every file of an estimate into `dir`, which must exist; `rendered_references`
-/// when the references were rendered here (not given). The report, written last, gets
+/// Writes every file of an estimate into `dir`, which must exist, the scene's glTF
+/// (`gltf`, none for scenes built in code) among them; `rendered_references` when the
+/// references were rendered here (not given). The report, written last, gets
 /// `timings.total_seconds` from `started` (the whole command, its other files included).
 /// Files are written when the estimate is complete: a run that fails or is stopped before
 /// leaves none of them.
 pub fn write_estimate(
     dir: &Path,
+    gltf: Option<&Path>,
     estimate: &mut Estimate,
     seen: &SeenViews,
     rendered_references: bool,
@@ -47,16 +52,39 @@ pub fn write_estimate(
             imageio::write_exr(&refs.join(format!("{name}.exr")), img)?;
         }
     }
-    write_envmap(dir, "envmap", &estimate.envmap.fit.envmap)?;
+    let env = &estimate.envmap.fit.envmap;
+    write_envmap(dir, "envmap", env)?;
+    if let Some(gltf) = gltf {
+        let note = envmap_note("envmap", env);
+        export::write_with_lights(gltf, dir, &[], Some(&note))?;
+    }
     if !estimate.envmap.renders.is_empty() {
         write_renders(&dir.join("estimate"), &estimate.envmap.renders, seen)?;
     }
     if let Some(so) = &estimate.spheres {
-        write_spheres(&dir.join("spheres"), so, seen)?;
+        let spheres = dir.join("spheres");
+        write_spheres(&spheres, so, seen)?;
+        if let Some(gltf) = gltf {
+            let note = so
+                .fit
+                .background
+                .as_ref()
+                .map(|bg| envmap_note("background", bg));
+            export::write_with_lights(gltf, &spheres, &so.fit.lights(), note.as_ref())?;
+        }
     }
     estimate.report.timings.total_seconds = started.elapsed().as_secs_f64();
     write_report(dir, &estimate.report)?;
     Ok(())
+}
+
+/// How an export names the envmap written as `<name>.ron` and `.exr` beside it.
+fn envmap_note(name: &str, env: &Envmap) -> export::EnvmapNote {
+    export::EnvmapNote {
+        exr: format!("{name}.exr"),
+        ron: format!("{name}.ron"),
+        rings: env.grid.rings(),
+    }
 }
 
 /// `report.json`, pretty-printed; returns its text.

@@ -26,6 +26,7 @@ fn scene(mesh: Mesh, albedo: Vec3, camera: Camera, lights: Vec<SphereLight>) -> 
         size_given: true,
         ignored: Vec::new(),
         source: Default::default(),
+        gltf: Default::default(),
     }
 }
 

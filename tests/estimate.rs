@@ -87,6 +87,7 @@ fn scene(lights: Vec<SphereLight>) -> Scene {
         size_given: true,
         ignored: Vec::new(),
         source: Default::default(),
+        gltf: Default::default(),
     }
 }
 

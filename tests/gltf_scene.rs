@@ -399,3 +399,118 @@ fn lights_lightprobe_cannot_render_are_refused_by_name() {
         "{err}"
     );
 }
+
+/// `Sphere(center: (x, y, z), radius: r, radiance: (a, b, c))` entries of a lights.ron.
+fn spheres_in(text: &str) -> Vec<[f64; 7]> {
+    text.lines()
+        .filter(|l| l.trim_start().starts_with("Sphere("))
+        .map(|l| {
+            let nums: Vec<f64> = l
+                .split(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-' || c == 'e'))
+                .filter_map(|t| t.parse().ok())
+                .collect();
+            nums.try_into().unwrap_or_else(|n| panic!("{l}: {n:?}"))
+        })
+        .collect()
+}
+
+#[test]
+fn estimate_writes_the_scene_back_as_gltf_with_the_estimate_in_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = lit_scene(tmp.path(), &[KEY], &[[-1.0, 2.5, 1.5]]);
+    let s = scene.to_str().unwrap();
+    let out = tmp.path().join("out");
+    ok(&run(&[
+        "estimate",
+        s,
+        "--height",
+        "24",
+        "--spp",
+        "64",
+        "--rings",
+        "3",
+        "--model",
+        "spheres:1",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]));
+    // spheres/scene.gltf: the source's buffer beside it, its light the fitted one (the
+    // source's own light gone), read back through the loader.
+    let export = out.join("spheres/scene.gltf");
+    assert!(out.join("spheres/lit.bin").exists());
+    let fitted = spheres_in(&std::fs::read_to_string(out.join("spheres/lights.ron")).unwrap());
+    assert_eq!(fitted.len(), 1);
+    let back = info(&[export.to_str().unwrap(), "--height", "24"]);
+    let lights = back["lights"].as_array().unwrap();
+    assert_eq!(lights.len(), 1, "{back}");
+    let l = &lights[0];
+    let f = fitted[0];
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * b.abs().max(1e-3);
+    for k in 0..3 {
+        assert!(
+            close(l["center"][k].as_f64().unwrap(), f[k]),
+            "{l} vs {f:?}"
+        );
+        assert!(
+            close(l["radiance"][k].as_f64().unwrap(), f[4 + k]),
+            "{l} vs {f:?}"
+        );
+    }
+    assert!(close(l["radius"].as_f64().unwrap(), f[3]), "{l} vs {f:?}");
+    let source = info(&[s, "--height", "24"]);
+    assert_eq!(back["triangles"], source["triangles"]);
+    assert_eq!(back["cameras"], source["cameras"]);
+    assert_eq!(back["materials"], source["materials"]);
+    // scene.gltf: no lights, the envmap named in the scene's extras.
+    let doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("scene.gltf")).unwrap()).unwrap();
+    let note = &doc["scenes"][0]["extras"]["lightprobe_envmap"];
+    assert_eq!(note["exr"], "envmap.exr");
+    assert_eq!(note["rings"], 3);
+    let plain = info(&[out.join("scene.gltf").to_str().unwrap(), "--height", "24"]);
+    assert_eq!(plain["lights"], serde_json::json!([]));
+}
+
+#[test]
+fn a_glb_is_written_back_as_a_glb_with_its_binary_chunk() {
+    let tmp = tempfile::tempdir().unwrap();
+    let glb = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb");
+    let ron = tmp.path().join("s.ron");
+    std::fs::write(
+        &ron,
+        format!(
+            "Scene(gltf: {glb:?}, image: (width: 32, height: 24), \
+             lights: [Point(center: (-1.8, 3.2, 1.5), intensity: (80.0, 70.0, 60.0))], \
+             render: (spp: 4))"
+        ),
+    )
+    .unwrap();
+    let out = tmp.path().join("out");
+    ok(&run(&[
+        "estimate",
+        ron.to_str().unwrap(),
+        "--rings",
+        "3",
+        "--fit-only",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]));
+    let written = std::fs::read(out.join("scene.glb")).unwrap();
+    let source = std::fs::read(glb).unwrap();
+    // The binary chunk is the source's, byte for byte (it ends both files).
+    let bin_len = {
+        let j = u32::from_le_bytes(source[12..16].try_into().unwrap()) as usize;
+        u32::from_le_bytes(source[20 + j..24 + j].try_into().unwrap()) as usize
+    };
+    assert_eq!(
+        written[written.len() - bin_len..],
+        source[source.len() - bin_len..]
+    );
+    let a = info(&[out.join("scene.glb").to_str().unwrap(), "--height", "24"]);
+    let b = info(&[glb, "--height", "24"]);
+    for k in ["triangles", "vertices", "materials", "cameras", "bounds"] {
+        assert_eq!(a[k], b[k], "{k}");
+    }
+}

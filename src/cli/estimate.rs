@@ -262,7 +262,14 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             ));
         }
     }
-    output::write_estimate(&a.out, &mut estimate, &seen, a.reference.is_none(), t_all)?;
+    output::write_estimate(
+        &a.out,
+        Some(&scene.gltf),
+        &mut estimate,
+        &seen,
+        a.reference.is_none(),
+        t_all,
+    )?;
     let report = &estimate.report;
     if a.json {
         super::print(&output::report_json(report).map_err(anyhow::Error::msg)?)?;

@@ -185,7 +185,7 @@ fn check_uris(path: &Path) -> Result<()> {
 }
 
 /// Decodes `%XX` escapes of a relative URI (glTF URIs are RFC 3986).
-fn percent_decode(uri: &str) -> String {
+pub(super) fn percent_decode(uri: &str) -> String {
     let b = uri.as_bytes();
     let mut out = Vec::with_capacity(b.len());
     let mut i = 0;

@@ -13,6 +13,7 @@
 //! ```
 
 mod camera;
+pub mod export;
 mod gltf;
 pub mod sidecar;
 
@@ -472,6 +473,8 @@ pub struct Scene {
     pub ignored: Vec<Ignored>,
     /// The file this came from: a sidecar or a glTF (empty for scenes built in code).
     pub source: PathBuf,
+    /// The glTF file the geometry came from (empty for scenes built in code).
+    pub gltf: PathBuf,
 }
 
 /// Whether `path` is a glTF file rather than a RON sidecar: by its extension, else by its
@@ -573,6 +576,7 @@ impl Scene {
             size_given: sidecar.image.is_some() || options.height.is_some(),
             ignored,
             source: sidecar_path.to_path_buf(),
+            gltf: gltf_path,
         })
     }
 
@@ -599,6 +603,7 @@ impl Scene {
             size_given: options.height.is_some(),
             ignored: loaded.ignored,
             source: path.to_path_buf(),
+            gltf: path.to_path_buf(),
         })
     }
 

@@ -1,0 +1,243 @@
+#!/usr/bin/env python3
+"""Cross-render check: a glTF's own point lights, read by lightprobe and by Blender.
+
+A glTF is a scene by itself for lightprobe: its `KHR_lights_punctual` point lights
+are the lights, at colour x intensity (candela) / 683 W/sr. Blender reads the
+same file with its own glTF importer (defaults: "Standard" lighting mode, a
+point light of P = intensity x 4 pi / 683 W, i.e. P / 4 pi W/sr) and Cycles
+renders it. Nothing of lightprobe's reading reaches Blender: the lights' units,
+positions and colours, the cameras and their image size come from the file.
+
+What it does (default: the bundled tabletop geometry, 2 views at 128x96, 512 spp):
+ 1. writes lit.glb: scenes/tabletop/tabletop.glb plus two point lights, a warm
+    key (53,600 cd) and a cool fill (14,600 cd), about the radiant intensity of
+    the sidecar's sphere lights (pi r^2 L = 78.5 and 21.4 W/sr);
+ 2. `lightprobe info lit.glb --height 96`: the lights must be the file's
+    (colour x cd / 683 at the light nodes, radius 0) and the views 128x96 (the
+    cameras' aspectRatio 4:3 at --height);
+ 3. `lightprobe render-reference lit.glb --height 96` at seeds 1 and 2;
+ 4. Blender (check_blender.py's worker, the same Cycles settings and Lambert
+    materials as that check): imports lit.glb with the importer's defaults,
+    keeps its lights, records them (their energy must be cd x 4 pi / 683 W: the
+    importer's conversion, which lightprobe's is the inverse of), sets their
+    radius to 0 (Blender gives a new light 0.25 m; a glTF point light has none)
+    and renders every view at Blender seeds 0 and 1 with a black World;
+ 5. compares per view with check_mitsuba.judge() and its thresholds (bias 1 %,
+    pixel ratio/expected 1.15, block ratio/expected 1.5, block relMAE 2 %).
+
+Self-test (unless --no-self-test): at --self-test-spp, Blender renders the
+lights as imported (the control, must PASS) and with every light's energy x
+1.03 and x 1/1.03 (a 3 % unit error, must FAIL in every view): the check tells
+apart a conversion off by 3 %, let alone by pi or 4 pi.
+
+Usage:
+  bash scripts/setup-blender-venv.sh         # once: .venv-blender (bpy 5.0.1)
+  .venv/bin/python scripts/check_blender_lights.py [--spp N] [--workdir DIR]
+      [--no-self-test] [--self-test-spp N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+DEFAULT_BLENDER_PY = REPO / ".venv-blender" / "bin" / "python"
+HEIGHT = 96
+# (name, position in glTF's frame (m), colour, intensity (cd))
+LIGHTS = [
+    ("key", (-1.8, 3.2, 1.5), (1.0, 0.9, 0.75), 53600.0),
+    ("fill", (2.5, 1.8, -1.5), (0.75, 0.85, 1.0), 14600.0),
+]
+LUMENS_PER_WATT = 683.0
+ENERGY_ERRORS = {"energy_x1.03": 1.03, "energy_x1/1.03": 1 / 1.03}
+
+
+def log(msg: str = "") -> None:
+    print(msg, flush=True)
+
+
+def glb_with_lights(src: Path, dst: Path) -> None:
+    """`src` (a GLB) with LIGHTS added as KHR_lights_punctual point lights on new root nodes."""
+    data = src.read_bytes()
+    if data[:4] != b"glTF":
+        raise SystemExit(f"{src}: not a GLB")
+    jlen, jtype = struct.unpack_from("<I4s", data, 12)
+    gj = json.loads(data[20:20 + jlen])
+    rest = data[20 + jlen:]                       # the BIN chunk, header included
+    gj.setdefault("extensionsUsed", []).append("KHR_lights_punctual")
+    gj.setdefault("extensions", {})["KHR_lights_punctual"] = {"lights": [
+        {"name": n, "type": "point", "color": list(c), "intensity": cd} for n, _, c, cd in LIGHTS]}
+    scene = gj["scenes"][gj.get("scene", 0)]
+    for k, (n, pos, _, _) in enumerate(LIGHTS):
+        scene["nodes"].append(len(gj["nodes"]))
+        gj["nodes"].append({"name": f"lamp_{n}", "translation": list(pos),
+                            "extensions": {"KHR_lights_punctual": {"light": k}}})
+    js = json.dumps(gj, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    body = struct.pack("<I4s", len(js), b"JSON") + js + rest
+    dst.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+
+
+def main() -> int:
+    sys.path.insert(0, str(HERE))
+    import check_mitsuba as cm
+    import lpcheck_common as lc
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--glb", type=Path, default=REPO / "scenes" / "tabletop" / "tabletop.glb")
+    ap.add_argument("--bin", type=Path, default=lc.DEFAULT_LIGHTPROBE, help="lightprobe binary")
+    ap.add_argument("--blender-python", type=Path, default=DEFAULT_BLENDER_PY)
+    ap.add_argument("--spp", type=int, default=512)
+    ap.add_argument("--threads", type=int, default=2, help="Blender's render threads")
+    ap.add_argument("--workdir", type=Path, default=None, help="default: a new temp dir")
+    ap.add_argument("--no-self-test", dest="self_test", action="store_false")
+    ap.add_argument("--self-test-spp", type=int, default=128)
+    args = ap.parse_args()
+    t_start = time.time()
+    work = (args.workdir or Path(tempfile.mkdtemp(prefix="check_blender_lights_"))).resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    bpy_py = args.blender_python
+    if not (bpy_py.is_file() and os.access(bpy_py, os.X_OK)):
+        log(f"no Blender venv python at {bpy_py}: run `bash scripts/setup-blender-venv.sh`")
+        return 2
+    binary = lc.find_lightprobe(args.bin)
+    log(f"workdir {work}")
+    ok = True
+
+    # ---- 1, 2: the file, and what lightprobe reads from it
+    glb = work / "lit.glb"
+    glb_with_lights(args.glb, glb)
+    proc = lc.run([binary, "info", glb, "--height", HEIGHT], "lightprobe info")
+    info = json.loads(proc.stdout)
+    st = info["settings"]
+    views = [c["name"] for c in info["cameras"]]
+    read_ok = (st["width"], st["height"]) == (HEIGHT * 4 // 3, HEIGHT) and \
+        len(info["lights"]) == len(LIGHTS)
+    for got, (n, pos, c, cd) in zip(info["lights"], LIGHTS):
+        want = np.array(c) * cd / LUMENS_PER_WATT
+        good = (got["radius"] == 0 and np.allclose(got["intensity"], want, rtol=1e-6)
+                and np.allclose(got["center"], pos, atol=1e-6))
+        read_ok &= good
+        log(f"[2] light {n}: lightprobe reads {np.round(got['intensity'], 4).tolist()} W/sr at "
+            f"{got['center']} radius {got['radius']} (want colour x {cd:.0f} cd / 683 = "
+            f"{np.round(want, 4).tolist()}) -> {'same' if good else 'DIFFERENT'}")
+    log(f"[2] views {views} at {st['width']}x{st['height']} -> {'PASS' if read_ok else 'FAIL'}")
+    ok &= read_ok
+
+    # ---- 3: lightprobe renders
+    t = time.time()
+    seeds = (1, 2)
+    for s in seeds:
+        lc.run([binary, "render-reference", glb, "--height", HEIGHT, "--out", work / f"lp_seed{s}",
+                "--quiet", "--seed", s, "--spp", args.spp], "lightprobe render-reference")
+    t_lp = time.time() - t
+
+    # ---- 4: Blender
+    bdir = work / "blender"
+    bdir.mkdir(exist_ok=True)
+    renders = [{"envmap": None, "view": v, "seed": s, "spp": args.spp,
+                "out": str(bdir / f"{v}_seed{s}.exr")} for v in views for s in (0, 1)]
+    tests = [("control", 1.0)] + list(ENERGY_ERRORS.items()) if args.self_test else []
+    for name, scale in tests:
+        renders += [{"envmap": None, "view": v, "seed": s, "spp": args.self_test_spp,
+                     "energy_scale": scale, "out": str(bdir / f"selftest_{name}_{v}_seed{s}.exr")}
+                    for v in views for s in (20, 21)]
+    job = {"gltf": str(glb), "info": info, "max_bounces": st["max_bounces"] - 1,
+           "threads": args.threads, "renders": renders, "keep_lights": True,
+           "report": str(work / "blender_report.json")}
+    job_p = work / "blender_job.json"
+    job_p.write_text(json.dumps(job, indent=1))
+    t = time.time()
+    blog = work / "blender.log"
+    with open(blog, "w") as fh:
+        proc = subprocess.run([str(bpy_py), str(HERE / "check_blender.py"), "--blender-worker",
+                               str(job_p)], stdout=fh, stderr=subprocess.STDOUT,
+                              stdin=subprocess.DEVNULL)
+    t_bl = time.time() - t
+    if proc.returncode != 0:
+        log(f"Blender worker failed (exit {proc.returncode}); last lines of {blog}:")
+        log("".join(blog.read_text().splitlines(True)[-30:]))
+        return 2
+    brep = json.loads((work / "blender_report.json").read_text())
+    log(f"rendered: lightprobe 2 seeds x {len(views)} views in {t_lp:.1f} s; Blender "
+        f"{brep['blender']} worker {t_bl:.1f} s")
+    imported = sorted(brep["lights"].values(), key=lambda li: -li["energy_W"])
+    bl_ok = len(imported) == len(LIGHTS)
+    for li, (n, pos, c, cd) in zip(imported, LIGHTS):
+        want = cd * 4 * math.pi / LUMENS_PER_WATT
+        loc = [li["location"][0], li["location"][2], -li["location"][1]]   # Blender -> glTF axes
+        good = (li["type"] == "POINT" and abs(li["energy_W"] / want - 1) < 1e-5
+                and np.allclose(li["color"], c, atol=1e-6) and np.allclose(loc, pos, atol=1e-5))
+        bl_ok &= good
+        log(f"[4] Blender's importer: {li['type']} light of {li['energy_W']:.2f} W (cd x 4 pi / 683 "
+            f"= {want:.2f}), colour {np.round(li['color'], 4).tolist()}, at {np.round(loc, 5).tolist()} "
+            f"(glTF axes), imported radius {li['imported_radius']} m (set to 0) -> "
+            f"{'as documented' if good else 'DIFFERENT'}")
+    ok &= bl_ok
+
+    # ---- 5: compare
+    def read_rgba(p: Path) -> np.ndarray:
+        a, names, _ = lc.read_exr(p)
+        if names[:4] != ["R", "G", "B", "A"]:
+            raise lc.CheckError(f"{p}: channels {names}, expected R, G, B, A")
+        return a.astype(np.float32)
+
+    refs, results = {}, {}
+    for v in views:
+        lp1, lp2 = (read_rgba(work / f"lp_seed{s}" / f"{v}.exr") for s in seeds)
+        b0, b1 = (read_rgba(bdir / f"{v}_seed{s}.exr") for s in (0, 1))
+        mask = lp1[..., 3] > 0
+        refs[v] = (lp1, lp2, mask)
+        m = cm.judge(b0, lp1, lp2, b1, mask, args.spp)
+        cm.side_by_side(work / f"side_{v}.png", lp1, b0, mask)
+        log(f"\n{v}: {int(mask.sum())} masked pixels; masked mean RGB lightprobe "
+            f"{np.round(lp1[mask][:, :3].mean(0), 5).tolist()}  Blender "
+            f"{np.round(b0[mask][:, :3].mean(0), 5).tolist()}")
+        cm.print_metrics(m)
+        results[v] = {k: m[k] for k in ("rel_mae", "floor", "ratio", "ratio_expected", "bias",
+                                        "block", "block_ratio", "block_ratio_expected", "pass")}
+        ok &= m["pass"]
+    log(f"\nCHECK {'PASS' if ok else 'FAIL'}: a glTF's point lights in lightprobe and in "
+        f"Blender/Cycles, {args.spp} spp (side_<view>.png in {work}: lp | Blender | block diff)")
+
+    st_ok = None
+    if args.self_test:
+        st_ok = True
+        log(f"\nSELF-TEST at {args.self_test_spp} spp (Blender seeds 20, 21): the control must "
+            f"PASS, every mis-scaled light energy must FAIL in every view")
+        for name, _ in tests:
+            for v in views:
+                lp1, lp2, mask = refs[v]
+                a, b = (read_rgba(bdir / f"selftest_{name}_{v}_seed{s}.exr") for s in (20, 21))
+                m = cm.judge(a, lp1, lp2, b, mask, args.self_test_spp)
+                log(f"  {name:16s} {v:10s} bias {cm.fmt_pct(m['bias'])} pixel ratio/exp "
+                    f"{m['ratio'] / m['ratio_expected']:.3f} -> {'PASS' if m['pass'] else 'FAIL'}")
+                results.setdefault("self_test", {}).setdefault(name, {})[v] = m["pass"]
+                if m["pass"] != (name == "control"):
+                    st_ok = False
+        log(f"SELF-TEST {'PASS' if st_ok else 'FAIL'}")
+
+    total = time.time() - t_start
+    summary = {"glb": str(glb), "spp": args.spp, "pass": ok, "self_test_pass": st_ok,
+               "lightprobe_lights": info["lights"], "blender_lights": brep["lights"],
+               "views": results, "seconds": {"total": total, "lightprobe": t_lp,
+                                             "blender_worker": t_bl}}
+    (work / "check_blender_lights.json").write_text(json.dumps(summary, indent=2, default=float))
+    log(f"\ntotal {total:.1f} s; summary in {work / 'check_blender_lights.json'}")
+    return 0 if ok and st_ok is not False else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

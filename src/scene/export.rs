@@ -1,0 +1,217 @@
+//! The scene written back as glTF with an estimate in it, for the user's own tools: sphere
+//! lights as `KHR_lights_punctual` point lights (colour and candela, the radius in the light's
+//! `extras`), an envmap named in the scene's `extras` with its convention (glTF has no
+//! standard environment light). The source's own lights are dropped (they were the reference
+//! illumination); all else is kept as the source has it: a GLB's binary chunk byte for byte, a
+//! `.gltf`'s buffers and images copied beside the written file.
+
+use std::path::{Path, PathBuf};
+
+use serde_json::{Value, json};
+
+use super::SphereLight;
+use super::gltf::{LUMENS_PER_WATT, percent_decode};
+use crate::error::{Error, Result};
+
+/// An envmap written beside the glTF, named in its scene's `extras.lightprobe_envmap`.
+#[derive(Debug, Clone)]
+pub struct EnvmapNote {
+    /// The lat-long EXR, relative to the written glTF.
+    pub exr: String,
+    /// The ring envmap (`envmap.ron`), relative to the written glTF.
+    pub ron: String,
+    pub rings: u32,
+}
+
+/// How the lat-long EXR beside an export is laid out (what `extras` says of it).
+const LATLONG_CONVENTION: &str = "lat-long, linear RGB radiance, Mitsuba 3 envmap convention in glTF's frame (+Y up): column u = atan2(x, -z) / 2pi, the first and last rows are the poles; load it as Mitsuba's `envmap` emitter, or in Blender with `lightprobe export-envmap --target blender`";
+
+/// Writes `source` (a `.glb` or `.gltf`) into `dir` as `scene.glb` or `scene.gltf` (with
+/// copies of the files it refers to) with `lights` and `envmap` in it. Returns the path
+/// written.
+pub fn write_with_lights(
+    source: &Path,
+    dir: &Path,
+    lights: &[SphereLight],
+    envmap: Option<&EnvmapNote>,
+) -> Result<PathBuf> {
+    let bytes = crate::memory::read_input(source)?;
+    let bad = |why: String| Error::file(source, format!("cannot be written back: {why}"));
+    if bytes.starts_with(b"glTF") {
+        let (json, bin) = glb_chunks(&bytes).map_err(bad)?;
+        let mut doc: Value = serde_json::from_slice(json).map_err(|e| bad(e.to_string()))?;
+        put_lights(&mut doc, lights, envmap).map_err(bad)?;
+        let out = dir.join("scene.glb");
+        crate::imageio::write_bytes(&out, &glb(&doc, bin))?;
+        Ok(out)
+    } else {
+        let mut doc: Value = serde_json::from_slice(&bytes).map_err(|e| bad(e.to_string()))?;
+        put_lights(&mut doc, lights, envmap).map_err(bad)?;
+        let from = source.parent().unwrap_or(Path::new(""));
+        for uri in external_uris(&doc) {
+            // The loader refused URIs that leave the source's folder; they stay inside `dir`.
+            let rel = percent_decode(&uri);
+            let target = dir.join(&rel);
+            if let Some(parent) = target.parent() {
+                std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+            }
+            let data = crate::memory::read_input(&from.join(&rel))?;
+            crate::imageio::write_bytes(&target, &data)?;
+        }
+        let out = dir.join("scene.gltf");
+        let text = serde_json::to_string_pretty(&doc).map_err(|e| bad(e.to_string()))?;
+        crate::imageio::write_bytes(&out, text.as_bytes())?;
+        Ok(out)
+    }
+}
+
+/// The JSON and (if any) binary chunk of a GLB.
+fn glb_chunks(bytes: &[u8]) -> std::result::Result<(&[u8], &[u8]), String> {
+    let word = |at: usize| -> std::result::Result<usize, String> {
+        bytes
+            .get(at..at + 4)
+            .map(|w| u32::from_le_bytes([w[0], w[1], w[2], w[3]]) as usize)
+            .ok_or_else(|| "truncated GLB".to_string())
+    };
+    let json_len = word(12)?;
+    if bytes.get(16..20) != Some(b"JSON") {
+        return Err("the GLB's first chunk is not JSON".into());
+    }
+    let json = bytes.get(20..20 + json_len).ok_or("truncated GLB")?;
+    let at = 20 + json_len;
+    if at >= bytes.len() {
+        return Ok((json, &[]));
+    }
+    let bin_len = word(at)?;
+    let bin = bytes.get(at + 8..at + 8 + bin_len).ok_or("truncated GLB")?;
+    Ok((json, bin))
+}
+
+/// A GLB of `doc` and the binary chunk `bin` (empty: none).
+fn glb(doc: &Value, bin: &[u8]) -> Vec<u8> {
+    let mut json = doc.to_string().into_bytes();
+    json.resize(json.len().next_multiple_of(4), b' ');
+    let bin_padded = bin.len().next_multiple_of(4);
+    let total = 12 + 8 + json.len() + if bin.is_empty() { 0 } else { 8 + bin_padded };
+    let mut out = Vec::with_capacity(total);
+    out.extend(b"glTF");
+    out.extend(2u32.to_le_bytes());
+    out.extend((total as u32).to_le_bytes());
+    out.extend((json.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(&json);
+    if !bin.is_empty() {
+        out.extend((bin_padded as u32).to_le_bytes());
+        out.extend(b"BIN\0");
+        out.extend(bin);
+        out.resize(total, 0);
+    }
+    out
+}
+
+/// The relative URIs of `doc`'s buffers and images (data URIs are inside the file).
+fn external_uris(doc: &Value) -> Vec<String> {
+    ["buffers", "images"]
+        .iter()
+        .filter_map(|k| doc.get(k)?.as_array())
+        .flatten()
+        .filter_map(|item| item.get("uri")?.as_str())
+        .filter(|u| !u.starts_with("data:"))
+        .map(str::to_string)
+        .collect()
+}
+
+/// A sphere light as a KHR_lights_punctual point light: colour = intensity over its largest
+/// channel, `intensity` = that channel × 683 candela, the radius in `extras`.
+pub fn punctual_light(k: usize, l: &SphereLight) -> Value {
+    let i = l.intensity();
+    let peak = i.max_element();
+    let color = if peak > 0.0 {
+        i / peak
+    } else {
+        glam::Vec3::ONE
+    };
+    json!({
+        "name": format!("lightprobe_{k}"),
+        "type": "point",
+        "color": color.to_array(),
+        "intensity": peak.max(0.0) * LUMENS_PER_WATT,
+        "extras": { "radius": l.radius },
+    })
+}
+
+/// Replaces `doc`'s lights with `lights` (new root nodes of its default scene) and names
+/// `envmap` in that scene's `extras`.
+fn put_lights(
+    doc: &mut Value,
+    lights: &[SphereLight],
+    envmap: Option<&EnvmapNote>,
+) -> std::result::Result<(), String> {
+    const EXT: &str = "KHR_lights_punctual";
+    let root = doc.as_object_mut().ok_or("its JSON is not an object")?;
+    // The source's lights were the reference illumination: unhooked from their nodes.
+    if let Some(nodes) = root.get_mut("nodes").and_then(Value::as_array_mut) {
+        for n in nodes {
+            if let Some(ext) = n.get_mut("extensions").and_then(Value::as_object_mut) {
+                ext.remove(EXT);
+            }
+        }
+    }
+    let scene = root.get("scene").and_then(Value::as_u64).unwrap_or(0) as usize;
+    let mut node_ids = Vec::new();
+    if !lights.is_empty() {
+        let used = root.entry("extensionsUsed").or_insert_with(|| json!([]));
+        if let Some(used) = used.as_array_mut()
+            && !used.iter().any(|u| u == EXT)
+        {
+            used.push(json!(EXT));
+        }
+        let ext = root.entry("extensions").or_insert_with(|| json!({}));
+        let ext = ext
+            .as_object_mut()
+            .ok_or("its extensions are not an object")?;
+        ext.insert(
+            EXT.into(),
+            json!({ "lights": lights.iter().enumerate().map(|(k, l)| punctual_light(k, l)).collect::<Vec<_>>() }),
+        );
+        let nodes = root.entry("nodes").or_insert_with(|| json!([]));
+        let nodes = nodes.as_array_mut().ok_or("its nodes are not an array")?;
+        for (k, l) in lights.iter().enumerate() {
+            node_ids.push(nodes.len());
+            nodes.push(json!({
+                "name": format!("lightprobe_light_{k}"),
+                "translation": l.center.to_array(),
+                "extensions": { EXT: { "light": k } },
+            }));
+        }
+    } else if let Some(ext) = root.get_mut("extensions").and_then(Value::as_object_mut) {
+        ext.remove(EXT);
+    }
+    let scenes = root
+        .get_mut("scenes")
+        .and_then(Value::as_array_mut)
+        .ok_or("it has no scenes")?;
+    let scene = scenes
+        .get_mut(scene)
+        .ok_or("its default scene is missing")?;
+    let scene = scene.as_object_mut().ok_or("its scene is not an object")?;
+    let roots = scene.entry("nodes").or_insert_with(|| json!([]));
+    let roots = roots
+        .as_array_mut()
+        .ok_or("its scene's nodes are not an array")?;
+    roots.extend(node_ids.into_iter().map(|i| json!(i)));
+    if let Some(e) = envmap {
+        let extras = scene.entry("extras").or_insert_with(|| json!({}));
+        if let Some(extras) = extras.as_object_mut() {
+            extras.insert(
+                "lightprobe_envmap".into(),
+                json!({
+                    "exr": e.exr, "ron": e.ron, "rings": e.rings,
+                    "convention": LATLONG_CONVENTION,
+                    "units": "linear RGB radiance, W·sr⁻¹·m⁻² per channel",
+                }),
+            );
+        }
+    }
+    Ok(())
+}
