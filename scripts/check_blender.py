@@ -370,7 +370,9 @@ def worker_main(job_file: str) -> int:
     rep["materials"] = mats_rep
     # Lights: removed (the envmap check), or kept as the importer made them
     # (check_blender_lights.py): recorded, then made the glTF's punctual lights
-    # (radius 0: a new Blender light gets 0.25 m, which the importer leaves).
+    # (radius 0: a new Blender light gets 0.25 m, which the importer leaves), or
+    # with "radius_from_extras" the sphere lightprobe's export describes (the
+    # importer keeps a light's glTF extras as custom properties).
     rep["lights"] = {}
     for ob in [o for o in scene.objects if o.type == "LIGHT"]:
         if not job.get("keep_lights"):
@@ -380,8 +382,10 @@ def worker_main(job_file: str) -> int:
         rep["lights"][ob.name] = {
             "type": li.type, "energy_W": li.energy, "color": list(li.color),
             "location": list(ob.matrix_world.translation),
-            "imported_radius": li.shadow_soft_size}
-        li.shadow_soft_size = 0.0
+            "imported_radius": li.shadow_soft_size,
+            "extras_radius": float(li["radius"]) if "radius" in li else None}
+        li.shadow_soft_size = (float(li["radius"]) if job.get("radius_from_extras")
+                               and "radius" in li else 0.0)
         if hasattr(li, "use_soft_falloff"):
             li.use_soft_falloff = False
     lamps = [(o.data, o.data.energy) for o in scene.objects if o.type == "LIGHT"]

@@ -25,6 +25,15 @@ What it does (default: the bundled tabletop geometry, 2 views at 128x96, 512 spp
  5. compares per view with check_mitsuba.judge() and its thresholds (bias 1 %,
     pixel ratio/expected 1.15, block ratio/expected 1.5, block relMAE 2 %).
 
+The way back (unless --no-export): `lightprobe estimate lit.glb --model
+spheres:2` writes spheres/scene.glb, the scene with the fitted lights as
+KHR point lights (candela, the radius in the light's extras). lightprobe
+renders that file (seeds 1, 2), Blender imports it (the importer keeps the
+extras as the light's custom properties; the worker sets the light's radius
+from them, use_soft_falloff off: a sphere of uniform radiance) and Cycles
+renders it; judged as in 5. This checks the export, not the fit: both sides
+render the same file.
+
 Self-test (unless --no-self-test): at --self-test-spp, Blender renders the
 lights as imported (the control, must PASS) and with every light's energy x
 1.03 and x 1/1.03 (a 3 % unit error, must FAIL in every view): the check tells
@@ -104,6 +113,8 @@ def main() -> int:
     ap.add_argument("--workdir", type=Path, default=None, help="default: a new temp dir")
     ap.add_argument("--no-self-test", dest="self_test", action="store_false")
     ap.add_argument("--self-test-spp", type=int, default=128)
+    ap.add_argument("--no-export", dest="export", action="store_false",
+                    help="skip the round trip of estimate's spheres/scene.glb")
     args = ap.parse_args()
     t_start = time.time()
     work = (args.workdir or Path(tempfile.mkdtemp(prefix="check_blender_lights_"))).resolve()
@@ -147,6 +158,24 @@ def main() -> int:
     # ---- 4: Blender
     bdir = work / "blender"
     bdir.mkdir(exist_ok=True)
+
+    def blender(name: str, gltf: Path, renders: list, **extra) -> dict | None:
+        job = {"gltf": str(gltf), "info": info, "max_bounces": st["max_bounces"] - 1,
+               "threads": args.threads, "renders": renders, "keep_lights": True,
+               "report": str(work / f"blender_{name}.json"), **extra}
+        job_p = work / f"blender_{name}_job.json"
+        job_p.write_text(json.dumps(job, indent=1))
+        blog = work / f"blender_{name}.log"
+        with open(blog, "w") as fh:
+            proc = subprocess.run([str(bpy_py), str(HERE / "check_blender.py"),
+                                   "--blender-worker", str(job_p)], stdout=fh,
+                                  stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        if proc.returncode != 0:
+            log(f"Blender worker failed (exit {proc.returncode}); last lines of {blog}:")
+            log("".join(blog.read_text().splitlines(True)[-30:]))
+            return None
+        return json.loads((work / f"blender_{name}.json").read_text())
+
     renders = [{"envmap": None, "view": v, "seed": s, "spp": args.spp,
                 "out": str(bdir / f"{v}_seed{s}.exr")} for v in views for s in (0, 1)]
     tests = [("control", 1.0)] + list(ENERGY_ERRORS.items()) if args.self_test else []
@@ -154,23 +183,11 @@ def main() -> int:
         renders += [{"envmap": None, "view": v, "seed": s, "spp": args.self_test_spp,
                      "energy_scale": scale, "out": str(bdir / f"selftest_{name}_{v}_seed{s}.exr")}
                     for v in views for s in (20, 21)]
-    job = {"gltf": str(glb), "info": info, "max_bounces": st["max_bounces"] - 1,
-           "threads": args.threads, "renders": renders, "keep_lights": True,
-           "report": str(work / "blender_report.json")}
-    job_p = work / "blender_job.json"
-    job_p.write_text(json.dumps(job, indent=1))
     t = time.time()
-    blog = work / "blender.log"
-    with open(blog, "w") as fh:
-        proc = subprocess.run([str(bpy_py), str(HERE / "check_blender.py"), "--blender-worker",
-                               str(job_p)], stdout=fh, stderr=subprocess.STDOUT,
-                              stdin=subprocess.DEVNULL)
+    brep = blender("lit", glb, renders)
     t_bl = time.time() - t
-    if proc.returncode != 0:
-        log(f"Blender worker failed (exit {proc.returncode}); last lines of {blog}:")
-        log("".join(blog.read_text().splitlines(True)[-30:]))
+    if brep is None:
         return 2
-    brep = json.loads((work / "blender_report.json").read_text())
     log(f"rendered: lightprobe 2 seeds x {len(views)} views in {t_lp:.1f} s; Blender "
         f"{brep['blender']} worker {t_bl:.1f} s")
     imported = sorted(brep["lights"].values(), key=lambda li: -li["energy_W"])
@@ -195,22 +212,60 @@ def main() -> int:
         return a.astype(np.float32)
 
     refs, results = {}, {}
-    for v in views:
-        lp1, lp2 = (read_rgba(work / f"lp_seed{s}" / f"{v}.exr") for s in seeds)
-        b0, b1 = (read_rgba(bdir / f"{v}_seed{s}.exr") for s in (0, 1))
-        mask = lp1[..., 3] > 0
-        refs[v] = (lp1, lp2, mask)
-        m = cm.judge(b0, lp1, lp2, b1, mask, args.spp)
-        cm.side_by_side(work / f"side_{v}.png", lp1, b0, mask)
-        log(f"\n{v}: {int(mask.sum())} masked pixels; masked mean RGB lightprobe "
-            f"{np.round(lp1[mask][:, :3].mean(0), 5).tolist()}  Blender "
-            f"{np.round(b0[mask][:, :3].mean(0), 5).tolist()}")
-        cm.print_metrics(m)
-        results[v] = {k: m[k] for k in ("rel_mae", "floor", "ratio", "ratio_expected", "bias",
-                                        "block", "block_ratio", "block_ratio_expected", "pass")}
-        ok &= m["pass"]
+
+    def compare(tag: str, lp_dir: str, b_prefix: str) -> bool:
+        good = True
+        for v in views:
+            lp1, lp2 = (read_rgba(work / f"{lp_dir}{s}" / f"{v}.exr") for s in seeds)
+            b0, b1 = (read_rgba(bdir / f"{b_prefix}{v}_seed{s}.exr") for s in (0, 1))
+            mask = lp1[..., 3] > 0
+            refs.setdefault(tag, {})[v] = (lp1, lp2, mask)
+            m = cm.judge(b0, lp1, lp2, b1, mask, args.spp)
+            cm.side_by_side(work / f"side_{tag}_{v}.png", lp1, b0, mask)
+            log(f"\n[{tag}] {v}: {int(mask.sum())} masked pixels; masked mean RGB lightprobe "
+                f"{np.round(lp1[mask][:, :3].mean(0), 5).tolist()}  Blender "
+                f"{np.round(b0[mask][:, :3].mean(0), 5).tolist()}")
+            cm.print_metrics(m)
+            results.setdefault(tag, {})[v] = {
+                k: m[k] for k in ("rel_mae", "floor", "ratio", "ratio_expected", "bias", "block",
+                                  "block_ratio", "block_ratio_expected", "pass")}
+            good &= m["pass"]
+        return good
+
+    ok &= compare("lit", "lp_seed", "")
     log(f"\nCHECK {'PASS' if ok else 'FAIL'}: a glTF's point lights in lightprobe and in "
-        f"Blender/Cycles, {args.spp} spp (side_<view>.png in {work}: lp | Blender | block diff)")
+        f"Blender/Cycles, {args.spp} spp (side_lit_<view>.png in {work}: lp | Blender | block diff)")
+
+    # ---- 6: the way back: estimate's spheres/scene.glb in both renderers
+    if args.export:
+        est = work / "estimate"
+        lc.run([binary, "estimate", glb, "--height", HEIGHT, "--model", "spheres:2",
+                "--spp", 256, "--out", est, "--quiet"], "lightprobe estimate --model spheres:2")
+        exported = est / "spheres" / "scene.glb"
+        back = json.loads(lc.run([binary, "info", exported, "--height", HEIGHT],
+                                 "lightprobe info").stdout)
+        for s in seeds:
+            lc.run([binary, "render-reference", exported, "--height", HEIGHT, "--out",
+                    work / f"lp_export_seed{s}", "--quiet", "--seed", s, "--spp", args.spp],
+                   "lightprobe render-reference (export)")
+        erep = blender("export", exported, [
+            {"envmap": None, "view": v, "seed": s, "spp": args.spp,
+             "out": str(bdir / f"export_{v}_seed{s}.exr")} for v in views for s in (0, 1)],
+            radius_from_extras=True)
+        if erep is None:
+            return 2
+        for li in sorted(erep["lights"].values(), key=lambda li: -li["energy_W"]):
+            log(f"[6] exported light in Blender: {li['energy_W']:.2f} W, radius from extras "
+                f"{li['extras_radius']} m, colour {np.round(li['color'], 4).tolist()}")
+        radii = sorted(round(li["radius"], 6) for li in back["lights"])
+        got = sorted(round(li["extras_radius"] or 0.0, 6) for li in erep["lights"].values())
+        ex_ok = radii == got and len(radii) == 2
+        log(f"[6] radii: lightprobe reads {radii}, Blender's extras {got} -> "
+            f"{'same' if ex_ok else 'DIFFERENT'}")
+        ex_ok &= compare("export", "lp_export_seed", "export_")
+        log(f"\nCHECK {'PASS' if ex_ok else 'FAIL'}: estimate's spheres/scene.glb in lightprobe "
+            f"and in Blender/Cycles")
+        ok &= ex_ok
 
     st_ok = None
     if args.self_test:
@@ -219,7 +274,7 @@ def main() -> int:
             f"PASS, every mis-scaled light energy must FAIL in every view")
         for name, _ in tests:
             for v in views:
-                lp1, lp2, mask = refs[v]
+                lp1, lp2, mask = refs["lit"][v]
                 a, b = (read_rgba(bdir / f"selftest_{name}_{v}_seed{s}.exr") for s in (20, 21))
                 m = cm.judge(a, lp1, lp2, b, mask, args.self_test_spp)
                 log(f"  {name:16s} {v:10s} bias {cm.fmt_pct(m['bias'])} pixel ratio/exp "

@@ -227,6 +227,133 @@ pub fn read_exr_bytes(bytes: &[u8], path: &Path) -> Result<Image> {
     })
 }
 
+/// How photographs and HDR images become radiance ([`read_photo`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Decoding {
+    /// 8- and 16-bit values are linear already (default: sRGB-encoded, as cameras write them).
+    pub linear: bool,
+    /// A pixel with any channel at or above this (after decoding) is saturated. 8- and 16-bit
+    /// images are saturated at their format's maximum whatever this is.
+    pub saturation: Option<f32>,
+}
+
+/// The image formats [`read_photo`] reads, by file extension, in order of preference.
+pub const PHOTO_EXTENSIONS: &[&str] = &["exr", "hdr", "png", "jpg", "jpeg"];
+
+/// Reads an image as linear radiance: OpenEXR (RGB or RGBA, half or float), Radiance `.hdr`,
+/// 8- and 16-bit PNG and JPEG (sRGB-decoded unless `decoding.linear`; alpha kept as alpha).
+/// Also returns which pixels are usable: not saturated (any channel at the format's maximum,
+/// or at `decoding.saturation`).
+pub fn read_photo(path: &Path, decoding: Decoding) -> Result<(Image, Vec<bool>)> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    let (img, mut usable) = if ext == "exr" {
+        let img = read_exr(path)?;
+        let n = img.rgb.len();
+        (img, vec![true; n])
+    } else {
+        read_decoded(path, decoding)?
+    };
+    if let Some(x) = decoding.saturation {
+        for (u, c) in usable.iter_mut().zip(&img.rgb) {
+            *u &= c.max_element() < x;
+        }
+    }
+    Ok((img, usable))
+}
+
+/// The size of an image [`read_photo`] reads, from its header.
+pub fn photo_size(path: &Path) -> Result<(u32, u32)> {
+    if path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"))
+    {
+        return exr_size(path);
+    }
+    if !path.exists() {
+        return Err(Error::file(path, "no such file"));
+    }
+    image::ImageReader::open(path)
+        .and_then(|r| r.with_guessed_format())
+        .map_err(|e| Error::io(path, e))?
+        .into_dimensions()
+        .map_err(|e| Error::file(path, format!("cannot read as an image: {e}")))
+}
+
+/// A PNG, JPEG or Radiance HDR file through the `image` crate: linear RGB, alpha, and the
+/// pixels not at the format's maximum.
+fn read_decoded(path: &Path, decoding: Decoding) -> Result<(Image, Vec<bool>)> {
+    use image::DynamicImage as D;
+    let (w, h) = photo_size(path)?;
+    if w as usize > MAX_SIDE || h as usize > MAX_SIDE {
+        return Err(Error::file(
+            path,
+            format!("is {w}×{h}; at most {MAX_SIDE}×{MAX_SIDE} is read"),
+        ));
+    }
+    // The decoded image (up to 16 bytes a pixel) and ours (16 bytes and a flag).
+    crate::memory::reserve(w as u64 * h as u64 * 33, || {
+        format!("{}: reading its {w}×{h} image", path.display())
+    })?;
+    let bytes = crate::memory::read_input(path)?;
+    let decoded = image::ImageReader::new(std::io::Cursor::new(&bytes))
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?
+        .decode()
+        .map_err(|e| Error::file(path, format!("cannot decode: {e}")))?;
+    let n = (w * h) as usize;
+    let has_alpha = decoded.color().has_alpha();
+    let mut img = Image::new(w, h);
+    let mut alpha = has_alpha.then(|| vec![1.0f32; n]);
+    let mut usable = vec![true; n];
+    let encoded = |v: f32| {
+        if decoding.linear {
+            v
+        } else {
+            srgb_to_linear(v)
+        }
+    };
+    match decoded {
+        D::ImageRgb32F(_) | D::ImageRgba32F(_) => {
+            // Radiance HDR: linear floating point already.
+            let f = decoded.to_rgba32f();
+            for (i, p) in f.pixels().enumerate() {
+                img.rgb[i] = Vec3::new(p[0], p[1], p[2]);
+                if let Some(a) = &mut alpha {
+                    a[i] = p[3];
+                }
+            }
+        }
+        D::ImageLuma16(_) | D::ImageLumaA16(_) | D::ImageRgb16(_) | D::ImageRgba16(_) => {
+            let f = decoded.to_rgba16();
+            for (i, p) in f.pixels().enumerate() {
+                let c = |k: usize| encoded(p[k] as f32 / 65535.0);
+                img.rgb[i] = Vec3::new(c(0), c(1), c(2));
+                usable[i] = p[0].max(p[1]).max(p[2]) < u16::MAX;
+                if let Some(a) = &mut alpha {
+                    a[i] = p[3] as f32 / 65535.0;
+                }
+            }
+        }
+        other => {
+            let lut: Vec<f32> = (0..256).map(|v| encoded(v as f32 / 255.0)).collect();
+            let f = other.to_rgba8();
+            for (i, p) in f.pixels().enumerate() {
+                img.rgb[i] = Vec3::new(lut[p[0] as usize], lut[p[1] as usize], lut[p[2] as usize]);
+                usable[i] = p[0].max(p[1]).max(p[2]) < u8::MAX;
+                if let Some(a) = &mut alpha {
+                    a[i] = p[3] as f32 / 255.0;
+                }
+            }
+        }
+    }
+    img.alpha = alpha;
+    Ok((img, usable))
+}
+
 /// The largest radiance value read from an image: beyond any exposure a camera records, and
 /// low enough that sums of squares over 10^7 pixels stay finite in f32.
 pub const MAX_RADIANCE: f32 = 1e15;

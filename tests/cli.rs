@@ -920,7 +920,7 @@ fn cases() -> Vec<Case> {
                 "--quiet",
             ]
             .to_vec(),
-            "cam_side.exr: no such file",
+            "ref: has no reference for view \"cam_side\": expected cam_side.exr, .hdr, .png or .jpg",
         ),
         c(
             "compare exr without RGB channels",

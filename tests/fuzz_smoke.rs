@@ -146,7 +146,7 @@ fn parsers_survive_mutated_seeds() {
     }));
     failures.extend(smoke("reference", &|d| {
         std::fs::write(dir.join("cam.exr"), d).unwrap();
-        lightprobe::estimate::pipeline::load_references(dir, &[&cam]).is_ok()
+        lightprobe::estimate::pipeline::load_references(dir, &[&cam], Default::default()).is_ok()
     }));
     assert!(
         failures.is_empty(),

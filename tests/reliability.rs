@@ -939,7 +939,7 @@ fn outputs_never_replace_links_and_failed_runs_leave_no_folder() {
         &arg(d, "ref"),
         "--quiet",
     ]);
-    clean_failure(&o, "no such file").unwrap();
+    clean_failure(&o, "has no reference for view").unwrap();
     assert!(
         !d.join("new").exists(),
         "the failed run left its --out folder"

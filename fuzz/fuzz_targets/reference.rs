@@ -8,6 +8,6 @@ fuzz_target!(|data: &[u8]| {
     let _ = std::fs::create_dir_all(&dir);
     let cam = lightprobe::scene::Camera::look_at("cam", glam::Vec3::Z, glam::Vec3::ZERO, 0.8, 4, 3);
     if std::fs::write(dir.join("cam.exr"), data).is_ok() {
-        let _ = lightprobe::estimate::pipeline::load_references(&dir, &[&cam]);
+        let _ = lightprobe::estimate::pipeline::load_references(&dir, &[&cam], Default::default());
     }
 });

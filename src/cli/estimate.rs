@@ -33,6 +33,14 @@ fn parse_model(s: &str) -> Result<LightModel, String> {
     }
 }
 
+/// `--saturation`: a finite radiance > 0.
+fn parse_saturation(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(x) if x.is_finite() && x > 0.0 => Ok(x),
+        _ => Err(format!("expected a radiance > 0, got {s:?}")),
+    }
+}
+
 /// `--rings`: a ring count or `auto`.
 #[derive(Clone, Copy, Debug)]
 enum RingsArg {
@@ -56,11 +64,21 @@ pub struct Args {
     /// Output folder (created if missing).
     #[arg(long, short)]
     out: PathBuf,
-    /// Folder of reference EXRs named <view>.exr, which also set the views' image size when
-    /// neither the sidecar nor --height does (default: render them from the scene's lights
-    /// into OUT/reference/).
+    /// Folder of references named <view>.exr (RGB or RGBA, half or float; alpha = coverage),
+    /// <view>.hdr (Radiance), or <view>.png / .jpg (8 or 16 bit, sRGB unless --linear), the
+    /// first of these that exists, with an optional <view>.mask.png (black = left out). They also set the views' image size
+    /// when neither the sidecar nor --height does (default: render them from the scene's
+    /// lights into OUT/reference/).
     #[arg(long)]
     reference: Option<PathBuf>,
+    /// 8- and 16-bit references (PNG, JPEG) hold linear values (default: sRGB-encoded, as
+    /// cameras write them).
+    #[arg(long)]
+    linear: bool,
+    /// Leave out reference pixels with any channel at or above this radiance (saturated);
+    /// 8- and 16-bit references always lose the pixels at their format's maximum.
+    #[arg(long, value_parser = parse_saturation)]
+    saturation: Option<f32>,
     /// Only these views (comma-separated camera node names; default: the sidecar's).
     #[arg(long, value_delimiter = ',')]
     views: Vec<String>,
@@ -190,13 +208,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let path = &a.scene.scene;
     super::keep_views(&mut scene, &a.views, path)?;
     if let Some(dir) = a.reference.as_ref().filter(|_| !scene.size_given) {
-        let sizes = lightprobe::estimate::pipeline::reference_sizes(dir, &scene.cameras)?;
-        let files: Vec<_> = scene
-            .cameras
-            .iter()
-            .map(|c| lightprobe::estimate::pipeline::reference_path(dir, c))
-            .collect();
-        scene.size_views(&sizes, |i| files[i].clone())?;
+        let found = lightprobe::estimate::pipeline::reference_sizes(dir, &scene.cameras)?;
+        let sizes: Vec<_> = found.iter().map(|f| f.0).collect();
+        scene.size_views(&sizes, |i| found[i].1.clone())?;
     }
     let settings = a.settings(&scene);
     settings.check().map_err(|e| a.flag_error(e))?;
@@ -233,7 +247,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let renderer = Renderer::new(&scene, &true_lights);
     let bars = Bars::new(a.quiet);
     let references = match &a.reference {
-        Some(dir) => References::Folder(dir),
+        Some(dir) => References::Folder(
+            dir,
+            lightprobe::imageio::Decoding {
+                linear: a.linear,
+                saturation: a.saturation,
+            },
+        ),
         None => References::Render,
     };
     let in_scene = || path.display().to_string();

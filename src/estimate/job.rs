@@ -218,8 +218,9 @@ impl EstimateSettings {
 pub enum References<'p> {
     /// Rendered from the truth renderer's lights with the scene's settings.
     Render,
-    /// `<view>.exr` in this folder, each the size of its view's image.
-    Folder(&'p Path),
+    /// `<view>.exr` (or `.hdr`, `.png`, `.jpg`) in this folder, each the size of its view's
+    /// image, decoded so; `<view>.mask.png` and saturated pixels leave pixels out.
+    Folder(&'p Path, crate::imageio::Decoding),
     /// Given, one per view of the scene in order.
     Images(Vec<Image>),
 }
@@ -248,15 +249,20 @@ pub fn observe<'a>(
     let views: Vec<&'a Camera> = scene.cameras.iter().collect();
     let why = match &references {
         References::Render => "it sees no scene geometry".to_string(),
-        References::Folder(dir) => format!(
+        References::Folder(dir, _) => format!(
             "its reference in {} has zero alpha (coverage) everywhere",
             dir.display()
         ),
         References::Images(_) => "its reference has zero alpha (coverage) everywhere".into(),
     };
     let t = Instant::now();
+    let mut usable = None;
     let images = match references {
-        References::Folder(dir) => pipeline::load_references(dir, &views)?,
+        References::Folder(dir, decoding) => {
+            let (images, ok) = pipeline::load_references(dir, &views, decoding)?;
+            usable = Some(ok);
+            images
+        }
         References::Images(images) => {
             let size = |i: &Image| (i.width, i.height);
             let want: Vec<_> = views.iter().map(|c| (c.width, c.height)).collect();
@@ -278,7 +284,12 @@ pub fn observe<'a>(
             truth.render_views(&views, render, &|k| progress.advance(k))
         }
     };
-    let masks = pipeline::geometry_masks(truth, &views, &images);
+    let mut masks = pipeline::geometry_masks(truth, &views, &images);
+    for (mask, ok) in masks.iter_mut().zip(usable.iter().flatten()) {
+        for (m, &o) in mask.iter_mut().zip(ok) {
+            *m &= o;
+        }
+    }
     let mut seen = pipeline::seen_views(&views, images, masks);
     seen.seconds = t.elapsed().as_secs_f64();
     if seen.views.is_empty() {

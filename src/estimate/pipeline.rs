@@ -22,48 +22,92 @@ use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::sidecar::MAX_SPP;
 use crate::scene::{Camera, SphereLight};
 
-/// Reads `<dir>/<view>.exr` for each view, checking size and finiteness.
-pub fn load_references(dir: &Path, views: &[&Camera]) -> Result<Vec<Image>> {
+/// Reads each view's reference in `dir` ([`reference_path`]), checking size and finiteness,
+/// with the pixels each can vouch for: not saturated, and inside `<view>.mask.png` where there
+/// is one (non-black = kept).
+pub fn load_references(
+    dir: &Path,
+    views: &[&Camera],
+    decoding: imageio::Decoding,
+) -> Result<(Vec<Image>, Vec<Vec<bool>>)> {
+    check_reference_dir(dir)?;
+    let mut images = Vec::new();
+    let mut usable = Vec::new();
+    for cam in views {
+        let p = reference_path(dir, cam)?;
+        let (img, mut ok) = imageio::read_photo(&p, decoding)?;
+        let (width, height) = (cam.width, cam.height);
+        if (img.width, img.height) != (width, height) {
+            return Err(Error::file(
+                &p,
+                format!(
+                    "is {}×{}, but view {:?} renders {width}×{height} (the sidecar's image, or --height)",
+                    img.width, img.height, cam.name
+                ),
+            ));
+        }
+        imageio::check_radiance(&p, &img, false)?;
+        let mask_path = dir.join(format!("{}.mask.png", cam.name));
+        if mask_path.exists() {
+            let (mask, _) = imageio::read_photo(&mask_path, imageio::Decoding::default())?;
+            if (mask.width, mask.height) != (width, height) {
+                return Err(Error::file(
+                    &mask_path,
+                    format!(
+                        "is {}×{}, but its reference is {width}×{height}",
+                        mask.width, mask.height
+                    ),
+                ));
+            }
+            for (o, m) in ok.iter_mut().zip(&mask.rgb) {
+                *o &= m.max_element() > 0.0;
+            }
+        }
+        images.push(img);
+        usable.push(ok);
+    }
+    Ok((images, usable))
+}
+
+/// The reference of view `cam` in `dir`: the first `<view>.<ext>` there in the order of
+/// [`imageio::PHOTO_EXTENSIONS`] (EXR first: `render-reference` writes a PNG preview beside
+/// each EXR).
+pub fn reference_path(dir: &Path, cam: &Camera) -> Result<std::path::PathBuf> {
+    imageio::PHOTO_EXTENSIONS
+        .iter()
+        .map(|e| dir.join(format!("{}.{e}", cam.name)))
+        .find(|p| p.is_file())
+        .ok_or_else(|| {
+            Error::file(
+                dir,
+                format!(
+                    "has no reference for view {:?}: expected {0}.exr, .hdr, .png or .jpg",
+                    cam.name
+                ),
+            )
+        })
+}
+
+/// The image size of each view's reference in `dir`, read from the files' headers, and the
+/// files.
+pub fn reference_sizes(
+    dir: &Path,
+    views: &[Camera],
+) -> Result<Vec<((u32, u32), std::path::PathBuf)>> {
     check_reference_dir(dir)?;
     views
         .iter()
         .map(|cam| {
-            let p = reference_path(dir, cam);
-            let img = imageio::read_exr(&p)?;
-            let (width, height) = (cam.width, cam.height);
-            if (img.width, img.height) != (width, height) {
-                return Err(Error::file(
-                    &p,
-                    format!(
-                        "is {}×{}, but view {:?} renders {width}×{height} (the sidecar's image, or --height)",
-                        img.width, img.height, cam.name
-                    ),
-                ));
-            }
-            imageio::check_radiance(&p, &img, false)?;
-            Ok(img)
+            let p = reference_path(dir, cam)?;
+            Ok((imageio::photo_size(&p)?, p))
         })
-        .collect()
-}
-
-/// The reference of view `cam` in `dir`.
-pub fn reference_path(dir: &Path, cam: &Camera) -> std::path::PathBuf {
-    dir.join(format!("{}.exr", cam.name))
-}
-
-/// The image size of each view's reference in `dir`, read from the files' headers.
-pub fn reference_sizes(dir: &Path, views: &[Camera]) -> Result<Vec<(u32, u32)>> {
-    check_reference_dir(dir)?;
-    views
-        .iter()
-        .map(|cam| imageio::exr_size(&reference_path(dir, cam)))
         .collect()
 }
 
 fn check_reference_dir(dir: &Path) -> Result<()> {
     if !dir.is_dir() {
         let what = if dir.exists() {
-            "is not a folder (--reference names a folder of <view>.exr)"
+            "is not a folder (--reference names a folder of <view>.exr, .hdr, .png or .jpg)"
         } else {
             "no such folder"
         };

@@ -1082,7 +1082,7 @@ fn observe<'a>(
         .filter(|n| n.views == names && (n.scenario.is_empty() || n.scenario == fingerprint));
     let (references, noise_floor): (Vec<_>, Vec<f64>) = match cached {
         Some(n) => (
-            pipeline::load_references(dir, views)?,
+            pipeline::load_references(dir, views, Default::default())?.0,
             n.noise_floor_rel_mae
                 .iter()
                 .map(|x| x.unwrap_or(f64::INFINITY))

@@ -1,0 +1,230 @@
+//! References as cameras and renderers write them: OpenEXR, Radiance HDR, 8- and 16-bit PNG
+//! and JPEG (sRGB or linear), with saturated pixels and `<view>.mask.png` left out.
+
+use std::path::Path;
+
+use glam::Vec3;
+use lightprobe::estimate::pipeline::load_references;
+use lightprobe::imageio::{self, Decoding, Image};
+use lightprobe::scene::Camera;
+
+/// A 6×4 image of known radiance: a ramp over [0.02, 0.9] in each channel, out of phase.
+fn ramp() -> Image {
+    let mut img = Image::new(6, 4);
+    for (i, p) in img.rgb.iter_mut().enumerate() {
+        let t = i as f32 / 23.0;
+        *p = Vec3::new(
+            0.02 + 0.88 * t,
+            0.9 - 0.88 * t,
+            0.02 + 0.88 * (1.0 - (2.0 * t - 1.0).abs()),
+        );
+    }
+    img
+}
+
+fn cam() -> Camera {
+    Camera::look_at("v", Vec3::Z, Vec3::ZERO, 0.8, 6, 4)
+}
+
+fn encode(c: f32, linear: bool) -> f32 {
+    if linear {
+        c
+    } else {
+        imageio::linear_to_srgb(c)
+    }
+}
+
+fn write_png16(path: &Path, img: &Image, linear: bool) {
+    let mut buf = image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::new(img.width, img.height);
+    for (p, c) in buf.pixels_mut().zip(&img.rgb) {
+        *p = image::Rgb(
+            c.to_array()
+                .map(|v| (encode(v, linear) * 65535.0).round() as u16),
+        );
+    }
+    buf.save(path).unwrap();
+}
+
+fn write_png8(path: &Path, img: &Image) {
+    let mut buf = image::RgbImage::new(img.width, img.height);
+    for (p, c) in buf.pixels_mut().zip(&img.rgb) {
+        *p = image::Rgb(
+            c.to_array()
+                .map(|v| (encode(v, false) * 255.0).round() as u8),
+        );
+    }
+    buf.save(path).unwrap();
+}
+
+fn read(dir: &Path, decoding: Decoding) -> (Image, Vec<bool>) {
+    let (mut images, mut usable) = load_references(dir, &[&cam()], decoding).unwrap();
+    (images.remove(0), usable.remove(0))
+}
+
+fn max_rel_err(a: &Image, b: &Image) -> f32 {
+    a.rgb
+        .iter()
+        .zip(&b.rgb)
+        .map(|(x, y)| ((*x - *y).abs() / y.max(Vec3::splat(1e-3))).max_element())
+        .fold(0.0, f32::max)
+}
+
+#[test]
+fn photographs_decode_to_the_radiance_they_encode() {
+    let want = ramp();
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    // 16-bit sRGB PNG: sRGB-decoded, to the 16-bit step.
+    write_png16(&d.join("v.png"), &want, false);
+    let (got, usable) = read(d, Decoding::default());
+    assert!(max_rel_err(&got, &want) < 2e-3, "{:?}", got.rgb);
+    assert!(usable.iter().all(|&u| u));
+    assert!(got.alpha.is_none());
+    // Linear 16-bit with --linear; read as sRGB it would be far off.
+    write_png16(&d.join("v.png"), &want, true);
+    let (got, _) = read(
+        d,
+        Decoding {
+            linear: true,
+            ..Default::default()
+        },
+    );
+    assert!(max_rel_err(&got, &want) < 2e-3);
+    let (wrong, _) = read(d, Decoding::default());
+    assert!(max_rel_err(&wrong, &want) > 0.3);
+    // 8-bit sRGB: to the 8-bit step (relative error largest in the darks).
+    std::fs::remove_file(d.join("v.png")).unwrap();
+    write_png8(&d.join("v.png"), &want);
+    let (got, _) = read(d, Decoding::default());
+    assert!(max_rel_err(&got, &want) < 0.03, "{:?}", got.rgb);
+    // Radiance HDR (RGBE): to its 8-bit mantissa.
+    std::fs::remove_file(d.join("v.png")).unwrap();
+    let mut hdr = image::Rgb32FImage::new(6, 4);
+    for (p, c) in hdr.pixels_mut().zip(&want.rgb) {
+        *p = image::Rgb((*c * 40.0).to_array());
+    }
+    image::DynamicImage::ImageRgb32F(hdr)
+        .save(d.join("v.hdr"))
+        .unwrap();
+    // RGBE shares one exponent per pixel: each channel is exact to 1/128 of the pixel's
+    // largest.
+    let (got, _) = read(d, Decoding::default());
+    for (g, w) in got.rgb.iter().zip(&want.rgb) {
+        let w = *w * 40.0;
+        assert!(
+            (*g - w).abs().max_element() < w.max_element() / 128.0,
+            "{g} vs {w}"
+        );
+    }
+}
+
+#[test]
+fn saturated_and_masked_pixels_are_left_out() {
+    let mut img = ramp();
+    img.rgb[5] = Vec3::new(1.0, 0.2, 0.2); // one channel at the format's maximum
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    write_png8(&d.join("v.png"), &img);
+    let (_, usable) = read(d, Decoding::default());
+    let out: Vec<usize> = (0..24).filter(|&i| !usable[i]).collect();
+    assert_eq!(out, vec![5]);
+    // A mask: black leaves out, anything else keeps.
+    let mut mask = image::GrayImage::from_pixel(6, 4, image::Luma([255]));
+    mask.put_pixel(0, 0, image::Luma([0]));
+    mask.put_pixel(2, 3, image::Luma([0]));
+    mask.save(d.join("v.mask.png")).unwrap();
+    let (_, usable) = read(d, Decoding::default());
+    let out: Vec<usize> = (0..24).filter(|&i| !usable[i]).collect();
+    assert_eq!(out, vec![0, 5, 20]);
+    // A threshold on an EXR.
+    std::fs::remove_file(d.join("v.png")).unwrap();
+    std::fs::remove_file(d.join("v.mask.png")).unwrap();
+    imageio::write_exr(&d.join("v.exr"), &ramp()).unwrap();
+    let (_, usable) = read(
+        d,
+        Decoding {
+            saturation: Some(0.85),
+            ..Default::default()
+        },
+    );
+    let want: Vec<bool> = ramp().rgb.iter().map(|c| c.max_element() < 0.85).collect();
+    assert_eq!(usable, want);
+    assert!(want.contains(&false) && want.contains(&true));
+    // A mask of the wrong size is refused by name; of two references for one view, the EXR
+    // is read (render-reference writes a PNG preview beside it).
+    image::GrayImage::new(3, 2)
+        .save(d.join("v.mask.png"))
+        .unwrap();
+    let e = load_references(d, &[&cam()], Decoding::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("v.mask.png") && e.contains("3×2"), "{e}");
+    std::fs::remove_file(d.join("v.mask.png")).unwrap();
+    let mut other = ramp();
+    other.rgb.iter_mut().for_each(|c| *c *= 0.5);
+    write_png8(&d.join("v.png"), &other);
+    let (got, _) = read(d, Decoding::default());
+    assert_eq!(got.rgb, ramp().rgb);
+}
+
+#[test]
+fn estimate_fits_png_references_as_it_fits_their_exrs() {
+    // The bundled scene's references, once as the EXRs render-reference writes and once as
+    // 16-bit sRGB PNGs of them (scaled into range): both fits land at the same error.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tmp.path().join("s.ron");
+    std::fs::write(
+        &scene,
+        format!(
+            "Scene(gltf: {:?}, image: (width: 32, height: 24), \
+             lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))], \
+             render: (spp: 64))",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb")
+        ),
+    )
+    .unwrap();
+    let bin = env!("CARGO_BIN_EXE_lightprobe");
+    let run = |args: &[&str]| {
+        let o = std::process::Command::new(bin).args(args).output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    let exr = tmp.path().join("exr");
+    run(&[
+        "render-reference",
+        scene.to_str().unwrap(),
+        "--out",
+        exr.to_str().unwrap(),
+        "--quiet",
+    ]);
+    let png = tmp.path().join("png");
+    std::fs::create_dir(&png).unwrap();
+    for v in ["cam_front", "cam_side"] {
+        let mut img = imageio::read_exr(&exr.join(format!("{v}.exr"))).unwrap();
+        let peak = img.rgb.iter().map(|c| c.max_element()).fold(0.0, f32::max);
+        img.rgb.iter_mut().for_each(|c| *c /= peak * 1.01);
+        write_png16(&png.join(format!("{v}.png")), &img, false);
+    }
+    let rel_mae = |refs: &Path, out: &str| {
+        let o = run(&[
+            "estimate",
+            scene.to_str().unwrap(),
+            "--reference",
+            refs.to_str().unwrap(),
+            "--rings",
+            "5",
+            "--spp",
+            "64",
+            "--out",
+            tmp.path().join(out).to_str().unwrap(),
+            "--json",
+            "--quiet",
+        ]);
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        r["rel_mae"].as_f64().unwrap()
+    };
+    let (a, b) = (rel_mae(&exr, "a"), rel_mae(&png, "b"));
+    // The PNGs lose the geometry's coverage alpha (silhouette pixels are then taken whole)
+    // and are quantised; the fit's error barely moves.
+    assert!((a - b).abs() < 0.1 * a, "EXR {a}, PNG {b}");
+}
