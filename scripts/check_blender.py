@@ -388,7 +388,7 @@ def worker_main(job_file: str) -> int:
                                and "radius" in li else 0.0)
         if hasattr(li, "use_soft_falloff"):
             li.use_soft_falloff = False
-    lamps = [(o.data, o.data.energy) for o in scene.objects if o.type == "LIGHT"]
+    lamps = [(o, o.data.energy, o.location.copy()) for o in scene.objects if o.type == "LIGHT"]
 
     # ---- render settings
     r = scene.render
@@ -476,8 +476,9 @@ def worker_main(job_file: str) -> int:
     # ---- C / D renders
     r.resolution_x, r.resolution_y = info["settings"]["width"], info["settings"]["height"]
     for job_r in job["renders"]:
-        for li, energy in lamps:             # (a self-test mis-scales them)
-            li.energy = energy * float(job_r.get("energy_scale", 1.0))
+        for ob, energy, loc in lamps:        # (a self-test mis-scales or moves them)
+            ob.data.energy = energy * float(job_r.get("energy_scale", 1.0))
+            ob.location = loc + Vector(g2b(job_r.get("light_offset", [0.0, 0.0, 0.0])))
         if job_r["envmap"] is None:          # lights only: a black World
             bg.inputs["Strength"].default_value = 0.0
         else:

@@ -23,7 +23,19 @@ What it does (default: the bundled tabletop geometry, 2 views at 128x96, 512 spp
     radius to 0 (Blender gives a new light 0.25 m; a glTF point light has none)
     and renders every view at Blender seeds 0 and 1 with a black World;
  5. compares per view with check_mitsuba.judge() and its thresholds (bias 1 %,
-    pixel ratio/expected 1.15, block ratio/expected 1.5, block relMAE 2 %).
+    pixel ratio/expected 1.15, block ratio/expected 1.5, block relMAE 2 %),
+    the ratios taken after dividing out the global per-channel bias, which the
+    bias test judges on its own. Why: point lights leave so little noise (block
+    relMAE floor 0.06 %) that a uniform gain of 0.07 % already reads as block
+    structure (raw block ratio/expected 1.34-1.67). That gain is Cycles
+    filtering the table's 8-bit sRGB texture before decoding it (-0.07 % of the
+    table's mean albedo, measured in check_blender.py). Bias removed, the block
+    ratio/expected is 1.11-1.36 (the filtering is the table's only, so not all
+    of it goes); the moved-light self-test shows the block test still bites.
+
+Measured (bpy 5.0.1, tabletop geometry, 128x96, 512 spp): bias -0.05..-0.08 %,
+pixel ratio/expected 1.09-1.11, block ratio/expected 1.11-1.36 after the bias;
+Blender's importer made 986.17 W and 268.62 W point lights (= cd x 4 pi / 683).
 
 The way back (unless --no-export): `lightprobe estimate lit.glb --model
 spheres:2` writes spheres/scene.glb, the scene with the fitted lights as
@@ -35,9 +47,11 @@ renders it; judged as in 5. This checks the export, not the fit: both sides
 render the same file.
 
 Self-test (unless --no-self-test): at --self-test-spp, Blender renders the
-lights as imported (the control, must PASS) and with every light's energy x
-1.03 and x 1/1.03 (a 3 % unit error, must FAIL in every view): the check tells
-apart a conversion off by 3 %, let alone by pi or 4 pi.
+lights as imported (the control, must PASS), with every light's energy x 1.03
+and x 1/1.03 (a 3 % unit error), and with every light moved 4 cm along x (a
+position error of about 1 % of its distance): each must FAIL in every view. So
+the check tells apart a conversion off by 3 %, let alone by pi or 4 pi, and a
+light in the wrong place.
 
 Usage:
   bash scripts/setup-blender-venv.sh         # once: .venv-blender (bpy 5.0.1)
@@ -70,7 +84,9 @@ LIGHTS = [
     ("fill", (2.5, 1.8, -1.5), (0.75, 0.85, 1.0), 14600.0),
 ]
 LUMENS_PER_WATT = 683.0
-ENERGY_ERRORS = {"energy_x1.03": 1.03, "energy_x1/1.03": 1 / 1.03}
+# Self-test errors: a light's power off by 3 %, or every light 4 cm off (glTF axes).
+ERRORS = {"energy_x1.03": {"energy_scale": 1.03}, "energy_x1/1.03": {"energy_scale": 1 / 1.03},
+          "moved_4cm": {"light_offset": [0.04, 0.0, 0.0]}}
 
 
 def log(msg: str = "") -> None:
@@ -97,6 +113,23 @@ def glb_with_lights(src: Path, dst: Path) -> None:
     js += b" " * (-len(js) % 4)
     body = struct.pack("<I4s", len(js), b"JSON") + js + rest
     dst.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+
+
+def judge(cm, img, ref, ref2, img2, mask, spp) -> dict:
+    """check_mitsuba.judge(), its pixel and block ratios taken on `img` with its global
+    per-channel bias divided out (the bias is judged as measured; see the docstring)."""
+    raw = cm.judge(img, ref, ref2, img2, mask, spp)
+    gain = 1.0 + np.array(raw["bias"], dtype=np.float32)
+
+    def debias(a):
+        return np.concatenate([a[..., :3] / gain, a[..., 3:]], axis=-1)
+
+    m = cm.judge(debias(img), ref, ref2, debias(img2), mask, spp)
+    m["fails"] = ([f for f in raw["fails"] if f.startswith("bias")]
+                  + [f for f in m["fails"] if not f.startswith("bias")])
+    m["bias"], m["pass"] = raw["bias"], not m["fails"]
+    m["raw_block_ratio_over_expected"] = raw["block_ratio"] / raw["block_ratio_expected"]
+    return m
 
 
 def main() -> int:
@@ -178,10 +211,10 @@ def main() -> int:
 
     renders = [{"envmap": None, "view": v, "seed": s, "spp": args.spp,
                 "out": str(bdir / f"{v}_seed{s}.exr")} for v in views for s in (0, 1)]
-    tests = [("control", 1.0)] + list(ENERGY_ERRORS.items()) if args.self_test else []
-    for name, scale in tests:
-        renders += [{"envmap": None, "view": v, "seed": s, "spp": args.self_test_spp,
-                     "energy_scale": scale, "out": str(bdir / f"selftest_{name}_{v}_seed{s}.exr")}
+    tests = [("control", {})] + list(ERRORS.items()) if args.self_test else []
+    for name, error in tests:
+        renders += [{"envmap": None, "view": v, "seed": s, "spp": args.self_test_spp, **error,
+                     "out": str(bdir / f"selftest_{name}_{v}_seed{s}.exr")}
                     for v in views for s in (20, 21)]
     t = time.time()
     brep = blender("lit", glb, renders)
@@ -220,12 +253,14 @@ def main() -> int:
             b0, b1 = (read_rgba(bdir / f"{b_prefix}{v}_seed{s}.exr") for s in (0, 1))
             mask = lp1[..., 3] > 0
             refs.setdefault(tag, {})[v] = (lp1, lp2, mask)
-            m = cm.judge(b0, lp1, lp2, b1, mask, args.spp)
+            m = judge(cm, b0, lp1, lp2, b1, mask, args.spp)
             cm.side_by_side(work / f"side_{tag}_{v}.png", lp1, b0, mask)
             log(f"\n[{tag}] {v}: {int(mask.sum())} masked pixels; masked mean RGB lightprobe "
                 f"{np.round(lp1[mask][:, :3].mean(0), 5).tolist()}  Blender "
                 f"{np.round(b0[mask][:, :3].mean(0), 5).tolist()}")
             cm.print_metrics(m)
+            log(f"    (ratios above with the bias divided out; raw block ratio/expected "
+                f"{m['raw_block_ratio_over_expected']:.3f})")
             results.setdefault(tag, {})[v] = {
                 k: m[k] for k in ("rel_mae", "floor", "ratio", "ratio_expected", "bias", "block",
                                   "block_ratio", "block_ratio_expected", "pass")}
@@ -271,14 +306,16 @@ def main() -> int:
     if args.self_test:
         st_ok = True
         log(f"\nSELF-TEST at {args.self_test_spp} spp (Blender seeds 20, 21): the control must "
-            f"PASS, every mis-scaled light energy must FAIL in every view")
+            f"PASS, every mis-scaled or moved light must FAIL in every view")
         for name, _ in tests:
             for v in views:
                 lp1, lp2, mask = refs["lit"][v]
                 a, b = (read_rgba(bdir / f"selftest_{name}_{v}_seed{s}.exr") for s in (20, 21))
-                m = cm.judge(a, lp1, lp2, b, mask, args.self_test_spp)
+                m = judge(cm, a, lp1, lp2, b, mask, args.self_test_spp)
                 log(f"  {name:16s} {v:10s} bias {cm.fmt_pct(m['bias'])} pixel ratio/exp "
-                    f"{m['ratio'] / m['ratio_expected']:.3f} -> {'PASS' if m['pass'] else 'FAIL'}")
+                    f"{m['ratio'] / m['ratio_expected']:.3f} block ratio/exp "
+                    f"{m['block_ratio'] / m['block_ratio_expected']:.3f} -> "
+                    f"{'PASS' if m['pass'] else 'FAIL'}")
                 results.setdefault("self_test", {}).setdefault(name, {})[v] = m["pass"]
                 if m["pass"] != (name == "control"):
                     st_ok = False

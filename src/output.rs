@@ -10,6 +10,9 @@
 //! OUT/spheres/lights.ron      the sphere-light model as a sidecar fragment, its re-renders,
 //!                             and background.ron/.exr when an envmap is behind the lights
 //! OUT/spheres/scene.glb       the scene's glTF with the sphere lights as KHR point lights
+//! OUT/lights.usda, spheres/lights.usda
+//!                             USD stages of the lights: a DomeLight of <envmap>_usd.exr
+//!                             (OpenEXR's lat-long convention), SphereLights
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -58,24 +61,42 @@ pub fn write_estimate(
         let note = envmap_note("envmap", env);
         export::write_with_lights(gltf, dir, &[], Some(&note))?;
     }
+    write_usd(dir, &[], Some(("envmap", env)))?;
     if !estimate.envmap.renders.is_empty() {
         write_renders(&dir.join("estimate"), &estimate.envmap.renders, seen)?;
     }
     if let Some(so) = &estimate.spheres {
         let spheres = dir.join("spheres");
         write_spheres(&spheres, so, seen)?;
+        let lights = so.fit.lights();
+        let background = so.fit.background.as_ref();
         if let Some(gltf) = gltf {
-            let note = so
-                .fit
-                .background
-                .as_ref()
-                .map(|bg| envmap_note("background", bg));
-            export::write_with_lights(gltf, &spheres, &so.fit.lights(), note.as_ref())?;
+            let note = background.map(|bg| envmap_note("background", bg));
+            export::write_with_lights(gltf, &spheres, &lights, note.as_ref())?;
         }
+        write_usd(&spheres, &lights, background.map(|bg| ("background", bg)))?;
     }
     estimate.report.timings.total_seconds = started.elapsed().as_secs_f64();
     write_report(dir, &estimate.report)?;
     Ok(())
+}
+
+/// `lights.usda` in `dir`: the lights, and a dome of the envmap `(name, env)` written beside it
+/// as `<name>_usd.exr` in OpenEXR's lat-long convention, which USD's DomeLight adopts.
+fn write_usd(
+    dir: &Path,
+    lights: &[crate::scene::SphereLight],
+    dome: Option<(&str, &Envmap)>,
+) -> Result<()> {
+    let file = dome.map(|(name, _)| format!("{name}_usd.exr"));
+    if let (Some((_, env)), Some(file)) = (dome, &file) {
+        imageio::write_latlong_exr(
+            &dir.join(file),
+            &latlong::export(env, Target::Usd, Filter::Box, LATLONG_WIDTH),
+        )?;
+    }
+    let text = export::usda(lights, file.as_deref());
+    imageio::write_bytes(&dir.join("lights.usda"), text.as_bytes())
 }
 
 /// How an export names the envmap written as `<name>.ron` and `.exr` beside it.

@@ -56,6 +56,8 @@ cli_enum!(TargetArg => Target {
     Blender,
     /// pbrt-v3's lat-long infinite light (Z up, same axis change as Blender's importer).
     PbrtV3,
+    /// USD's DomeLight (texture format latlong, stage +Y up): OpenEXR's lat-long map.
+    Usd,
 });
 cli_enum!(FilterArg => Filter {
     /// The cell under each pixel centre.

@@ -28,6 +28,10 @@ pub enum Target {
     Mitsuba,
     Blender,
     PbrtV3,
+    /// OpenEXR's lat-long map, which USD's DomeLight (texture format `latlong`, stage +Y up)
+    /// adopts: the first and last rows are the poles, the first and last columns both
+    /// longitude ±π (−Z), longitude 0 is +Z and π/2 is +X.
+    Usd,
 }
 
 /// How pixels sample the piecewise-constant map.
@@ -42,19 +46,22 @@ pub enum Filter {
 
 /// The grid angles of a pixel centre: θ from +Y and φ = atan2(x, −z) in [0, 2π) (see
 /// [`super::grid`]). Blender's azimuth a = atan2(z, x) is φ − π/2, pbrt-v3's atan2(−z, x) is
-/// π/2 − φ. Export and import look cells up from these directly: no inverse trigonometry.
+/// π/2 − φ, OpenEXR's longitude atan2(x, z) is π − φ (column j at π − 2πj/(W−1)). Export and
+/// import look cells up from these directly: no inverse trigonometry.
 pub fn pixel_angles(target: Target, width: u32, height: u32, col: u32, row: u32) -> (f64, f64) {
     let u = (col as f64 + 0.5) / width as f64;
     let centred = (row as f64 + 0.5) * PI / height as f64;
+    let pole_to_pole = if height > 1 {
+        row as f64 * PI / (height - 1) as f64
+    } else {
+        PI / 2.0
+    };
     match target {
-        Target::Mitsuba => {
-            let theta = if height > 1 {
-                row as f64 * PI / (height - 1) as f64
-            } else {
-                PI / 2.0
-            };
-            (theta, TAU * u)
-        }
+        Target::Mitsuba => (pole_to_pole, TAU * u),
+        Target::Usd => (
+            pole_to_pole,
+            (TAU * col as f64 / (width - 1).max(1) as f64).rem_euclid(TAU),
+        ),
         Target::Blender => (centred, (PI / 2.0 + TAU * (u - 0.5)).rem_euclid(TAU)),
         Target::PbrtV3 => (centred, (PI / 2.0 - TAU * u).rem_euclid(TAU)),
     }
@@ -69,7 +76,7 @@ pub fn pixel_direction(target: Target, width: u32, height: u32, col: u32, row: u
 /// The solid angle a pixel row stands for (per pixel), for area-weighted averages.
 fn pixel_solid_angle(target: Target, width: u32, height: u32, row: u32) -> f64 {
     let (lo, hi) = match target {
-        Target::Mitsuba => {
+        Target::Mitsuba | Target::Usd => {
             let d = PI / (height - 1).max(1) as f64;
             let t = row as f64 * d;
             ((t - 0.5 * d).max(0.0), (t + 0.5 * d).min(PI))
@@ -176,7 +183,7 @@ mod tests {
 
     #[test]
     fn export_then_import_gives_back_the_cells() {
-        for target in [Target::Mitsuba, Target::Blender, Target::PbrtV3] {
+        for target in [Target::Mitsuba, Target::Blender, Target::PbrtV3, Target::Usd] {
             for rings in [1, 2, 5, 9, 21] {
                 let env = varied(rings);
                 let img = export(&env, target, Filter::Box, 512);
@@ -210,6 +217,16 @@ mod tests {
     #[test]
     fn mitsuba_rows_are_poles_and_columns_follow_u() {
         let (w, h) = (64, 32);
+        // OpenEXR / USD: longitude atan2(x, z) = π − 2πj/(W−1), latitude from +π/2 at row 0.
+        for (col, row) in [(0, 3), (7, 2), (11, 5), (23, 6)] {
+            let d = pixel_direction(Target::Usd, 24, 12, col, row);
+            let lon = d.x.atan2(d.z);
+            let want = PI - TAU * col as f64 / 23.0;
+            let dl = (lon - want).rem_euclid(TAU);
+            assert!(dl.min(TAU - dl) < 1e-9, "column {col}: {lon} vs {want}");
+            let lat = d.y.asin();
+            assert!((lat - (PI / 2.0 - PI * row as f64 / 11.0)).abs() < 1e-9);
+        }
         assert!((pixel_direction(Target::Mitsuba, w, h, 5, 0) - DVec3::Y).length() < 1e-12);
         assert!((pixel_direction(Target::Mitsuba, w, h, 5, h - 1) + DVec3::Y).length() < 1e-12);
         // u = atan2(x, −z) / 2π: the column at u = 0.25 (+X) on the horizon row.

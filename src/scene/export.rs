@@ -121,6 +121,30 @@ fn external_uris(doc: &Value) -> Vec<String> {
         .collect()
 }
 
+/// A USD stage (`.usda`, +Y up, metres, as glTF) of the lights: each sphere light a
+/// `SphereLight` at its centre (`inputs:radius`; `inputs:color` × `inputs:intensity` = its
+/// radiance, `normalize` off, exposure 0), and with `dome` (the lat-long EXR in OpenEXR's
+/// convention, relative to the stage) a `DomeLight` of intensity 1.
+pub fn usda(lights: &[SphereLight], dome: Option<&str>) -> String {
+    let mut s = String::from(
+        "#usda 1.0\n(\n    doc = \"Lights estimated by lightprobe: linear RGB radiance, W/(sr m^2); SphereLight color x intensity is the sphere's radiance (normalize off)\"\n    metersPerUnit = 1\n    upAxis = \"Y\"\n    defaultPrim = \"Lights\"\n)\n\ndef Xform \"Lights\"\n{\n",
+    );
+    if let Some(file) = dome {
+        s += &format!(
+            "    def DomeLight \"Environment\"\n    {{\n        asset inputs:texture:file = @{file}@\n        token inputs:texture:format = \"latlong\"\n        float inputs:intensity = 1\n        float inputs:exposure = 0\n        color3f inputs:color = (1, 1, 1)\n    }}\n"
+        );
+    }
+    for (k, l) in lights.iter().enumerate() {
+        let peak = l.radiance.max_element().max(0.0);
+        let c = if peak > 0.0 { l.radiance / peak } else { glam::Vec3::ONE };
+        s += &format!(
+            "    def SphereLight \"Light{k}\"\n    {{\n        float inputs:radius = {}\n        float inputs:intensity = {peak}\n        float inputs:exposure = 0\n        color3f inputs:color = ({}, {}, {})\n        bool inputs:normalize = 0\n        double3 xformOp:translate = ({}, {}, {})\n        uniform token[] xformOpOrder = [\"xformOp:translate\"]\n    }}\n",
+            l.radius, c.x, c.y, c.z, l.center.x, l.center.y, l.center.z
+        );
+    }
+    s + "}\n"
+}
+
 /// A sphere light as a KHR_lights_punctual point light: colour = intensity over its largest
 /// channel, `intensity` = that channel × 683 candela, the radius in `extras`.
 pub fn punctual_light(k: usize, l: &SphereLight) -> Value {
