@@ -183,7 +183,12 @@ mod tests {
 
     #[test]
     fn export_then_import_gives_back_the_cells() {
-        for target in [Target::Mitsuba, Target::Blender, Target::PbrtV3, Target::Usd] {
+        for target in [
+            Target::Mitsuba,
+            Target::Blender,
+            Target::PbrtV3,
+            Target::Usd,
+        ] {
             for rings in [1, 2, 5, 9, 21] {
                 let env = varied(rings);
                 let img = export(&env, target, Filter::Box, 512);

@@ -136,7 +136,11 @@ pub fn usda(lights: &[SphereLight], dome: Option<&str>) -> String {
     }
     for (k, l) in lights.iter().enumerate() {
         let peak = l.radiance.max_element().max(0.0);
-        let c = if peak > 0.0 { l.radiance / peak } else { glam::Vec3::ONE };
+        let c = if peak > 0.0 {
+            l.radiance / peak
+        } else {
+            glam::Vec3::ONE
+        };
         s += &format!(
             "    def SphereLight \"Light{k}\"\n    {{\n        float inputs:radius = {}\n        float inputs:intensity = {peak}\n        float inputs:exposure = 0\n        color3f inputs:color = ({}, {}, {})\n        bool inputs:normalize = 0\n        double3 xformOp:translate = ({}, {}, {})\n        uniform token[] xformOpOrder = [\"xformOp:translate\"]\n    }}\n",
             l.radius, c.x, c.y, c.z, l.center.x, l.center.y, l.center.z
