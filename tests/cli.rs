@@ -419,6 +419,12 @@ fn cases() -> Vec<Case> {
             "spp must be",
         ),
         c(
+            "scenarios from a glTF",
+            vec![("scene.glb", glb.clone())],
+            &vec!["scenarios", "--scene", "{d}/scene.glb", "--out", "{d}/out"],
+            "scene.glb: is a glTF; scenarios copy a sidecar with new lights",
+        ),
+        c(
             "missing glb",
             vec![(
                 "scene.ron",

@@ -89,6 +89,12 @@ pub fn scenarios(a: ScenariosArgs) -> anyhow::Result<()> {
     }
     let scene = Scene::load(&a.scene)?;
     let list = scenarios::generate(&scene, a.count, a.seed)?;
+    // Written after the folder is prepared, but made before: a template that cannot be one
+    // fails here and leaves no folder.
+    let texts = list
+        .iter()
+        .map(|sc| scenarios::sidecar_text(&a.scene, sc, &a.out))
+        .collect::<lightprobe::Result<Vec<_>>>()?;
     let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
     // A folder left with sNN.ron files of a larger set would mix two sets in a sweep.
     let ours: Vec<String> = list.iter().map(|s| format!("{}.ron", s.name)).collect();
@@ -107,8 +113,7 @@ pub fn scenarios(a: ScenariosArgs) -> anyhow::Result<()> {
             );
         }
     }
-    for sc in &list {
-        let text = scenarios::sidecar_text(&a.scene, sc, &a.out)?;
+    for (sc, text) in list.iter().zip(&texts) {
         imageio::write_bytes(&a.out.join(format!("{}.ron", sc.name)), text.as_bytes())?;
     }
     let manifest = json!({

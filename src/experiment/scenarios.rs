@@ -195,6 +195,12 @@ pub fn relative_path(target: &Path, from: &Path) -> Result<PathBuf> {
 /// The sidecar text of `scenario`: the template's scene, views and settings (its paths made
 /// relative to `out_dir`), with the scenario's lights.
 pub fn sidecar_text(template: &Path, scenario: &Scenario, out_dir: &Path) -> Result<String> {
+    if crate::scene::is_gltf(template) {
+        return Err(Error::file(
+            template,
+            "is a glTF; scenarios copy a sidecar with new lights: write a sidecar (.ron) that names it",
+        ));
+    }
     let mut sc = Sidecar::load(template)?;
     let base = Sidecar::base_dir(template);
     sc.gltf = relative_path(&base.join(&sc.gltf), out_dir)?;
