@@ -755,7 +755,7 @@ fn cases() -> Vec<Case> {
                 "--quiet",
             ]
             .to_vec(),
-            "--views: \"cam_side\" is listed twice",
+            "view \"cam_side\" is listed twice in the views asked for",
         ),
         c(
             "estimate where no view sees geometry",
@@ -926,7 +926,7 @@ fn cases() -> Vec<Case> {
                 "--quiet",
             ]
             .to_vec(),
-            "ref: has no reference for view \"cam_side\": expected cam_side.exr, .hdr, .png or .jpg",
+            "ref: has no reference for view \"cam_side\": expected cam_side.exr, .hdr, .png, .jpg or .jpeg",
         ),
         c(
             "compare exr without RGB channels",
@@ -1287,7 +1287,7 @@ fn estimate_leaves_out_a_view_that_sees_nothing() {
         "{err}"
     );
     assert!(
-        err.contains("has zero alpha (coverage) everywhere"),
+        err.contains("leaves no pixel to fit (zero alpha, saturated or masked out everywhere)"),
         "{err}"
     );
 }
@@ -1797,7 +1797,7 @@ fn estimate_views_picks_the_views_it_fits() {
     assert!(out.join("reference/cam_side.exr").exists());
     assert!(!out.join("reference/cam_front.exr").exists());
     for (views, expect) in [
-        ("cam_top", "\"cam_top\" is not a view of"),
+        ("cam_top", "\"cam_top\" is not a perspective camera node of"),
         ("cam_side,cam_side", "listed twice"),
     ] {
         let o = run(views);

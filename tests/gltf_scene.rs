@@ -514,3 +514,156 @@ fn a_glb_is_written_back_as_a_glb_with_its_binary_chunk() {
         assert_eq!(a[k], b[k], "{k}");
     }
 }
+
+/// `lit_scene`'s JSON as a GLB without a binary chunk (its buffer stays in `lit.bin`).
+fn as_glb_with_external_buffer(gltf: &Path) -> PathBuf {
+    let mut json = std::fs::read(gltf).unwrap();
+    json.resize(json.len().next_multiple_of(4), b' ');
+    let mut out = Vec::new();
+    out.extend(b"glTF");
+    out.extend(2u32.to_le_bytes());
+    out.extend((20 + json.len() as u32).to_le_bytes());
+    out.extend((json.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(&json);
+    let path = gltf.with_extension("glb");
+    std::fs::write(&path, out).unwrap();
+    path
+}
+
+#[test]
+fn outputs_stay_where_they_belong() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path();
+    let scene = lit(d);
+    // A camera whose name would write outside the output folder, or over another view's
+    // files, is refused by name.
+    let text = std::fs::read_to_string(&scene).unwrap();
+    for (name, needle) in [
+        ("../evil", "cannot name a view's files"),
+        ("", "cannot name a view's files"),
+        ("front.error", "would write over each other's files"),
+    ] {
+        let bad = d.join("bad.gltf");
+        std::fs::write(&bad, text.replace("\"side\"", &format!("{name:?}"))).unwrap();
+        let err = fails(&run(&["info", bad.to_str().unwrap()]));
+        assert!(
+            err.contains("bad.gltf") && err.contains(needle),
+            "{name}: {err}"
+        );
+    }
+    // `estimate` refuses to write its glTF over the scene it read.
+    let glb = as_glb_with_external_buffer(&scene);
+    let copy = d.join("scene.glb");
+    std::fs::copy(&glb, &copy).unwrap();
+    let before = std::fs::read(&copy).unwrap();
+    let err = fails(&run(&[
+        "estimate",
+        copy.to_str().unwrap(),
+        "--height",
+        "12",
+        "--spp",
+        "4",
+        "--rings",
+        "3",
+        "--fit-only",
+        "--out",
+        d.to_str().unwrap(),
+        "--quiet",
+    ]));
+    assert!(
+        err.contains("would write") && err.contains("scene.glb"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&copy).unwrap(), before);
+    // A GLB that refers to an outside buffer is written back with a copy of it.
+    let out = d.join("out");
+    ok(&run(&[
+        "estimate",
+        glb.to_str().unwrap(),
+        "--height",
+        "12",
+        "--spp",
+        "4",
+        "--rings",
+        "3",
+        "--fit-only",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]));
+    assert!(out.join("lit.bin").exists());
+    let back = info(&[out.join("scene.glb").to_str().unwrap(), "--height", "12"]);
+    assert_eq!(back["triangles"], 14);
+    // Point lights are out of reach of BSDF sampling alone: said, not rendered black.
+    let err = fails(&run(&[
+        "render-reference",
+        scene.to_str().unwrap(),
+        "--height",
+        "12",
+        "--strategy",
+        "bsdf-only",
+        "--out",
+        d.join("bsdf").to_str().unwrap(),
+    ]));
+    assert!(err.contains("only light sampling reaches"), "{err}");
+    assert!(!d.join("bsdf").exists());
+    // A light beyond what can be rendered is refused, naming it.
+    let hot = lit_scene(
+        d,
+        &[r#"{"type": "point", "name": "sun", "intensity": 1e30}"#],
+        &[[0.0, 2.0, 0.0]],
+    );
+    let err = fails(&run(&["info", hot.to_str().unwrap()]));
+    assert!(
+        err.contains("\"sun\"") && err.contains("beyond the 1e15"),
+        "{err}"
+    );
+}
+
+#[test]
+fn references_are_found_as_cameras_name_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = lit(tmp.path());
+    let s = scene.to_str().unwrap();
+    let refs = tmp.path().join("refs");
+    ok(&run(&[
+        "render-reference",
+        s,
+        "--height",
+        "12",
+        "--spp",
+        "8",
+        "--out",
+        refs.to_str().unwrap(),
+        "--quiet",
+    ]));
+    // `FRONT.EXR`-style capitals: the extension in capitals is found.
+    for v in ["front", "side"] {
+        std::fs::rename(refs.join(format!("{v}.exr")), refs.join(format!("{v}.EXR"))).unwrap();
+        std::fs::remove_file(refs.join(format!("{v}.png"))).unwrap();
+    }
+    ok(&run(&[
+        "estimate",
+        s,
+        "--reference",
+        refs.to_str().unwrap(),
+        "--spp",
+        "4",
+        "--rings",
+        "3",
+        "--fit-only",
+        "--out",
+        tmp.path().join("o").to_str().unwrap(),
+        "--quiet",
+    ]));
+    // --linear and --saturation mean nothing without references: refused.
+    let o = run(&[
+        "estimate",
+        s,
+        "--linear",
+        "--out",
+        tmp.path().join("p").to_str().unwrap(),
+    ]);
+    assert_eq!(o.status.code(), Some(2));
+}

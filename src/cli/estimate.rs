@@ -65,7 +65,7 @@ pub struct Args {
     #[arg(long, short)]
     out: PathBuf,
     /// Folder of references named <view>.exr (RGB or RGBA, half or float; alpha = coverage),
-    /// <view>.hdr (Radiance), or <view>.png / .jpg (8 or 16 bit, sRGB unless --linear), the
+    /// <view>.hdr (Radiance), or <view>.png / .jpg / .jpeg (8 or 16 bit, sRGB unless --linear), the
     /// first of these that exists, with an optional <view>.mask.png (black = left out). They also set the views' image size
     /// when neither the sidecar nor --height does (default: render them from the scene's
     /// lights into OUT/reference/).
@@ -73,15 +73,12 @@ pub struct Args {
     reference: Option<PathBuf>,
     /// 8- and 16-bit references (PNG, JPEG) hold linear values (default: sRGB-encoded, as
     /// cameras write them).
-    #[arg(long)]
+    #[arg(long, requires = "reference")]
     linear: bool,
     /// Leave out reference pixels with any channel at or above this radiance (saturated);
     /// 8- and 16-bit references always lose the pixels at their format's maximum.
-    #[arg(long, value_parser = parse_saturation)]
+    #[arg(long, value_parser = parse_saturation, requires = "reference")]
     saturation: Option<f32>,
-    /// Only these views (comma-separated camera node names; default: the sidecar's).
-    #[arg(long, value_delimiter = ',')]
-    views: Vec<String>,
     /// Rings of the envmap (default: the sidecar's), or `auto`: fit each of
     /// --rings-candidates on three quarters of the pixels and take the smallest whose error
     /// on the held-out quarter is within one standard error of the best.
@@ -206,7 +203,6 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let t_all = Instant::now();
     let mut scene = a.scene.load()?;
     let path = &a.scene.scene;
-    super::keep_views(&mut scene, &a.views, path)?;
     if let Some(dir) = a.reference.as_ref().filter(|_| !scene.size_given) {
         let found = lightprobe::estimate::pipeline::reference_sizes(dir, &scene.cameras)?;
         let sizes: Vec<_> = found.iter().map(|f| f.0).collect();
@@ -241,6 +237,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             false => "; use fewer rings",
         },
     )?;
+    // The glTF written back must not land on the scene it came from.
+    let written = lightprobe::scene::export::written_name(&scene.gltf);
+    for dir in [a.out.clone(), a.out.join("spheres")] {
+        let target = dir.join(written);
+        if same_file(&target, &scene.gltf) {
+            anyhow::bail!(
+                "{}: --out {} would write {} over it; pick another --out",
+                scene.gltf.display(),
+                a.out.display(),
+                target.display()
+            );
+        }
+    }
     let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
     let render = RenderSettings::from_scene(&scene.settings);
     let true_lights = Lights::new(scene.lights.clone());
@@ -314,6 +323,14 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// Whether two paths name one existing file.
+fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    }
 }
 
 /// The summary lines of a report, each saying which model its figures belong to.

@@ -177,6 +177,10 @@ pub struct SceneArgs {
     /// the references' size (estimate --reference); else 480.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=lightprobe::scene::sidecar::MAX_IMAGE_SIDE as i64))]
     pub height: Option<u32>,
+    /// Only these views, in this order (comma-separated camera node names; default: the
+    /// sidecar's `views`, else every camera).
+    #[arg(long, value_delimiter = ',')]
+    pub views: Vec<String>,
 }
 
 impl SceneArgs {
@@ -187,11 +191,12 @@ impl SceneArgs {
             &self.scene,
             lightprobe::scene::LoadOptions {
                 height: self.height,
+                views: self.views.clone(),
             },
         )?;
         for i in &scene.ignored {
             say(&format!(
-                "lightprobe: note: {}: {} is rendered Lambertian; left out: {}",
+                "lightprobe: note: {}: {}: left out of lightprobe's Lambertian model: {}",
                 self.scene.display(),
                 i.what,
                 i.properties.join("; ")
@@ -199,24 +204,6 @@ impl SceneArgs {
         }
         Ok(scene)
     }
-}
-
-/// Keeps only the views `--views` names (all when it names none).
-pub fn keep_views(
-    scene: &mut lightprobe::scene::Scene,
-    views: &[String],
-    path: &std::path::Path,
-) -> anyhow::Result<()> {
-    use lightprobe::scene::PickError;
-    if views.is_empty() {
-        return Ok(());
-    }
-    scene.keep_views(views).map_err(|e| match e {
-        PickError::Twice(v) => anyhow::anyhow!("--views: {v:?} is listed twice"),
-        PickError::Missing(v) => {
-            anyhow::anyhow!("--views: {v:?} is not a view of {}", path.display())
-        }
-    })
 }
 
 /// Refuses a job that needs more than the memory budget allows (`lightprobe::memory`);

@@ -45,9 +45,6 @@ pub struct Args {
     /// Leave out the scene's sphere and point lights (e.g. to light with --envmap alone).
     #[arg(long)]
     no_sphere_lights: bool,
-    /// Only these views (comma-separated camera node names; default: the sidecar's).
-    #[arg(long, value_delimiter = ',')]
-    views: Vec<String>,
     /// Also write geometry buffers at pixel centres: depth (metres), normal (world), albedo.
     #[arg(long, value_delimiter = ',', value_parser = ["depth", "normal", "albedo"])]
     aov: Vec<String>,
@@ -61,7 +58,7 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let t_load = Instant::now();
-    let mut scene = a.scene.load()?;
+    let scene = a.scene.load()?;
     let mut settings = RenderSettings::from_scene(&scene.settings);
     if let Some(spp) = a.spp {
         settings.spp = spp;
@@ -79,7 +76,6 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     settings.strategy = a.strategy.into();
     settings.hide_emitters = !a.show_emitters;
-    super::keep_views(&mut scene, &a.views, &a.scene.scene)?;
     let mut lights = Lights::new(if a.no_sphere_lights {
         Vec::new()
     } else {
@@ -88,6 +84,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if let Some(p) = &a.envmap {
         lights.env = Some(Envmap::load(p)?);
     }
+    anyhow::ensure!(
+        !(settings.strategy == lightprobe::render::Strategy::BsdfOnly
+            && lights.spheres.iter().any(|l| l.is_point())),
+        "{}: has point lights, which only light sampling reaches: use --strategy mis or light-only",
+        a.scene.scene.display()
+    );
     anyhow::ensure!(
         !lights.is_empty(),
         "{}: nothing lights the scene (no sphere or point lights and no --envmap)",

@@ -250,7 +250,7 @@ pub fn observe<'a>(
     let why = match &references {
         References::Render => "it sees no scene geometry".to_string(),
         References::Folder(dir, _) => format!(
-            "its reference in {} has zero alpha (coverage) everywhere",
+            "its reference in {} leaves no pixel to fit (zero alpha, saturated or masked out everywhere)",
             dir.display()
         ),
         References::Images(_) => "its reference has zero alpha (coverage) everywhere".into(),

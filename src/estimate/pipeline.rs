@@ -73,15 +73,17 @@ pub fn load_references(
 /// [`imageio::PHOTO_EXTENSIONS`] (EXR first: `render-reference` writes a PNG preview beside
 /// each EXR).
 pub fn reference_path(dir: &Path, cam: &Camera) -> Result<std::path::PathBuf> {
+    // Each extension as written here and in capitals, as cameras write them (`.JPG`).
     imageio::PHOTO_EXTENSIONS
         .iter()
+        .flat_map(|e| [e.to_string(), e.to_ascii_uppercase()])
         .map(|e| dir.join(format!("{}.{e}", cam.name)))
         .find(|p| p.is_file())
         .ok_or_else(|| {
             Error::file(
                 dir,
                 format!(
-                    "has no reference for view {:?}: expected {0}.exr, .hdr, .png or .jpg",
+                    "has no reference for view {:?}: expected {0}.exr, .hdr, .png, .jpg or .jpeg",
                     cam.name
                 ),
             )

@@ -37,32 +37,49 @@ pub fn write_with_lights(
 ) -> Result<PathBuf> {
     let bytes = crate::memory::read_input(source)?;
     let bad = |why: String| Error::file(source, format!("cannot be written back: {why}"));
-    if bytes.starts_with(b"glTF") {
-        let (json, bin) = glb_chunks(&bytes).map_err(bad)?;
-        let mut doc: Value = serde_json::from_slice(json).map_err(|e| bad(e.to_string()))?;
-        put_lights(&mut doc, lights, envmap).map_err(bad)?;
-        let out = dir.join("scene.glb");
-        crate::imageio::write_bytes(&out, &glb(&doc, bin))?;
-        Ok(out)
+    let glb_source = bytes.starts_with(b"glTF");
+    let (json, bin) = if glb_source {
+        glb_chunks(&bytes).map_err(bad)?
     } else {
-        let mut doc: Value = serde_json::from_slice(&bytes).map_err(|e| bad(e.to_string()))?;
-        put_lights(&mut doc, lights, envmap).map_err(bad)?;
-        let from = source.parent().unwrap_or(Path::new(""));
-        for uri in external_uris(&doc) {
-            // The loader refused URIs that leave the source's folder; they stay inside `dir`.
-            let rel = percent_decode(&uri);
-            let target = dir.join(&rel);
-            if let Some(parent) = target.parent() {
-                std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
-            }
-            let data = crate::memory::read_input(&from.join(&rel))?;
-            crate::imageio::write_bytes(&target, &data)?;
+        (&bytes[..], &[][..])
+    };
+    let mut doc: Value = serde_json::from_slice(json).map_err(|e| bad(e.to_string()))?;
+    put_lights(&mut doc, lights, envmap).map_err(bad)?;
+    // Files the source refers to go beside the copy (a GLB may refer to some too). The loader
+    // refused URIs that leave the source's folder, so they stay inside `dir`.
+    let from = source.parent().unwrap_or(Path::new(""));
+    for uri in external_uris(&doc) {
+        let rel = percent_decode(&uri);
+        let target = dir.join(&rel);
+        if let Some(parent) = target.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
         }
-        let out = dir.join("scene.gltf");
+        let data = crate::memory::read_input(&from.join(&rel))?;
+        crate::imageio::write_bytes(&target, &data)?;
+    }
+    let out = dir.join(written_name(source));
+    if glb_source {
+        crate::imageio::write_bytes(&out, &glb(&doc, bin))?;
+    } else {
         let text = serde_json::to_string_pretty(&doc).map_err(|e| bad(e.to_string()))?;
         crate::imageio::write_bytes(&out, text.as_bytes())?;
-        Ok(out)
     }
+    Ok(out)
+}
+
+/// The name [`write_with_lights`] gives the copy of `source`: `scene.glb` for binary glTF,
+/// `scene.gltf` for JSON (as the file's first bytes say; unreadable: by its extension).
+pub fn written_name(source: &Path) -> &'static str {
+    let mut head = [0u8; 4];
+    let glb = match std::fs::File::open(source)
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
+    {
+        Ok(()) => &head == b"glTF",
+        Err(_) => source
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("glb")),
+    };
+    if glb { "scene.glb" } else { "scene.gltf" }
 }
 
 /// The JSON and (if any) binary chunk of a GLB.
@@ -212,8 +229,15 @@ fn put_lights(
                 "extensions": { EXT: { "light": k } },
             }));
         }
-    } else if let Some(ext) = root.get_mut("extensions").and_then(Value::as_object_mut) {
-        ext.remove(EXT);
+    } else {
+        if let Some(ext) = root.get_mut("extensions").and_then(Value::as_object_mut) {
+            ext.remove(EXT);
+        }
+        for key in ["extensionsUsed", "extensionsRequired"] {
+            if let Some(list) = root.get_mut(key).and_then(Value::as_array_mut) {
+                list.retain(|u| u != EXT);
+            }
+        }
     }
     let scenes = root
         .get_mut("scenes")

@@ -439,6 +439,15 @@ fn punctual_light(
         ));
     }
     let intensity = color * (cd / LUMENS_PER_WATT);
+    if intensity.max_element() > crate::imageio::MAX_RADIANCE {
+        return Err(Error::file(
+            path,
+            format!(
+                "{what} has intensity {cd} cd: {} W/sr, beyond the 1e15 lightprobe renders",
+                intensity.max_element()
+            ),
+        ));
+    }
     let radius = match extras_radius(light.extras()).or_else(|| extras_radius(node.extras())) {
         None => 0.0,
         Some(Ok(r)) => r,
@@ -449,11 +458,23 @@ fn punctual_light(
             ));
         }
     };
+    let radiance = intensity / (std::f32::consts::PI * radius * radius);
+    if radius > 0.0
+        && (!radiance.is_finite() || radiance.max_element() > crate::imageio::MAX_RADIANCE)
+    {
+        return Err(Error::file(
+            path,
+            format!(
+                "{what}: a sphere of radius {radius} m at that intensity has radiance {}, beyond the 1e15 lightprobe renders (give a larger radius)",
+                radiance.max_element()
+            ),
+        ));
+    }
     Ok(if radius > 0.0 {
         SphereLight {
             center,
             radius,
-            radiance: intensity / (std::f32::consts::PI * radius * radius),
+            radiance,
         }
     } else {
         SphereLight::point(center, intensity)

@@ -376,16 +376,21 @@ pub struct Ignored {
 }
 
 /// How to load a scene.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct LoadOptions {
     /// Height of every view's image in pixels, overriding the sidecar's image (its aspect
     /// kept) or the default, [`DEFAULT_HEIGHT`].
     pub height: Option<u32>,
+    /// The views by camera node name, in order, overriding the sidecar's `views` (empty: the
+    /// sidecar's, or every camera).
+    pub views: Vec<String>,
 }
 
 /// Why views could not be picked by name.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum PickError {
+    /// A name two cameras have: which one is meant is not said.
+    Ambiguous(String),
     /// A name given twice: its renders would overwrite each other's files and count twice in
     /// a fit.
     Twice(String),
@@ -403,27 +408,33 @@ pub fn pick_views(
         if names[..i].contains(v) {
             return Err(PickError::Twice(v.clone()));
         }
-        let c = cameras
-            .iter()
-            .find(|c| &c.name == v)
-            .ok_or_else(|| PickError::Missing(v.clone()))?;
+        let mut named = cameras.iter().filter(|c| &c.name == v);
+        let c = named.next().ok_or_else(|| PickError::Missing(v.clone()))?;
+        if named.next().is_some() {
+            return Err(PickError::Ambiguous(v.clone()));
+        }
         picked.push(c.clone());
     }
     Ok(picked)
 }
 
-/// The cameras `names` names (from the sidecar at `sidecar`), or every camera when it names
-/// none (then no two may share a name).
+/// The cameras `names` names (`listed` says where the names come from; errors name the file
+/// `sidecar`), or every camera when it names none (then no two may share a name).
 fn pick_or_all(
     cameras: Vec<Camera>,
     names: &[String],
+    listed: &str,
     gltf_path: &Path,
     sidecar: &Path,
 ) -> Result<Vec<Camera>> {
     if !names.is_empty() {
-        return pick_views(&cameras, names).map_err(|e| {
+        let picked = pick_views(&cameras, names).map_err(|e| {
             let message = match e {
-                PickError::Twice(v) => format!("view {v:?} is listed twice in `views`"),
+                PickError::Twice(v) => format!("view {v:?} is listed twice in {listed}"),
+                PickError::Ambiguous(v) => format!(
+                    "view {v:?} names two camera nodes of {}; rename one",
+                    gltf_path.display()
+                ),
                 PickError::Missing(v) => {
                     let names: Vec<_> = cameras.iter().map(|c| c.name.as_str()).collect();
                     format!(
@@ -433,12 +444,14 @@ fn pick_or_all(
                 }
             };
             Error::file(sidecar, message)
-        });
+        })?;
+        check_view_names(&picked, gltf_path)?;
+        return Ok(picked);
     }
     if cameras.is_empty() {
         return Err(Error::file(
             gltf_path,
-            "has no perspective camera to render from (add one, or give views in a sidecar)",
+            "has no perspective camera node to render from (add one)",
         ));
     }
     for (i, c) in cameras.iter().enumerate() {
@@ -446,14 +459,52 @@ fn pick_or_all(
             // Their files and random streams would collide.
             return Err(Error::file(
                 gltf_path,
-                format!(
-                    "has two camera nodes named {:?}; rename one, or pick views by name in a sidecar's `views`",
-                    c.name
-                ),
+                format!("has two camera nodes named {:?}; rename one", c.name),
             ));
         }
     }
+    check_view_names(&cameras, gltf_path)?;
     Ok(cameras)
+}
+
+/// Suffixes lightprobe puts after a view's name in its file names.
+const VIEW_FILE_SUFFIXES: &[&str] = &[".error", ".depth", ".normal", ".albedo", ".mask"];
+
+/// Refuses view names that cannot name files: empty, `.`/`..`, path separators or control
+/// characters (a camera named `../x` would write outside the output folder), or one view's
+/// name plus a suffix lightprobe appends (`.error`, `.depth`, …) being another's.
+fn check_view_names(views: &[Camera], gltf_path: &Path) -> Result<()> {
+    for c in views {
+        let n = &c.name;
+        let bad = n.is_empty()
+            || n == "."
+            || n == ".."
+            || n.starts_with('.')
+            || n.chars()
+                .any(|ch| ch == '/' || ch == '\\' || ch.is_control());
+        if bad {
+            return Err(Error::file(
+                gltf_path,
+                format!(
+                    "camera node {n:?} cannot name a view's files (empty, leading dot, path separator or control character); rename it"
+                ),
+            ));
+        }
+        for d in views {
+            if let Some(rest) = d.name.strip_prefix(n.as_str())
+                && VIEW_FILE_SUFFIXES.contains(&rest)
+            {
+                return Err(Error::file(
+                    gltf_path,
+                    format!(
+                        "views {n:?} and {:?} would write over each other's files ({n}{rest}.png); rename one",
+                        d.name
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// A loaded scene, ready to build an acceleration structure over and render.
@@ -556,7 +607,12 @@ impl Scene {
         if !sidecar.lights.is_empty() {
             ignored.retain(|i| !i.what.starts_with("light "));
         }
-        let cameras = pick_or_all(loaded.cameras, &sidecar.views, &gltf_path, sidecar_path)?;
+        let (names, listed) = if options.views.is_empty() {
+            (&sidecar.views, "the sidecar's `views`")
+        } else {
+            (&options.views, "the views asked for")
+        };
+        let cameras = pick_or_all(loaded.cameras, names, listed, &gltf_path, sidecar_path)?;
         let lights = if sidecar.lights.is_empty() {
             loaded.lights
         } else {
@@ -592,7 +648,13 @@ impl Scene {
         Ok(Scene {
             mesh: loaded.mesh,
             materials: loaded.materials,
-            cameras: pick_or_all(loaded.cameras, &[], path, path)?,
+            cameras: pick_or_all(
+                loaded.cameras,
+                &options.views,
+                "the views asked for",
+                path,
+                path,
+            )?,
             lights: loaded.lights,
             settings: SceneSettings {
                 spp: defaults.0.spp.0,
@@ -649,12 +711,6 @@ impl Scene {
             .iter()
             .all(|c| (c.width, c.height) == first)
             .then_some(first)
-    }
-
-    /// Keeps only the views named, in that order.
-    pub fn keep_views(&mut self, names: &[String]) -> std::result::Result<(), PickError> {
-        self.cameras = pick_views(&self.cameras, names)?;
-        Ok(())
     }
 
     /// The centre of the geometry's bounding box (the "scene centre" of light directions).
