@@ -174,6 +174,7 @@ pub fn exr_size(path: &Path) -> Result<(u32, u32)> {
         .headers
         .first()
         .ok_or_else(|| Error::file(path, "has no image layer"))?;
+    check_windows(header, path)?;
     let size = header.layer_size;
     if size.width() > MAX_SIDE || size.height() > MAX_SIDE || size.area() == 0 {
         return Err(Error::file(
@@ -186,6 +187,35 @@ pub fn exr_size(path: &Path) -> Result<(u32, u32)> {
         ));
     }
     Ok((size.width() as u32, size.height() as u32))
+}
+
+/// Refuses an EXR whose pixels (data window) are not its whole image (display window): a
+/// cropped image read as if whole would put every pixel in the wrong place.
+fn check_windows(header: &exr::meta::header::Header, path: &Path) -> Result<()> {
+    let (data, display) = (
+        header.data_window(),
+        header.shared_attributes.display_window,
+    );
+    if data != display {
+        let b = |w: exr::meta::attribute::IntegerBounds| {
+            format!(
+                "{}×{} at ({}, {})",
+                w.size.width(),
+                w.size.height(),
+                w.position.x(),
+                w.position.y()
+            )
+        };
+        return Err(Error::file(
+            path,
+            format!(
+                "holds pixels {} of a {} image (a crop): lightprobe reads whole images; write it uncropped",
+                b(data),
+                b(display)
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// [`read_exr`] on the bytes of an EXR file (`path` names it in errors).
@@ -318,10 +348,16 @@ fn read_decoded(path: &Path, decoding: Decoding) -> Result<(Image, Vec<bool>)> {
     };
     match decoded {
         D::ImageRgb32F(_) | D::ImageRgba32F(_) => {
-            // Radiance HDR: linear floating point already.
+            // Radiance HDR: linear floating point; its EXPOSURE header says by how much the
+            // stored values were scaled (original = stored / exposure).
+            let exposure = image::codecs::hdr::HdrDecoder::new(std::io::Cursor::new(&bytes))
+                .ok()
+                .and_then(|d| d.metadata().exposure)
+                .filter(|e| e.is_finite() && *e > 0.0)
+                .unwrap_or(1.0);
             let f = decoded.to_rgba32f();
             for (i, p) in f.pixels().enumerate() {
-                img.rgb[i] = Vec3::new(p[0], p[1], p[2]);
+                img.rgb[i] = Vec3::new(p[0], p[1], p[2]) / exposure;
                 if let Some(a) = &mut alpha {
                     a[i] = p[3];
                 }
@@ -413,6 +449,7 @@ fn check_exr_header(bytes: &[u8], path: &Path) -> Result<()> {
     let meta = exr::meta::MetaData::read_from_buffered(bytes, false)
         .map_err(|e| Error::file(path, format!("cannot read as an RGB OpenEXR image: {e}")))?;
     for header in meta.headers.iter() {
+        check_windows(header, path)?;
         let size = header.layer_size;
         if size.width() > MAX_SIDE || size.height() > MAX_SIDE {
             return Err(Error::file(
@@ -522,6 +559,48 @@ pub fn write_rgb8_png(path: &Path, width: u32, height: u32, bytes: Vec<u8>) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cropped_exr_is_refused_and_hdr_exposure_is_undone() {
+        use exr::prelude::*;
+        let dir = std::env::temp_dir().join(format!("lp-crop-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        // 4×3 pixels at (1, 1) of a 6×5 image.
+        let layer = Layer::new(
+            (4, 3),
+            LayerAttributes {
+                layer_position: exr::math::Vec2(1, 1),
+                ..LayerAttributes::default()
+            },
+            Encoding::FAST_LOSSLESS,
+            SpecificChannels::rgb(|_: exr::math::Vec2<usize>| (0.5f32, 0.5f32, 0.5f32)),
+        );
+        let image = exr::image::Image::new(
+            ImageAttributes::new(IntegerBounds::new((0, 0), (6, 5))),
+            layer,
+        );
+        let p = dir.join("crop.exr");
+        image.write().to_file(&p).unwrap();
+        let e = read_exr(&p).unwrap_err().to_string();
+        assert!(e.contains("4×3 at (1, 1) of a 6×5 at (0, 0) image"), "{e}");
+        assert!(exr_size(&p).is_err());
+        // A Radiance file whose header says its values were scaled by 2 reads at half.
+        let mut hdr = Vec::new();
+        let pixels = [image::Rgb([2.0f32, 4.0, 8.0]); 2];
+        image::codecs::hdr::HdrEncoder::new(&mut hdr)
+            .encode(&pixels, 2, 1)
+            .unwrap();
+        let text = String::from_utf8_lossy(&hdr).into_owned();
+        let at = text.find("FORMAT=").unwrap();
+        let mut with = hdr[..at].to_vec();
+        with.extend(b"EXPOSURE=2.0\n");
+        with.extend(&hdr[at..]);
+        let p = dir.join("x.hdr");
+        std::fs::write(&p, with).unwrap();
+        let (img, _) = read_photo(&p, Decoding::default()).unwrap();
+        assert_eq!(img.rgb[0], Vec3::new(1.0, 2.0, 4.0));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     fn sample(alpha: bool) -> Image {
         let (w, h) = (7u32, 5u32);
