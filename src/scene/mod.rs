@@ -470,15 +470,14 @@ fn pick_or_all(
 /// Suffixes lightprobe puts after a view's name in its file names.
 const VIEW_FILE_SUFFIXES: &[&str] = &[".error", ".depth", ".normal", ".albedo", ".mask"];
 
-/// Refuses view names that cannot name files: empty, `.`/`..`, path separators or control
+/// Refuses view names that cannot name files: empty, a leading dot (`..`, hidden files), path
+/// separators or control
 /// characters (a camera named `../x` would write outside the output folder), or one view's
 /// name plus a suffix lightprobe appends (`.error`, `.depth`, …) being another's.
 fn check_view_names(views: &[Camera], gltf_path: &Path) -> Result<()> {
     for c in views {
         let n = &c.name;
         let bad = n.is_empty()
-            || n == "."
-            || n == ".."
             || n.starts_with('.')
             || n.chars()
                 .any(|ch| ch == '/' || ch == '\\' || ch.is_control());
