@@ -458,10 +458,11 @@ fn punctual_light(
             ));
         }
     };
+    if radius == 0.0 {
+        return Ok(SphereLight::point(center, intensity));
+    }
     let radiance = intensity / (std::f32::consts::PI * radius * radius);
-    if radius > 0.0
-        && (!radiance.is_finite() || radiance.max_element() > crate::imageio::MAX_RADIANCE)
-    {
+    if !radiance.is_finite() || radiance.max_element() > crate::imageio::MAX_RADIANCE {
         return Err(Error::file(
             path,
             format!(
@@ -470,14 +471,10 @@ fn punctual_light(
             ),
         ));
     }
-    Ok(if radius > 0.0 {
-        SphereLight {
-            center,
-            radius,
-            radiance,
-        }
-    } else {
-        SphereLight::point(center, intensity)
+    Ok(SphereLight {
+        center,
+        radius,
+        radiance,
     })
 }
 
