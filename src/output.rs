@@ -55,6 +55,16 @@ pub fn write_estimate(
             imageio::write_exr(&refs.join(format!("{name}.exr")), img)?;
         }
     }
+    // Error images compare with what the lighting explains: each reference over its exposure.
+    let scaled;
+    let seen = match &estimate.report.exposure {
+        Some(e) => {
+            let exposures: Vec<f64> = e.relative.iter().map(|v| v.exposure).collect();
+            scaled = seen.with_exposures(&exposures);
+            &scaled
+        }
+        None => seen,
+    };
     let env = &estimate.envmap.fit.envmap;
     write_envmap(dir, "envmap", env)?;
     if let Some(gltf) = gltf {

@@ -1170,3 +1170,60 @@ fn progress_declares_exactly_the_work_it_reports() {
         }
     }
 }
+
+#[test]
+fn per_view_exposures_are_recovered_and_the_lighting_is_in_their_geometric_mean() {
+    // Photographs of one lighting at exposures 2 and 0.6: the fitted exposures must come back
+    // in that ratio, and the lighting must be the truth times their geometric mean (the unit
+    // the fit reports it in), while a shared-exposure fit of the same references misfits.
+    use lightprobe::estimate::job::{self, EstimateSettings, Exposure, Job, References, Rings};
+    let truth = three_ring_sky();
+    let sc = scene(vec![]);
+    let lights = Lights::env(truth.clone());
+    let r = Renderer::new(&sc, &lights);
+    let render = settings(256, 1);
+    let (mut refs, _) = render_all(&r, &sc, 256, 1);
+    let applied = [2.0f32, 0.6];
+    for (img, s) in refs.iter_mut().zip(applied) {
+        img.rgb.iter_mut().for_each(|p| *p *= s);
+    }
+    let seen = job::observe(&r, &render, References::Images(refs), &()).unwrap();
+    let run = |exposure| {
+        let settings = EstimateSettings {
+            rings: Rings::Fixed(3),
+            spp: 256,
+            noise_floor: false,
+            exposure,
+            ..EstimateSettings::new(&sc.settings)
+        };
+        job::run(&Job::new(&r, &seen, &render, &settings), &()).unwrap()
+    };
+    let per_view = run(Exposure::PerView);
+    let report = per_view.report.exposure.as_ref().unwrap();
+    let e: Vec<f64> = report.relative.iter().map(|v| v.exposure).collect();
+    let want = (applied[0] / applied[1]) as f64;
+    assert!(
+        ((e[0] / e[1]) / want - 1.0).abs() < 0.01,
+        "exposures {e:?}, want ratio {want}"
+    );
+    assert!(((e[0] * e[1]).sqrt() - 1.0).abs() < 1e-9, "{e:?}");
+    assert!(report.fits <= 4 && report.last_change < 1e-3, "{report:?}");
+    let mean = (applied[0] * applied[1]).sqrt();
+    let power = |env: &Envmap| lightprobe::imageio::luminance(env.radiance()[0..5].iter().sum());
+    let ratio = power(&per_view.envmap.fit.envmap) / (mean * power(&truth));
+    assert!(
+        (ratio - 1.0).abs() < 0.02,
+        "lighting / (truth × mean exposure) = {ratio}"
+    );
+    // Judged against the references over their exposures, the fit is as good as a fit of
+    // references at one exposure; the shared fit cannot explain both views.
+    let shared = run(Exposure::Shared);
+    let (pv, sh) = (
+        per_view.report.rel_mae.unwrap(),
+        shared.report.rel_mae.unwrap(),
+    );
+    assert!(
+        pv < 0.02 && sh > 5.0 * pv,
+        "relMAE per-view {pv}, shared {sh}"
+    );
+}

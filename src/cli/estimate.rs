@@ -8,7 +8,7 @@ use anyhow::Context;
 
 use lightprobe::Error;
 use lightprobe::estimate::job::{
-    self, EstimateReport, EstimateSettings, Job, LightModel, References, Rings,
+    self, EstimateReport, EstimateSettings, Exposure, Job, LightModel, References, Rings,
 };
 use lightprobe::estimate::spheres::LightStatus;
 use lightprobe::output;
@@ -39,6 +39,13 @@ fn parse_saturation(s: &str) -> Result<f32, String> {
         Ok(x) if x.is_finite() && x > 0.0 => Ok(x),
         _ => Err(format!("expected a radiance > 0, got {s:?}")),
     }
+}
+
+/// `--exposure`.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum ExposureArg {
+    Shared,
+    PerView,
 }
 
 /// `--rings`: a ring count or `auto`.
@@ -79,6 +86,13 @@ pub struct Args {
     /// 8- and 16-bit references always lose the pixels at their format's maximum.
     #[arg(long, value_parser = parse_saturation, requires = "reference")]
     saturation: Option<f32>,
+    /// `shared`: the references are radiance at one exposure. `per-view`: each view's
+    /// reference has its own unknown exposure (photographs at different shutter, aperture or
+    /// gain), fitted beside the lighting by alternating fits (3–4 as a rule); report.json
+    /// gives the views' exposures relative to their geometric mean, the unit the lighting is
+    /// then in (photographs cannot tell the overall scale).
+    #[arg(long, value_enum, default_value_t = ExposureArg::Shared)]
+    exposure: ExposureArg,
     /// Rings of the envmap (default: the sidecar's), or `auto`: fit each of
     /// --rings-candidates on three quarters of the pixels and take the smallest whose error
     /// on the held-out quarter is within one standard error of the best.
@@ -168,6 +182,10 @@ impl Args {
             evaluate: !self.fit_only,
             noise_floor: true,
             oracle: self.oracle,
+            exposure: match self.exposure {
+                ExposureArg::Shared => Exposure::Shared,
+                ExposureArg::PerView => Exposure::PerView,
+            },
         }
     }
 
@@ -179,6 +197,11 @@ impl Args {
             got,
         } = &e
         else {
+            if self.fit_only && matches!(self.exposure, ExposureArg::PerView) {
+                return anyhow::anyhow!(
+                    "--exposure per-view compares each view's re-render with its reference; it cannot be used with --fit-only"
+                );
+            }
             if self.fit_only && self.model.chooses() {
                 return anyhow::anyhow!(
                     "--model auto and --model spheres (without :K) compare the models' re-renders; they cannot be used with --fit-only"
@@ -396,6 +419,18 @@ fn summary(r: &EstimateReport) -> Vec<String> {
     }
     if let Some(s) = &r.spheres {
         lines.extend(spheres_summary(s, r.rel_mae));
+    }
+    if let Some(e) = &r.exposure {
+        lines.push(format!(
+            "exposures relative to their geometric mean (the lighting's unit), {} fits, last change {:.2}%: {}",
+            e.fits,
+            100.0 * e.last_change,
+            e.relative
+                .iter()
+                .map(|v| format!("{} ×{:.4}", v.view, v.exposure))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
     }
     lines.push(format!(
         "envmap fit {:.2} s (transport {:.2} s, solve {:.2} s)",

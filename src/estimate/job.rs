@@ -104,7 +104,48 @@ pub struct EstimateSettings {
     pub noise_floor: bool,
     /// Also fit the best envmap of this resolution (8× the samples): the representation limit.
     pub oracle: bool,
+    /// Whether the references share one exposure or each has its own.
+    pub exposure: Exposure,
 }
+
+/// How the references' exposures relate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum Exposure {
+    /// One exposure: the references are radiance in one unit.
+    #[default]
+    Shared,
+    /// One unknown scale per view (photographs at different shutter, aperture or gain): fitted
+    /// beside the lighting by alternation ([`run`]). Only ratios between views can be known:
+    /// the lighting comes out in units of the views' geometric-mean exposure.
+    PerView,
+}
+
+/// `report.json`'s `exposure` with `--exposure per-view`.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct ExposureReport {
+    /// Each fitted view's exposure relative to the geometric mean over views (its reference
+    /// divided by it is what the lighting explains). The overall scale is not identifiable
+    /// from the references: the lighting is in units of the geometric-mean exposure.
+    pub relative: Vec<ViewExposure>,
+    /// Fits made, alternating lighting and exposures.
+    pub fits: usize,
+    /// Largest relative change of an exposure after the last fit (the alternation stops
+    /// below [`EXPOSURE_TOLERANCE`] or after [`MAX_EXPOSURE_FITS`] fits).
+    pub last_change: f64,
+}
+
+/// One view's relative exposure.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct ViewExposure {
+    pub view: String,
+    pub exposure: f64,
+}
+
+/// Relative change of every exposure below which the alternation stops.
+pub const EXPOSURE_TOLERANCE: f64 = 1e-3;
+/// Most fits the alternation makes.
+pub const MAX_EXPOSURE_FITS: usize = 5;
 
 impl EstimateSettings {
     /// The sidecar's rings and samples, the NNLS solver with its default rounds, the envmap
@@ -122,6 +163,7 @@ impl EstimateSettings {
             evaluate: true,
             noise_floor: true,
             oracle: false,
+            exposure: Exposure::Shared,
         }
     }
 
@@ -188,6 +230,13 @@ impl EstimateSettings {
             return Err(Error::Invalid(
                 "choosing the light model compares the models' re-renders, so it needs the \
                  evaluation (it cannot be fit-only)"
+                    .into(),
+            ));
+        }
+        if self.exposure == Exposure::PerView && !self.evaluate {
+            return Err(Error::Invalid(
+                "fitting an exposure per view compares each view's re-render with its \
+                 reference, so it needs the evaluation (it cannot be fit-only)"
                     .into(),
             ));
         }
@@ -386,6 +435,9 @@ pub struct EstimateReport {
     /// The model the estimate ends with: `envmap`, `spheres:K` or `envmap+spheres:K`.
     pub model: String,
     pub model_selection: Option<ModelSelection>,
+    /// The fitted relative exposures (`--exposure per-view`); absent when the references
+    /// share one exposure.
+    pub exposure: Option<ExposureReport>,
     /// The sphere-light model's estimate (with `--model spheres` or `auto`).
     pub spheres: Option<SpheresReport>,
     /// Every sphere model compared, when the model was chosen from the data.
@@ -485,8 +537,127 @@ pub enum FitStatus {
     NotConverged,
 }
 
-/// Runs the job.
+/// Runs the job. With [`Exposure::PerView`] it alternates: fit the lighting to the references
+/// divided by the current exposures, then set each view's exposure to the ratio of its
+/// reference's sum to its re-render's (over the view's mask, all channels), normalised to a
+/// geometric mean of 1; until no exposure moves by [`EXPOSURE_TOLERANCE`]. The ratio of sums,
+/// not a least-squares slope, because the re-render's noise would bias a slope low. Fits after
+/// the first keep the ring count the first chose.
 pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
+    if job.settings.exposure == Exposure::Shared {
+        return run_once(job, progress);
+    }
+    job.settings.check()?;
+    let t_all = Instant::now();
+    let original = job.seen;
+    // Natural logarithms of the exposures: the alternation's map is close to linear in them.
+    let mut log_e = vec![0.0f64; original.views.len()];
+    let mut previous: Option<(Vec<f64>, Vec<f64>)> = None;
+    let mut settings = job.settings.clone();
+    for fits in 1.. {
+        let exposures: Vec<f64> = log_e.iter().map(|l| l.exp()).collect();
+        let seen = original.with_exposures(&exposures);
+        let mut estimate = run_once(
+            &Job {
+                seen: &seen,
+                settings: &settings,
+                ..*job
+            },
+            progress,
+        )?;
+        let renders = match &estimate.spheres {
+            Some(so) => &so.renders,
+            None => &estimate.envmap.renders,
+        };
+        let fitted = fitted_exposures(original, renders)?;
+        let step: Vec<f64> = fitted.iter().zip(&log_e).map(|(n, l)| n.ln() - l).collect();
+        let last_change = step
+            .iter()
+            .fold(0.0f64, |m, d| m.max(d.abs().exp_m1().abs()));
+        if last_change < EXPOSURE_TOLERANCE || fits == MAX_EXPOSURE_FITS {
+            let report = &mut estimate.report;
+            report.exposure = Some(ExposureReport {
+                relative: original
+                    .views
+                    .iter()
+                    .zip(&exposures)
+                    .map(|(c, &e)| ViewExposure {
+                        view: c.name.clone(),
+                        exposure: e,
+                    })
+                    .collect(),
+                fits,
+                last_change,
+            });
+            report.timings.total_seconds = original.seconds + t_all.elapsed().as_secs_f64();
+            return Ok(estimate);
+        }
+        let next = anderson_step(&log_e, &step, previous.as_ref());
+        previous = Some((log_e, step));
+        log_e = next;
+        settings.rings = Rings::Fixed(estimate.report.rings);
+    }
+    unreachable!("the loop returns by its last fit")
+}
+
+/// The next iterate of a fixed-point iteration `x ← x + step(x)` by Anderson acceleration with
+/// one step of memory: the plain step, corrected by the multiple of the last change of steps
+/// that best cancels this one. Plain alternation converges linearly (each fit removed ~80% of
+/// the exposures' error on a two-view scene); where the map is linear along one direction
+/// this lands on its fixed point at once.
+fn anderson_step(x: &[f64], step: &[f64], previous: Option<&(Vec<f64>, Vec<f64>)>) -> Vec<f64> {
+    let plain = || x.iter().zip(step).map(|(x, s)| x + s).collect();
+    let Some((x0, step0)) = previous else {
+        return plain();
+    };
+    let ds: Vec<f64> = step.iter().zip(step0).map(|(a, b)| a - b).collect();
+    let dd: f64 = ds.iter().map(|d| d * d).sum();
+    if dd < 1e-300 {
+        return plain();
+    }
+    let gamma = ds.iter().zip(step).map(|(d, s)| d * s).sum::<f64>() / dd;
+    (0..x.len())
+        .map(|i| x[i] + step[i] - gamma * ((x[i] - x0[i]) + ds[i]))
+        .collect()
+}
+
+/// Each view's exposure that makes its re-render's sum over its mask match its reference's,
+/// normalised to a geometric mean of 1 over views. Errors when a view's re-render or
+/// reference sums to nothing there: its exposure is then unknowable.
+fn fitted_exposures(seen: &SeenViews, renders: &[Image]) -> Result<Vec<f64>> {
+    let sum = |img: &Image, mask: &[bool]| -> f64 {
+        img.rgb
+            .iter()
+            .zip(mask)
+            .filter(|(_, m)| **m)
+            .map(|(p, _)| p.as_dvec3().element_sum())
+            .sum()
+    };
+    let mut ratios = Vec::with_capacity(renders.len());
+    for (((cam, reference), render), mask) in seen
+        .views
+        .iter()
+        .zip(&seen.references)
+        .zip(renders)
+        .zip(&seen.masks)
+    {
+        let (y, r) = (sum(reference, mask), sum(render, mask));
+        let ratio = y / r;
+        if !(ratio.is_finite() && ratio > 0.0) {
+            return Err(Error::Invalid(format!(
+                "view {:?}: its reference sums to {y:.3e} and the estimate's re-render to \
+                 {r:.3e} over its pixels, so its exposure cannot be fitted (--exposure per-view)",
+                cam.name
+            )));
+        }
+        ratios.push(ratio);
+    }
+    let log_mean = ratios.iter().map(|r| r.ln()).sum::<f64>() / ratios.len() as f64;
+    Ok(ratios.iter().map(|r| r / log_mean.exp()).collect())
+}
+
+/// Runs the job once, with the references as they are.
+fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     let t_all = Instant::now();
     let s = job.settings;
     s.check()?;
@@ -591,6 +762,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             (None, None) => "envmap".to_string(),
         },
         model_selection,
+        exposure: None,
         spheres: spheres.as_ref().map(spheres_report),
         sphere_candidates: sphere_reports,
         timings: Timings {

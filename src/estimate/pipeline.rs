@@ -157,6 +157,36 @@ pub struct SeenViews<'a> {
     pub seconds: f64,
 }
 
+impl SeenViews<'_> {
+    /// The same views with each reference divided by its view's exposure (blind views keep
+    /// theirs: they have none fitted).
+    pub fn with_exposures(&self, exposures: &[f64]) -> Self {
+        let references = self
+            .references
+            .iter()
+            .zip(exposures)
+            .map(|(r, &e)| {
+                let inv = (1.0 / e) as f32;
+                Image {
+                    width: r.width,
+                    height: r.height,
+                    rgb: r.rgb.iter().map(|p| *p * inv).collect(),
+                    alpha: r.alpha.clone(),
+                }
+            })
+            .collect();
+        SeenViews {
+            views: self.views.clone(),
+            references,
+            masks: self.masks.clone(),
+            blind: self.blind.clone(),
+            blind_references: self.blind_references.clone(),
+            blind_reason: self.blind_reason.clone(),
+            seconds: self.seconds,
+        }
+    }
+}
+
 /// Splits the views (in order, with their references and masks) into those with at least one
 /// masked pixel and the rest.
 pub fn seen_views<'a>(

@@ -886,6 +886,7 @@ fn trial_settings(
         evaluate: true,
         noise_floor: false,
         oracle: false,
+        exposure: crate::estimate::job::Exposure::Shared,
     }
 }
 
