@@ -13,6 +13,12 @@
 //! OUT/lights.usda, spheres/lights.usda
 //!                             USD stages of the lights: a DomeLight of <envmap>_usd.exr
 //!                             (OpenEXR's lat-long convention), SphereLights
+//! OUT/mitsuba/scene.xml, spheres/mitsuba/scene.xml
+//!                             Mitsuba 3 scenes of the estimate (meshes as PLY, textures,
+//!                             envmap.exr): `mitsuba scene.xml` renders the views
+//! OUT/blender.py, spheres/blender.py
+//!                             Blender scripts that import scene.glb, set the World and
+//!                             the lights and render the views with Cycles
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -24,7 +30,7 @@ use crate::estimate::job::{Estimate, EstimateReport};
 use crate::estimate::pipeline::{SeenViews, SphereOutcome};
 use crate::imageio::{self, Image};
 use crate::metrics;
-use crate::scene::export;
+use crate::scene::{Scene, export};
 
 /// Width of the lat-long EXR written beside each envmap: renderers interpolate between pixels,
 /// which blurs a cell's edges by half a pixel (measured in Mitsuba: the worst cell of 9 rings
@@ -39,12 +45,12 @@ pub const LATLONG_WIDTH: u32 = 4096;
 /// leaves none of them.
 pub fn write_estimate(
     dir: &Path,
-    gltf: Option<&Path>,
+    scene: Option<&Scene>,
     estimate: &mut Estimate,
     seen: &SeenViews,
     rendered_references: bool,
     started: std::time::Instant,
-) -> Result<()> {
+) -> Result<Vec<String>> {
     if rendered_references {
         let refs = dir.join("reference");
         create_dir(&refs)?;
@@ -66,10 +72,19 @@ pub fn write_estimate(
         None => seen,
     };
     let env = &estimate.envmap.fit.envmap;
+    let render = estimate.report.settings;
+    let mut notes = Vec::new();
     write_envmap(dir, "envmap", env)?;
-    if let Some(gltf) = gltf {
+    if let Some(scene) = scene {
         let note = envmap_note("envmap", env);
-        export::write_with_lights(gltf, dir, &[], Some(&note))?;
+        notes.extend(write_scene(
+            dir,
+            scene,
+            &[],
+            Some(env),
+            Some(&note),
+            &render,
+        )?);
     }
     write_usd(dir, &[], Some(("envmap", env)))?;
     if !estimate.envmap.renders.is_empty() {
@@ -80,15 +95,51 @@ pub fn write_estimate(
         write_spheres(&spheres, so, seen)?;
         let lights = so.fit.lights();
         let background = so.fit.background.as_ref();
-        if let Some(gltf) = gltf {
+        if let Some(scene) = scene {
             let note = background.map(|bg| envmap_note("background", bg));
-            export::write_with_lights(gltf, &spheres, &lights, note.as_ref())?;
+            notes.extend(write_scene(
+                &spheres,
+                scene,
+                &lights,
+                background,
+                note.as_ref(),
+                &render,
+            )?);
         }
         write_usd(&spheres, &lights, background.map(|bg| ("background", bg)))?;
     }
     estimate.report.timings.total_seconds = started.elapsed().as_secs_f64();
     write_report(dir, &estimate.report)?;
-    Ok(())
+    notes.dedup();
+    Ok(notes)
+}
+
+/// The scene with `lights` and `envmap` written into `dir` for other tools: its glTF, a
+/// Mitsuba scene (`mitsuba/`) and a Blender script. Returns what the exports leave out.
+fn write_scene(
+    dir: &Path,
+    scene: &Scene,
+    lights: &[crate::scene::SphereLight],
+    envmap: Option<&Envmap>,
+    note: Option<&export::EnvmapNote>,
+    render: &crate::render::RenderSettings,
+) -> Result<Vec<String>> {
+    let gltf = export::write_with_lights(&scene.gltf, dir, lights, note)?;
+    let name = gltf
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("scene.glb");
+    export::blender::write(dir, name, scene, envmap, render.spp, render.max_bounces)?;
+    export::mitsuba::write(
+        &dir.join("mitsuba"),
+        scene,
+        lights,
+        envmap,
+        export::mitsuba::Render {
+            spp: render.spp,
+            max_bounces: render.max_bounces,
+        },
+    )
 }
 
 /// `lights.usda` in `dir`: the lights, and a dome of the envmap `(name, env)` written beside it

@@ -314,14 +314,16 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             ));
         }
     }
-    output::write_estimate(
+    for note in output::write_estimate(
         &a.out,
-        Some(&scene.gltf),
+        Some(&scene),
         &mut estimate,
         &seen,
         a.reference.is_none(),
         t_all,
-    )?;
+    )? {
+        say(&format!("lightprobe: note: {note}"));
+    }
     let report = &estimate.report;
     if a.json {
         super::print(&output::report_json(report).map_err(anyhow::Error::msg)?)?;

@@ -5,6 +5,9 @@
 //! illumination); all else is kept as the source has it: a GLB's binary chunk byte for byte, a
 //! `.gltf`'s buffers and images copied beside the written file.
 
+pub mod blender;
+pub mod mitsuba;
+
 use std::path::{Path, PathBuf};
 
 use serde_json::{Value, json};
