@@ -130,8 +130,9 @@ pub struct ExposureReport {
     pub relative: Vec<ViewExposure>,
     /// Fits made, alternating lighting and exposures.
     pub fits: usize,
-    /// Largest relative change of an exposure after the last fit (the alternation stops
-    /// below [`EXPOSURE_TOLERANCE`] or after [`MAX_EXPOSURE_FITS`] fits).
+    /// Largest relative change of an exposure the last fit (the one with every sample) asks
+    /// for: how far the exposures reported are from converged. The alternation stops below
+    /// [`EXPOSURE_TOLERANCE`] or after [`MAX_EXPOSURE_FITS`] fits.
     pub last_change: f64,
 }
 
@@ -144,8 +145,8 @@ pub struct ViewExposure {
 
 /// Relative change of every exposure below which the alternation stops.
 pub const EXPOSURE_TOLERANCE: f64 = 1e-3;
-/// Most fits the alternation makes.
-pub const MAX_EXPOSURE_FITS: usize = 5;
+/// Most fits the alternation makes, the last one with every sample included.
+pub const MAX_EXPOSURE_FITS: usize = 7;
 
 impl EstimateSettings {
     /// The sidecar's rings and samples, the NNLS solver with its default rounds, the envmap
@@ -540,9 +541,12 @@ pub enum FitStatus {
 /// Runs the job. With [`Exposure::PerView`] it alternates: fit the lighting to the references
 /// divided by the current exposures, then set each view's exposure to the ratio of its
 /// reference's sum to its re-render's (over the view's mask, all channels), normalised to a
-/// geometric mean of 1; until no exposure moves by [`EXPOSURE_TOLERANCE`]. The ratio of sums,
-/// not a least-squares slope, because the re-render's noise would bias a slope low. Fits after
-/// the first keep the ring count the first chose.
+/// geometric mean of 1, accelerated ([`anderson_step`]); until no exposure moves by
+/// [`EXPOSURE_TOLERANCE`]. These fits take a quarter of the samples (a sum over a view's pixels
+/// hardly sees the noise; the transport's products stay unbiased) and keep the ring count the
+/// first chose; one fit with every sample at the exposures found ends the job, and its own
+/// step is reported as the last change. The ratio of sums, not a least-squares slope, because
+/// the re-render's noise would bias a slope low.
 pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     if job.settings.exposure == Exposure::Shared {
         return run_once(job, progress);
@@ -550,10 +554,21 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     job.settings.check()?;
     let t_all = Instant::now();
     let original = job.seen;
+    let quarter = |n: u32, least: u32| (n / 4).max(least).min(n);
+    let mut settings = EstimateSettings {
+        spp: quarter(job.settings.spp, job.settings.rounds),
+        noise_floor: false,
+        oracle: false,
+        ..job.settings.clone()
+    };
+    let mut render = RenderSettings {
+        spp: quarter(job.render.spp, 16),
+        ..*job.render
+    };
+    let mut last = false;
     // Natural logarithms of the exposures: the alternation's map is close to linear in them.
     let mut log_e = vec![0.0f64; original.views.len()];
-    let mut previous: Option<(Vec<f64>, Vec<f64>)> = None;
-    let mut settings = job.settings.clone();
+    let mut history: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
     for fits in 1.. {
         let exposures: Vec<f64> = log_e.iter().map(|l| l.exp()).collect();
         let seen = original.with_exposures(&exposures);
@@ -561,6 +576,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             &Job {
                 seen: &seen,
                 settings: &settings,
+                render: &render,
                 ..*job
             },
             progress,
@@ -569,12 +585,15 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             Some(so) => &so.renders,
             None => &estimate.envmap.renders,
         };
-        let fitted = fitted_exposures(original, renders)?;
-        let step: Vec<f64> = fitted.iter().zip(&log_e).map(|(n, l)| n.ln() - l).collect();
-        let last_change = step
+        let step: Vec<f64> = fitted_exposures(original, renders)?
+            .iter()
+            .zip(&log_e)
+            .map(|(n, l)| n.ln() - l)
+            .collect();
+        let change = step
             .iter()
             .fold(0.0f64, |m, d| m.max(d.abs().exp_m1().abs()));
-        if last_change < EXPOSURE_TOLERANCE || fits == MAX_EXPOSURE_FITS {
+        if last {
             let report = &mut estimate.report;
             report.exposure = Some(ExposureReport {
                 relative: original
@@ -587,38 +606,83 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                     })
                     .collect(),
                 fits,
-                last_change,
+                last_change: change,
             });
             report.timings.total_seconds = original.seconds + t_all.elapsed().as_secs_f64();
             return Ok(estimate);
         }
-        let next = anderson_step(&log_e, &step, previous.as_ref());
-        previous = Some((log_e, step));
+        let next = anderson_step(&log_e, &step, &history);
+        history.push((log_e, step));
+        if history.len() > ANDERSON_MEMORY {
+            history.remove(0);
+        }
         log_e = next;
         settings.rings = Rings::Fixed(estimate.report.rings);
+        if change < EXPOSURE_TOLERANCE || fits + 1 == MAX_EXPOSURE_FITS {
+            last = true;
+            settings = EstimateSettings {
+                rings: settings.rings.clone(),
+                ..job.settings.clone()
+            };
+            render = *job.render;
+        }
     }
     unreachable!("the loop returns by its last fit")
 }
 
-/// The next iterate of a fixed-point iteration `x ← x + step(x)` by Anderson acceleration with
-/// one step of memory: the plain step, corrected by the multiple of the last change of steps
-/// that best cancels this one. Plain alternation converges linearly (each fit removed ~80% of
-/// the exposures' error on a two-view scene); where the map is linear along one direction
-/// this lands on its fixed point at once.
-fn anderson_step(x: &[f64], step: &[f64], previous: Option<&(Vec<f64>, Vec<f64>)>) -> Vec<f64> {
-    let plain = || x.iter().zip(step).map(|(x, s)| x + s).collect();
-    let Some((x0, step0)) = previous else {
-        return plain();
-    };
-    let ds: Vec<f64> = step.iter().zip(step0).map(|(a, b)| a - b).collect();
-    let dd: f64 = ds.iter().map(|d| d * d).sum();
-    if dd < 1e-300 {
-        return plain();
+/// Iterates kept by [`anderson_step`]: with n views the exposures have n − 1 free directions,
+/// and a memory of a few past steps covers those that converge slowest.
+const ANDERSON_MEMORY: usize = 3;
+
+/// The next iterate of a fixed-point iteration `x ← x + step(x)` by Anderson acceleration
+/// (type II) over `history`, the past iterates and their steps, oldest first: the plain step
+/// corrected by the combination of past changes that best cancels the current step in least
+/// squares. Plain alternation converges linearly (each fit removed ~75% of the exposures'
+/// error); where the map is linear in the directions the history spans, this lands on its
+/// fixed point.
+fn anderson_step(x: &[f64], step: &[f64], history: &[(Vec<f64>, Vec<f64>)]) -> Vec<f64> {
+    use faer::linalg::solvers::Solve;
+    let plain: Vec<f64> = x.iter().zip(step).map(|(x, s)| x + s).collect();
+    let m = history.len();
+    if m == 0 {
+        return plain;
     }
-    let gamma = ds.iter().zip(step).map(|(d, s)| d * s).sum::<f64>() / dd;
-    (0..x.len())
-        .map(|i| x[i] + step[i] - gamma * ((x[i] - x0[i]) + ds[i]))
-        .collect()
+    // Column j: the change of steps (and of iterates) from history j to the next iterate.
+    let next = |j: usize| -> (&[f64], &[f64]) {
+        match history.get(j + 1) {
+            Some((x1, s1)) => (x1, s1),
+            None => (x, step),
+        }
+    };
+    let dg = |i: usize, j: usize| next(j).1[i] - history[j].1[i];
+    let dx = |i: usize, j: usize| next(j).0[i] - history[j].0[i];
+    let n = x.len();
+    let gram = faer::Mat::<f64>::from_fn(m, m, |a, b| (0..n).map(|i| dg(i, a) * dg(i, b)).sum());
+    let scale = (0..m).map(|a| gram[(a, a)]).fold(0.0, f64::max);
+    if !(scale > 1e-300) {
+        return plain;
+    }
+    let ridged = faer::Mat::<f64>::from_fn(m, m, |a, b| {
+        gram[(a, b)] + if a == b { 1e-10 * scale } else { 0.0 }
+    });
+    let rhs = faer::Mat::<f64>::from_fn(m, 1, |a, _| (0..n).map(|i| dg(i, a) * step[i]).sum());
+    let Ok(llt) = ridged.llt(faer::Side::Lower) else {
+        return plain;
+    };
+    let gamma = llt.solve(&rhs);
+    let out: Vec<f64> = (0..n)
+        .map(|i| {
+            plain[i]
+                - (0..m)
+                    .map(|j| gamma[(j, 0)] * (dx(i, j) + dg(i, j)))
+                    .sum::<f64>()
+        })
+        .collect();
+    if out.iter().all(|v| v.is_finite()) {
+        out
+    } else {
+        plain
+    }
 }
 
 /// Each view's exposure that makes its re-render's sum over its mask match its reference's,

@@ -2,8 +2,8 @@
 
 Written by lightprobe next to the scene it renders. Run it with Blender or the bpy module:
 
-    blender --background --python blender.py [-- --spp N --views a,b --out DIR --no-render]
-    python blender.py [--spp N --views a,b --out DIR --no-render]      (with `pip install bpy`)
+    blender --background --python blender.py [-- --spp N --seed S --views a,b --out DIR --no-render]
+    python blender.py [--spp N --seed S --views a,b --out DIR --no-render]      (with `pip install bpy`)
 
 It imports the glTF beside it (the estimate's lights are its KHR_lights_punctual point lights,
 their radius in `extras`), then sets up what lightprobe's renderer assumes:
@@ -53,6 +53,7 @@ def arguments():
     p.add_argument("--views", default=None, help="comma-separated views (default: all)")
     p.add_argument("--out", type=Path, default=HERE / "renders", help="folder of the renders")
     p.add_argument("--no-render", action="store_true", help="set the scene up, render nothing")
+    p.add_argument("--seed", type=int, default=0, help="Cycles' seed")
     p.add_argument("--threads", type=int, default=0, help="render threads (0: all cores)")
     return p.parse_args(argv)
 
@@ -137,7 +138,7 @@ def set_cycles(scene, args):
     r, cy = scene.render, scene.cycles
     r.engine = "CYCLES"
     cy.device = "CPU"
-    cy.samples = args.spp
+    cy.samples, cy.seed, cy.use_animated_seed = args.spp, args.seed, False
     cy.use_adaptive_sampling = cy.use_denoising = False
     scene.view_layers[0].cycles.use_denoising = False
     cy.max_bounces = cy.diffuse_bounces = max(DATA["max_bounces"] - 1, 0)
