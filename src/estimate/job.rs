@@ -659,7 +659,7 @@ fn anderson_step(x: &[f64], step: &[f64], history: &[(Vec<f64>, Vec<f64>)]) -> V
     let n = x.len();
     let gram = faer::Mat::<f64>::from_fn(m, m, |a, b| (0..n).map(|i| dg(i, a) * dg(i, b)).sum());
     let scale = (0..m).map(|a| gram[(a, a)]).fold(0.0, f64::max);
-    if !(scale > 1e-300) {
+    if scale.is_nan() || scale <= 1e-300 {
         return plain;
     }
     let ridged = faer::Mat::<f64>::from_fn(m, m, |a, b| {
