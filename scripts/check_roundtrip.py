@@ -258,6 +258,80 @@ def judge(renders: tuple, photo: np.ndarray, floor: float, mask: np.ndarray) -> 
             "bias": bias, "fails": fails}
 
 
+def sphere_exports(args, work: Path, mi, exr) -> list[str]:
+    """c. The sphere model's exports on the bundled scene: `estimate --model spheres:2`, then
+    spheres/mitsuba/scene.xml (Mitsuba) and spheres/blender.py (Cycles) against lightprobe's
+    own render of spheres/scene.glb (the glTF written back, read as a scene by itself), each
+    at two seeds, judged by check_mitsuba.judge (bias 1%, pixel and block relMAE against what
+    noise explains; justified there), its ratios taken with the global bias divided out as
+    check_blender_lights.py does. Self-test: the Mitsuba scene's sphere radiance x1.03 fails."""
+    import check_blender_lights
+    import check_mitsuba as cm
+    log("c. the sphere model's exports (bundled scene, --model spheres:2) against lightprobe's "
+        "render of spheres/scene.glb:")
+    est = work / "spheres_estimate"
+    run([args.lightprobe, "estimate", REPO / "scenes" / "tabletop" / "tabletop.ron",
+         "--model", "spheres:2", "--quiet", "-o", est], "lightprobe estimate --model spheres:2")
+    spheres = est / "spheres"
+    info = json.loads(run([args.lightprobe, "info", spheres / "scene.glb", "--height", "96"],
+                          "lightprobe info spheres/scene.glb").stdout)
+    views = [c["name"] for c in info["cameras"]]
+    spp = info["settings"]["spp"]
+    lp = {v: [] for v in views}
+    for seed in (1, 2):
+        dest = work / f"spheres_lightprobe_{seed}"
+        run([args.lightprobe, "render-reference", spheres / "scene.glb", "--height", "96",
+             "--seed", seed, "-o", dest], f"lightprobe render-reference spheres/scene.glb, seed {seed}")
+        for v in views:
+            lp[v].append(exr(dest / f"{v}.exr"))
+    cycles = {v: [] for v in views}
+    for seed in (0, 1):
+        dest = spheres / f"renders_{seed}"
+        run([args.blender_python, spheres / "blender.py", "--seed", seed, "--out", dest],
+            f"Cycles: spheres/blender.py, seed {seed}")
+        for v in views:
+            cycles[v].append(exr(dest / f"{v}.exr"))
+
+    def mitsuba(xml: Path) -> dict:
+        sc = mi.load_file(str(xml))
+        return {s.id(): [np.array(mi.render(sc, sensor=i, seed=seed), dtype=np.float64)
+                         for seed in (0, 1)] for i, s in enumerate(sc.sensors())}
+
+    def judged(label: str, renders: dict) -> list[str]:
+        bad = []
+        for v in views:
+            ref, ref2 = lp[v]
+            img, img2 = renders[v]
+            mask = ref[..., 3] > 0.999
+            m = check_blender_lights.judge(cm, img.astype(np.float32), ref.astype(np.float32),
+                                           ref2.astype(np.float32), img2.astype(np.float32),
+                                           mask, spp)
+            log(f"  {label} {v}: bias {[f'{100 * x:+.2f}%' for x in m['bias']]}, pixel "
+                f"{m['ratio'] / m['ratio_expected']:.3f}, block "
+                f"{m['block_ratio'] / m['block_ratio_expected']:.3f} of what noise explains"
+                + ("  FAIL: " + "; ".join(m["fails"]) if m["fails"] else ""))
+            bad += [f"spheres {label} {v}: {f}" for f in m["fails"]]
+        return bad
+
+    fails = judged("Cycles ", cycles)
+    fails += judged("Mitsuba", mitsuba(spheres / "mitsuba" / "scene.xml"))
+    if not args.no_self_test:
+        xml = (spheres / "mitsuba" / "scene.xml").read_text()
+
+        def brighter(m) -> str:
+            return '"' + ", ".join(f"{1.03 * float(x)}" for x in m.group(1).split(",")) + '"'
+        import re
+        wrong = re.sub(r'(?<=<rgb name="radiance" value=)"([^"]*)"', brighter, xml)
+        assert wrong != xml
+        (spheres / "mitsuba" / "wrong.xml").write_text(wrong)
+        caught = judged("x1.03  ", mitsuba(spheres / "mitsuba" / "wrong.xml"))
+        log(f"  self-test, sphere radiance x1.03 (Mitsuba): "
+            f"{'fails, as it must' if caught else 'PASSES: the check cannot see it'}")
+        if not caught:
+            fails.append("self-test: sphere radiance x1.03 passed")
+    return fails
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--blender-worker", help=argparse.SUPPRESS)
@@ -370,6 +444,8 @@ def main() -> int:
     fails += judge_all(cycles_renders(out, "estimate"), fitted, "Cycles ")
     fails += judge_all(mitsuba_renders(out), fitted, "Mitsuba")
     log(f"  ({time.time() - t:.1f} s)")
+
+    fails += sphere_exports(args, work, mi, exr)
 
     if not args.no_self_test:
         log("self-test: each of these must fail b.")
