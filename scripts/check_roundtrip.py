@@ -31,9 +31,8 @@ No sidecar and no lightprobe-made input anywhere:
 
 Thresholds, measured (forest HDRI, 160x120, photographs and renders back at 512 spp, 2 cores):
   fitted exposure ratios within 0.21% of the applied ones (EXPOSURE_TOL 2%);
-  relMAE over what noise explains: Cycles 1.22-1.38, Mitsuba 1.17-1.26 (RATIO_MAX 1.6); what
-  remains is the 9-ring envmap's representation limit and 8-bit quantisation in dark pixels
-  (15 and 25 rings fit no better);
+  relMAE over what noise explains: Cycles 1.22-1.38, Mitsuba 1.17-1.26 (RATIO_MAX 1.6); the
+  excess is not the ring count (15 and 25 rings fit no better) and is not pinned down further;
   bias within 0.55% per channel (BIAS_MAX 2%);
   self-test: 4.3-44 x what noise explains, and biases of 5.5-122%.
 The checker's squares are 32 texels wide: Cycles interpolates a texture's sRGB values before

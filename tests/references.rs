@@ -228,3 +228,116 @@ fn estimate_fits_png_references_as_it_fits_their_exrs() {
     // and are quantised; the fit's error barely moves.
     assert!((a - b).abs() < 0.1 * a, "EXR {a}, PNG {b}");
 }
+
+#[test]
+fn per_view_exposures_of_photographs_are_fitted_and_bad_uses_refused() {
+    // The bundled scene's two views under a 3-ring sky (which the 3-ring model fits exactly)
+    // as 8-bit sRGB PNGs, one at half the exposure of the other: `--exposure per-view` gives
+    // back their ratio; a black view, whose exposure nothing can tell, and `--fit-only`,
+    // which has no re-render to compare, are refused. (Exposures are fitted through the
+    // model: under the scene's near sphere light a 5-ring envmap, which misfits the two views
+    // differently, gave the ratio 14% off.)
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tmp.path().join("s.ron");
+    std::fs::write(
+        &scene,
+        format!(
+            "Scene(gltf: {:?}, image: (width: 48, height: 36), \
+             lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))], \
+             render: (spp: 128))",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb")
+        ),
+    )
+    .unwrap();
+    let bin = env!("CARGO_BIN_EXE_lightprobe");
+    let run = |args: &[&str]| std::process::Command::new(bin).args(args).output().unwrap();
+    let sky = tmp.path().join("sky.ron");
+    std::fs::write(
+        &sky,
+        "Envmap(rings: 3, radiance: [(0.6, 0.7, 1.0), (3.0, 2.0, 1.0), (0.2, 0.3, 0.5), \
+         (1.5, 1.5, 1.5), (0.4, 0.8, 2.0), (0.3, 0.3, 0.3)])",
+    )
+    .unwrap();
+    let exr = tmp.path().join("exr");
+    let o = run(&[
+        "render-reference",
+        scene.to_str().unwrap(),
+        "--envmap",
+        sky.to_str().unwrap(),
+        "--no-sphere-lights",
+        "--out",
+        exr.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let png = tmp.path().join("png");
+    std::fs::create_dir(&png).unwrap();
+    let mut peak = 0.0f32;
+    let images: Vec<Image> = ["cam_front", "cam_side"]
+        .map(|v| imageio::read_exr(&exr.join(format!("{v}.exr"))).unwrap())
+        .into_iter()
+        .inspect(|img| peak = img.rgb.iter().map(|c| c.max_element()).fold(peak, f32::max))
+        .collect();
+    for (v, (mut img, e)) in ["cam_front", "cam_side"]
+        .iter()
+        .zip(images.into_iter().zip([0.9, 0.45]))
+    {
+        img.rgb.iter_mut().for_each(|c| *c *= e / peak);
+        write_png8(&png.join(format!("{v}.png")), &img);
+    }
+    let estimate = |refs: &Path, out: &str, extra: &[&str]| {
+        let out = tmp.path().join(out);
+        let mut args = vec![
+            "estimate",
+            scene.to_str().unwrap(),
+            "--reference",
+            refs.to_str().unwrap(),
+            "--exposure",
+            "per-view",
+            "--rings",
+            "3",
+            "--spp",
+            "64",
+            "--out",
+            out.to_str().unwrap(),
+            "--quiet",
+        ];
+        args.extend_from_slice(extra);
+        (run(&args), out)
+    };
+    let (o, out) = estimate(&png, "fit", &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let e = &r["exposure"]["relative"];
+    let (front, side) = (
+        e[0]["exposure"].as_f64().unwrap(),
+        e[1]["exposure"].as_f64().unwrap(),
+    );
+    assert_eq!(e[0]["view"], "cam_front");
+    assert!(
+        ((front / side) / 2.0 - 1.0).abs() < 0.02,
+        "{front} / {side}"
+    );
+    assert!(((front * side).sqrt() - 1.0).abs() < 1e-9);
+
+    let (o, out) = estimate(&png, "fit_only", &["--fit-only"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("--exposure per-view"),
+        "{err}"
+    );
+    assert!(!out.join("report.json").exists());
+
+    let black = tmp.path().join("black");
+    std::fs::create_dir(&black).unwrap();
+    std::fs::copy(png.join("cam_front.png"), black.join("cam_front.png")).unwrap();
+    write_png8(&black.join("cam_side.png"), &Image::new(48, 36));
+    let (o, out) = estimate(&black, "black", &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("\"cam_side\"") && err.contains("exposure"),
+        "{err}"
+    );
+    assert!(!out.join("report.json").exists());
+}

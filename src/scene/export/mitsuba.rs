@@ -13,7 +13,8 @@
 //!   emitter of a lat-long EXR in Mitsuba's convention with its default (identity) frame;
 //! - the `path` integrator with lightprobe's bounce count (`max_depth` = bounces + 1, Russian
 //!   roulette off, emitters hidden from the camera), one `perspective` sensor per view
-//!   (vertical field of view, box filter, RGBA float film), the sample count overridable as
+//!   (vertical field of view, box filter, RGBA float film) in the views' order, which Mitsuba's
+//!   `-s` picks (a comment at the top lists them); the sample count overridable as
 //!   `mitsuba -Dspp=N`.
 
 use std::fmt::Write as _;
@@ -54,7 +55,11 @@ pub fn write(
     }
     let mut xml = String::from("<?xml version=\"1.0\" encoding=\"utf-8\"?>\n");
     xml += "<!-- Written by lightprobe: the scene under its estimated lighting. Linear RGB, metres, +Y up. -->\n";
-    xml += "<scene version=\"3.0.0\">\n";
+    xml += "<!-- One sensor per view; render view k (numbered from 0) with `mitsuba -s k -o <view>.exr scene.xml`:";
+    for (k, cam) in scene.cameras.iter().enumerate() {
+        let _ = write!(xml, " {k} {}", escape(&cam.name).replace("--", "- -"));
+    }
+    xml += " -->\n<scene version=\"3.0.0\">\n";
     let _ = writeln!(xml, "    <default name=\"spp\" value=\"{}\"/>", render.spp);
     let _ = writeln!(
         xml,
