@@ -667,3 +667,33 @@ fn references_are_found_as_cameras_name_them() {
     ]);
     assert_eq!(o.status.code(), Some(2));
 }
+
+#[test]
+fn primitives_without_a_material_are_said_to_lose_the_default_materials_metal() {
+    // glTF's default material is metallic 1, roughness 1; lightprobe renders it white
+    // diffuse, and says so like any other material's left-out properties.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = lit(tmp.path());
+    let mut doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&scene).unwrap()).unwrap();
+    let prims = doc["meshes"][0]["primitives"].as_array_mut().unwrap();
+    assert!(
+        prims[0]
+            .as_object_mut()
+            .unwrap()
+            .remove("material")
+            .is_some()
+    );
+    let bare = tmp.path().join("bare.gltf");
+    std::fs::write(&bare, doc.to_string()).unwrap();
+    let v = info(&[bare.to_str().unwrap()]);
+    let ignored = v["ignored"].as_array().unwrap();
+    assert_eq!(
+        ignored[0]["what"],
+        "glTF's default material (primitives without one)"
+    );
+    assert!(ignored[0]["properties"].to_string().contains("metallic 1"));
+    // The scene as written has a material on every primitive: no such entry.
+    let v = info(&[scene.to_str().unwrap()]);
+    assert!(!v["ignored"].to_string().contains("default material"));
+}

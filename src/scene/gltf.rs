@@ -386,6 +386,17 @@ fn build(path: &Path, (doc, buffers, images): Imported, size: ViewSize) -> Resul
     if out.mesh.triangle_count() == 0 {
         return Err(Error::file(path, "has no triangles in its scene"));
     }
+    if out.mesh.triangle_material.contains(&0) {
+        // glTF's default material is metallic 1 and roughness 1: a rough metal, which the
+        // Lambertian model renders as a white diffuse surface.
+        out.ignored.insert(
+            0,
+            Ignored {
+                what: "glTF's default material (primitives without one)".into(),
+                properties: vec!["specular reflection (metallic 1, roughness 1)".into()],
+            },
+        );
+    }
     Ok(out)
 }
 
