@@ -697,3 +697,155 @@ fn primitives_without_a_material_are_said_to_lose_the_default_materials_metal() 
     let v = info(&[scene.to_str().unwrap()]);
     assert!(!v["ignored"].to_string().contains("default material"));
 }
+
+/// The bundled glTF with `cameras` (RON text) added by a sidecar in `dir`, and `views`.
+fn posed(dir: &Path, views: &str, cameras: &str) -> PathBuf {
+    let sidecar = dir.join("posed.ron");
+    std::fs::write(
+        &sidecar,
+        format!(
+            "Scene(gltf: {:?}, views: [{views}], image: (width: 32, height: 24),\n cameras: [{cameras}],\n lights: [Point(center: (0, 3, 0), intensity: (5, 5, 5))])",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb")
+        ),
+    )
+    .unwrap();
+    sidecar
+}
+
+#[test]
+fn a_sidecar_adds_views_by_pose_as_a_look_at_or_a_matrix() {
+    // The bundled glTF's two cameras, given again by pose (as SLAM or structure from motion
+    // would give them): a look-at and a camera-to-world matrix built from `info`'s axes must
+    // come out as the same cameras.
+    let tmp = tempfile::tempdir().unwrap();
+    let glb = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb");
+    let truth = info(&[glb]);
+    let cam = |i: usize, key: &str| -> [f64; 3] {
+        serde_json::from_value(truth["cameras"][i][key].clone()).unwrap()
+    };
+    let (o, f, u) = (cam(0, "origin"), cam(0, "forward"), cam(0, "up"));
+    let look_at = format!(
+        "(name: \"front_again\", yfov: 0.7, pose: LookAt(eye: ({}, {}, {}), target: ({}, {}, {}), up: ({}, {}, {})))",
+        o[0],
+        o[1],
+        o[2],
+        o[0] + f[0],
+        o[1] + f[1],
+        o[2] + f[2],
+        u[0],
+        u[1],
+        u[2]
+    );
+    let (o, r, u, f) = (
+        cam(1, "origin"),
+        cam(1, "right"),
+        cam(1, "up"),
+        cam(1, "forward"),
+    );
+    // Columns: +X = right, +Y = up, +Z = back (−forward), position.
+    let rows: Vec<String> = (0..3)
+        .map(|k| format!("({}, {}, {}, {})", r[k], u[k], -f[k], o[k]))
+        .collect();
+    let matrix = format!(
+        "(name: \"side_again\", yfov: 0.7, aspect_ratio: 1.3333334, pose: Matrix(({}, (0, 0, 0, 1))))",
+        rows.join(", ")
+    );
+    let sidecar = posed(
+        tmp.path(),
+        "\"front_again\", \"side_again\", \"cam_front\"",
+        &format!("{look_at}, {matrix}"),
+    );
+    let v = info(&[sidecar.to_str().unwrap()]);
+    let cams = v["cameras"].as_array().unwrap();
+    let names: Vec<&str> = cams.iter().map(|c| c["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["front_again", "side_again", "cam_front"]);
+    for (got, want) in [(0, 0), (1, 1)] {
+        for key in ["origin", "forward", "up", "right"] {
+            let a: [f64; 3] = serde_json::from_value(cams[got][key].clone()).unwrap();
+            let b: [f64; 3] = serde_json::from_value(truth["cameras"][want][key].clone()).unwrap();
+            let d = (0..3).map(|k| (a[k] - b[k]).abs()).fold(0.0, f64::max);
+            assert!(d < 1e-5, "{key} of {}: {a:?} vs {b:?}", names[got]);
+        }
+        assert_eq!(
+            (&cams[got]["width"], &cams[got]["height"]),
+            (&32.into(), &24.into())
+        );
+    }
+    // Views by pose render like any other.
+    let out = tmp.path().join("out");
+    ok(&run(&[
+        "render-reference",
+        sidecar.to_str().unwrap(),
+        "--spp",
+        "4",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]));
+    assert!(out.join("side_again.exr").is_file());
+}
+
+#[test]
+fn bad_camera_poses_are_refused_with_the_sidecar_and_camera_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    let look = |eye: &str, target: &str, up: &str| {
+        format!("(name: \"v\", yfov: 0.7, pose: LookAt(eye: {eye}, target: {target}, up: {up}))")
+    };
+    let matrix = |rows: &str| format!("(name: \"v\", yfov: 0.7, pose: Matrix({rows}))");
+    for (camera, views, needle) in [
+        (
+            look("(0, 1, 2)", "(0, 1, 2)", "(0, 1, 0)"),
+            "",
+            "its eye is its target",
+        ),
+        (
+            look("(0, 1, 2)", "(0, 0, 0)", "(0, 1, 2)"),
+            "",
+            "along its line of sight",
+        ),
+        (
+            "(name: \"v\", yfov: 3.5, pose: LookAt(eye: (0, 1, 2), target: (0, 0, 0)))".into(),
+            "",
+            "yfov must be in (0, π)",
+        ),
+        (
+            matrix("((-1, 0, 0, 0), (0, 1, 0, 1), (0, 0, 1, 2), (0, 0, 0, 1))"),
+            "",
+            "a reflection",
+        ),
+        (
+            matrix("((0, 0, 0, 0), (0, 1, 0, 1), (0, 0, 1, 2), (0, 0, 0, 1))"),
+            "",
+            "scales by 0",
+        ),
+        (
+            matrix("((1, 0, 0, 0), (0, 1, 0, 1), (0, 0, 1, 2), (0, 0, 1, 1))"),
+            "",
+            "last row",
+        ),
+        (
+            matrix("((1, 0, 0, 0), (0, 1, 0, NaN), (0, 0, 1, 2), (0, 0, 0, 1))"),
+            "",
+            "not finite",
+        ),
+        (
+            "(name: \"cam_front\", yfov: 0.7, pose: LookAt(eye: (0, 1, 2), target: (0, 0, 0)))"
+                .into(),
+            "",
+            "named twice",
+        ),
+        (
+            look("(0, 1, 2)", "(0, 0, 0)", "(0, 1, 0)"),
+            "\"w\"",
+            "nor one of the sidecar's `cameras`",
+        ),
+    ] {
+        let sidecar = posed(tmp.path(), views, &camera);
+        let o = run(&["info", sidecar.to_str().unwrap()]);
+        let err = fails(&o);
+        assert!(
+            err.contains("posed.ron") && err.contains(needle),
+            "{camera}\n-> {err}"
+        );
+    }
+}

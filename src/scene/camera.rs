@@ -45,6 +45,30 @@ impl Camera {
         }
     }
 
+    /// A camera at `eye` looking at `target` with `up` upward in its image; None when the
+    /// eye is the target or `up` is along the line of sight (no direction or no up).
+    pub fn looking_at(
+        name: &str,
+        eye: Vec3,
+        target: Vec3,
+        up: Vec3,
+        yfov: f32,
+        width: u32,
+        height: u32,
+    ) -> Option<Self> {
+        let back = (eye - target).try_normalize()?;
+        let right = up.cross(back).try_normalize()?;
+        Some(Camera {
+            name: name.to_string(),
+            origin_world: eye,
+            world_from_camera: Mat3::from_cols(right, back.cross(right), back),
+            yfov,
+            width,
+            height,
+            aspect_ratio: None,
+        })
+    }
+
     /// A camera at `eye` looking at `target`, world +Y up (for tests and tools).
     pub fn look_at(
         name: &str,

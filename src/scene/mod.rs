@@ -437,8 +437,13 @@ fn pick_or_all(
                 ),
                 PickError::Missing(v) => {
                     let names: Vec<_> = cameras.iter().map(|c| c.name.as_str()).collect();
+                    let also = if sidecar == gltf_path {
+                        ""
+                    } else {
+                        " nor one of the sidecar's `cameras`"
+                    };
                     format!(
-                        "view {v:?} is not a perspective camera node of {} (it has {names:?})",
+                        "view {v:?} is not a perspective camera node of {}{also} (there are {names:?})",
                         gltf_path.display()
                     )
                 }
@@ -465,6 +470,52 @@ fn pick_or_all(
     }
     check_view_names(&cameras, gltf_path)?;
     Ok(cameras)
+}
+
+/// A camera the sidecar gives by its pose, sized by `size` at its aspect ratio. Errors name
+/// the sidecar and the camera: a pose with no direction (eye at the target, up along the line
+/// of sight), a matrix that is not a rigid placement (non-finite, degenerate, a reflection,
+/// a last row other than (0, 0, 0, 1)).
+fn posed_camera(desc: &sidecar::CameraDesc, size: ViewSize, sidecar_path: &Path) -> Result<Camera> {
+    let bad = |why: String| Error::file(sidecar_path, format!("camera {:?}: {why}", desc.name));
+    let aspect = desc.aspect_ratio.map(|a| a.0);
+    let (width, height) = size.for_aspect(aspect).map_err(bad)?;
+    let yfov = desc.yfov.0;
+    let v = |p: &sidecar::Point| Vec3::new(p.0.0, p.0.1, p.0.2);
+    let mut camera = match &desc.pose {
+        sidecar::Pose::LookAt { eye, target, up } => {
+            Camera::looking_at(&desc.name, v(eye), v(target), v(up), yfov, width, height)
+                .ok_or_else(|| {
+                    bad("its eye is its target, or its up is along its line of sight".into())
+                })?
+        }
+        sidecar::Pose::Matrix(rows) => {
+            if rows.iter().flatten().any(|x| !x.is_finite()) {
+                return Err(bad("its matrix has a value that is not finite".into()));
+            }
+            if rows[3] != [0.0, 0.0, 0.0, 1.0] {
+                return Err(bad(format!(
+                    "its matrix's last row is {:?}, not (0, 0, 0, 1): a camera-to-world placement has no projection",
+                    rows[3]
+                )));
+            }
+            let world = glam::Mat4::from_cols_array_2d(rows).transpose();
+            let det = glam::Mat3::from_mat4(world).determinant();
+            if !(det.is_finite() && det > 1e-12) {
+                return Err(bad(format!(
+                    "its matrix's 3×3 part has determinant {det}: {}",
+                    if det < 0.0 {
+                        "a reflection, which would mirror the image"
+                    } else {
+                        "it scales by 0, leaving no direction to look in"
+                    }
+                )));
+            }
+            Camera::from_node(desc.name.clone(), world, yfov, width, height)
+        }
+    };
+    camera.aspect_ratio = aspect;
+    Ok(camera)
 }
 
 /// Suffixes lightprobe puts after a view's name in its file names.
@@ -611,7 +662,21 @@ impl Scene {
         } else {
             (&options.views, "the views asked for")
         };
-        let cameras = pick_or_all(loaded.cameras, names, listed, &gltf_path, sidecar_path)?;
+        let mut cameras = loaded.cameras;
+        for desc in &sidecar.cameras {
+            if cameras.iter().any(|c| c.name == desc.name) {
+                return Err(Error::file(
+                    sidecar_path,
+                    format!(
+                        "camera {:?} is named twice (among `cameras`, or as a camera node of {}); rename one",
+                        desc.name,
+                        gltf_path.display()
+                    ),
+                ));
+            }
+            cameras.push(posed_camera(desc, size, sidecar_path)?);
+        }
+        let cameras = pick_or_all(cameras, names, listed, &gltf_path, sidecar_path)?;
         let lights = if sidecar.lights.is_empty() {
             loaded.lights
         } else {

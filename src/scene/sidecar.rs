@@ -42,9 +42,14 @@ pub use crate::envmap::{Rgb, Rings};
 pub struct Sidecar {
     /// The glTF 2.0 file (`.gltf` or `.glb`), relative to the sidecar.
     pub gltf: PathBuf,
-    /// glTF camera node names to render, in order. Empty or absent: every perspective camera.
+    /// Views to render, in order: glTF camera node names or the names of `cameras`. Empty or
+    /// absent: every perspective camera node, then every one of `cameras`.
     #[serde(default)]
     pub views: Vec<String>,
+    /// Views whose poses come from elsewhere (SLAM, structure from motion), beside the glTF's
+    /// camera nodes; they are picked by `views` like those.
+    #[serde(default)]
+    pub cameras: Vec<CameraDesc>,
     /// Image size in pixels of every view. Absent: each view is `--height` (default 480)
     /// pixels high at its glTF camera's aspectRatio (4:3 where it has none), or as large as
     /// the references given for it.
@@ -121,6 +126,51 @@ pub enum LightDesc {
         /// `intensity` candela and colour c has c × intensity / 683.
         intensity: Rgb,
     },
+}
+
+/// A pinhole camera given by its pose, glTF's camera model: it looks down its −Z axis with +Y
+/// up and +X to the right of the image.
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CameraDesc {
+    /// The view's name, which its files take (`<name>.exr`, …).
+    pub name: String,
+    /// Vertical field of view, radians, in (0, π).
+    #[schemars(range(min = 0.0, max = std::f64::consts::PI))]
+    pub yfov: Yfov,
+    /// Image width / height this camera was made for (glTF's `aspectRatio`): checked against
+    /// the references' size; absent: any.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        serialize_with = "inline_some"
+    )]
+    pub aspect_ratio: Option<Positive>,
+    /// Where it is and where it looks.
+    pub pose: Pose,
+}
+
+/// A camera's pose in the world frame (glTF's: +Y up, metres).
+#[derive(Debug, Clone, Deserialize, Serialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub enum Pose {
+    /// At `eye`, looking at `target`, with `up` (default +Y) upward in the image.
+    LookAt {
+        eye: Point,
+        target: Point,
+        #[serde(default = "default_up")]
+        up: Point,
+    },
+    /// The 4×4 camera-to-world matrix, written row by row (`((r00, r01, r02, tx), …,
+    /// (0, 0, 0, 1))`), its columns the camera's +X, +Y, +Z axes and position in the world.
+    /// Scale and shear are removed (a camera is rigid). A pose in OpenCV's camera axes (+Z
+    /// forward, +Y down), as COLMAP and most SLAM systems give it, becomes this one by
+    /// negating its second and third columns.
+    Matrix([[f32; 4]; 4]),
+}
+
+fn default_up() -> Point {
+    Point((0.0, 1.0, 0.0))
 }
 
 /// The ring environment map's resolution.
@@ -201,6 +251,11 @@ checked!(
     /// A finite point or vector.
     Point((f32, f32, f32)), "(f32, f32, f32)", |v| v.0.is_finite() && v.1.is_finite() && v.2.is_finite(),
     "coordinates must be finite, got {:?}"
+);
+checked!(
+    /// A vertical field of view in radians, in (0, π).
+    Yfov(f32), "f32", |v| v > 0.0 && v < std::f32::consts::PI,
+    "yfov must be in (0, π) radians, got {}"
 );
 checked!(
     /// Linear RGB albedo, each channel in [0, 1].
