@@ -59,9 +59,23 @@ def arguments():
 
 
 def set_materials():
+    # Primitives without a material: glTF's default, which lightprobe renders white.
+    default = DATA["materials"].get("")
+    if default is not None:
+        for ob in bpy.data.objects:
+            if ob.type == "MESH" and not any(s.material for s in ob.material_slots):
+                mat = bpy.data.materials.get("lightprobe_default") or bpy.data.materials.new(
+                    "lightprobe_default")
+                mat.use_nodes = True
+                DATA["materials"]["lightprobe_default"] = default
+                ob.data.materials.clear()
+                ob.data.materials.append(mat)
     for mat in bpy.data.materials:
         spec = DATA["materials"].get(mat.name)
         if spec is None or mat.node_tree is None:
+            if mat.users:
+                print(f"blender.py: warning: material {mat.name!r} is not one lightprobe "
+                      "knows by that name; it is left as imported", file=sys.stderr)
             continue
         users = [o for o in bpy.data.objects if o.type == "MESH" and mat.name in o.data.materials]
         colors = {o.data.color_attributes[0].name for o in users if len(o.data.color_attributes)}
