@@ -71,6 +71,13 @@ pub fn write_estimate(
         }
         None => seen,
     };
+    let names: Vec<&str> = seen
+        .views
+        .iter()
+        .map(|c| c.name.as_str())
+        .chain(seen.blind.iter().map(String::as_str))
+        .collect();
+    remove_stale(dir, &names, estimate.spheres.is_some(), rendered_references)?;
     let env = &estimate.envmap.fit.envmap;
     let render = estimate.report.settings;
     let mut notes = Vec::new();
@@ -112,6 +119,75 @@ pub fn write_estimate(
     write_report(dir, &estimate.report)?;
     notes.dedup();
     Ok(notes)
+}
+
+/// Removes what an earlier estimate wrote into `dir` that this one (of `views`, with or
+/// without a sphere model) will not write again, so that the folder never mixes two runs:
+/// the images of views not in this run, the exports' folders (rewritten whole), and the
+/// sphere model's files when this run has none. Only lightprobe's own names are touched:
+/// anything else there (a user's renders) stays; `reference/` only when this run renders its
+/// references into it (otherwise it may be the references given).
+fn remove_stale(dir: &Path, views: &[&str], spheres: bool, references: bool) -> Result<()> {
+    let remove_file = |p: &Path| match std::fs::remove_file(p) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(Error::io(p, e)),
+        _ => Ok(()),
+    };
+    let remove_dir = |p: &Path| match std::fs::remove_dir_all(p) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(Error::io(p, e)),
+        _ => Ok(()),
+    };
+    // A view's images: <view>.exr, .png, .error.png.
+    let view_of = |file: &str| {
+        file.strip_suffix(".error.png")
+            .or_else(|| file.strip_suffix(".png"))
+            .or_else(|| file.strip_suffix(".exr"))
+            .map(str::to_string)
+    };
+    let stale_views = |folder: &Path, keep: &[&str]| -> Result<()> {
+        let Ok(entries) = std::fs::read_dir(folder) else {
+            return Ok(());
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if entry.path().is_file()
+                && let Some(view) = view_of(&name)
+                && !keep.contains(&view.as_str())
+            {
+                remove_file(&entry.path())?;
+            }
+        }
+        Ok(())
+    };
+    stale_views(&dir.join("estimate"), views)?;
+    if references {
+        stale_views(&dir.join("reference"), views)?;
+    }
+    let spheres_dir = dir.join("spheres");
+    for d in [dir, spheres_dir.as_path()] {
+        remove_dir(&d.join("mitsuba"))?;
+        remove_dir(&d.join("blender_textures"))?;
+    }
+    if spheres {
+        stale_views(&spheres_dir, views)?;
+    } else if spheres_dir.is_dir() {
+        stale_views(&spheres_dir, &[])?;
+        for f in [
+            "lights.ron",
+            "background.ron",
+            "background.exr",
+            "background_usd.exr",
+            "lights.usda",
+            "scene.glb",
+            "scene.gltf",
+            "blender.py",
+            "envmap_blender.exr",
+        ] {
+            remove_file(&spheres_dir.join(f))?;
+        }
+        // Gone if nothing of the user's is left in it.
+        let _ = std::fs::remove_dir(&spheres_dir);
+    }
+    Ok(())
 }
 
 /// The scene with `lights` and `envmap` written into `dir` for other tools: its glTF, a

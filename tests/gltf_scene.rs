@@ -849,3 +849,49 @@ fn bad_camera_poses_are_refused_with_the_sidecar_and_camera_named() {
         );
     }
 }
+
+#[test]
+fn a_rerun_into_the_same_folder_leaves_nothing_of_the_last_run() {
+    // A sphere model over all views, then the envmap over one view, into one folder: the
+    // sphere model's files and the dropped view's images go; a file of the user's stays.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.ron");
+    let out = tmp.path().join("out");
+    let out_s = out.to_str().unwrap();
+    let small = ["--height", "24", "--spp", "16", "--quiet", "--out", out_s];
+    ok(&run(&[
+        &["estimate", scene, "--model", "spheres:1"],
+        &small[..],
+    ]
+    .concat()));
+    for f in [
+        "spheres/lights.ron",
+        "spheres/blender.py",
+        "spheres/mitsuba/scene.xml",
+        "estimate/cam_side.exr",
+    ] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    std::fs::create_dir(out.join("spheres/renders")).unwrap();
+    std::fs::write(out.join("spheres/renders/mine.txt"), "mine").unwrap();
+    ok(&run(&[
+        &["estimate", scene, "--views", "cam_front"],
+        &small[..],
+    ]
+    .concat()));
+    for f in [
+        "spheres/lights.ron",
+        "spheres/blender.py",
+        "spheres/mitsuba",
+        "spheres/cam_front.exr",
+        "estimate/cam_side.exr",
+        "estimate/cam_side.error.png",
+        "reference/cam_side.exr",
+    ] {
+        assert!(!out.join(f).exists(), "{f} is left from the last run");
+    }
+    assert!(out.join("spheres/renders/mine.txt").is_file());
+    assert!(
+        out.join("estimate/cam_front.exr").is_file() && out.join("mitsuba/scene.xml").is_file()
+    );
+}

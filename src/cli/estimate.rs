@@ -88,7 +88,7 @@ pub struct Args {
     saturation: Option<f32>,
     /// `shared`: the references are radiance at one exposure. `per-view`: each view's
     /// reference has its own unknown exposure (photographs at different shutter, aperture or
-    /// gain), fitted beside the lighting by alternating fits (3–4 as a rule); report.json
+    /// gain), fitted beside the lighting by alternating fits (4–7); report.json
     /// gives the views' exposures relative to their geometric mean, the unit the lighting is
     /// then in (photographs cannot tell the overall scale).
     #[arg(long, value_enum, default_value_t = ExposureArg::Shared)]
@@ -313,6 +313,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                 a.time_limit
             ));
         }
+    }
+    if let Some(e) = report.exposure.as_ref().filter(|e| !e.converged) {
+        say(&format!(
+            "lightprobe: warning: the exposures did not converge in {} fits (the last still moved one by {:.2}%): the views may not show one scene under one lighting (swapped photographs?), or the model fits them too poorly to tell exposure from lighting",
+            e.fits,
+            100.0 * e.last_change
+        ));
     }
     for note in output::write_estimate(
         &a.out,

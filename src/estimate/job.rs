@@ -130,6 +130,11 @@ pub struct ExposureReport {
     pub relative: Vec<ViewExposure>,
     /// Fits made, alternating lighting and exposures.
     pub fits: usize,
+    /// Whether the exposures converged: the last fit asks for less than
+    /// [`EXPOSURE_TOLERANCE`]'s change. When not, the exposures (and the lighting) are still
+    /// moving: the views may not share a scene (swapped photographs?), or the model fits them
+    /// too poorly to tell exposure from lighting.
+    pub converged: bool,
     /// Largest relative change of an exposure the last fit (the one with every sample) asks
     /// for: how far the exposures reported are from converged. The alternation stops below
     /// [`EXPOSURE_TOLERANCE`] or after [`MAX_EXPOSURE_FITS`] fits.
@@ -436,8 +441,8 @@ pub struct EstimateReport {
     /// The model the estimate ends with: `envmap`, `spheres:K` or `envmap+spheres:K`.
     pub model: String,
     pub model_selection: Option<ModelSelection>,
-    /// The fitted relative exposures (`--exposure per-view`); absent when the references
-    /// share one exposure.
+    /// The fitted relative exposures (`--exposure per-view`); null when the references share
+    /// one exposure.
     pub exposure: Option<ExposureReport>,
     /// The sphere-light model's estimate (with `--model spheres` or `auto`).
     pub spheres: Option<SpheresReport>,
@@ -607,6 +612,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                     .collect(),
                 fits,
                 last_change: change,
+                converged: change < EXPOSURE_TOLERANCE,
             });
             report.timings.total_seconds = original.seconds + t_all.elapsed().as_secs_f64();
             return Ok(estimate);

@@ -48,14 +48,22 @@ def arguments():
         argv = sys.argv[1:]                    # python blender.py ...
     else:
         argv = []
+    def positive(text):
+        if not text.isdigit() or int(text) < 1:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+        return int(text)
+
     p = argparse.ArgumentParser(prog="blender.py", description=__doc__.splitlines()[0])
-    p.add_argument("--spp", type=int, default=DATA["spp"], help="samples per pixel")
+    p.add_argument("--spp", type=positive, default=DATA["spp"], help="samples per pixel")
     p.add_argument("--views", default=None, help="comma-separated views (default: all)")
     p.add_argument("--out", type=Path, default=HERE / "renders", help="folder of the renders")
     p.add_argument("--no-render", action="store_true", help="set the scene up, render nothing")
-    p.add_argument("--seed", type=int, default=0, help="Cycles' seed")
-    p.add_argument("--threads", type=int, default=0, help="render threads (0: all cores)")
-    return p.parse_args(argv)
+    p.add_argument("--seed", type=int, default=0, help="Cycles' seed (0 to 2^31 - 1)")
+    p.add_argument("--threads", type=positive, default=None, help="render threads (default: all)")
+    args = p.parse_args(argv)
+    if args.out.exists() and not args.out.is_dir():
+        p.error(f"--out {args.out} is a file, not a folder")
+    return args
 
 
 def set_materials():

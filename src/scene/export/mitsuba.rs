@@ -28,8 +28,10 @@ use crate::envmap::latlong::{self, Filter, Target};
 use crate::error::{Error, Result};
 use crate::imageio::{self, Image};
 
-/// Width of the envmap's lat-long EXR (its height is half).
-const ENVMAP_WIDTH: u32 = 2048;
+/// Width of the envmap's lat-long EXR (its height is half): Mitsuba interpolates between
+/// pixels, which blurs a cell's edges by half a pixel (the worst cell of 9 rings loses 0.7% of
+/// its power at this width, 2.7% at 1024).
+const ENVMAP_WIDTH: u32 = 4096;
 
 /// How Mitsuba should render: lightprobe's samples per pixel and bounce count.
 #[derive(Debug, Clone, Copy)]
@@ -74,7 +76,7 @@ pub fn write(
         let _ = writeln!(
             xml,
             "    <sensor type=\"perspective\" id=\"{}\">\n        <string name=\"fov_axis\" value=\"y\"/>\n        <float name=\"fov\" value=\"{}\"/>\n        <float name=\"near_clip\" value=\"0.001\"/>\n        <float name=\"far_clip\" value=\"10000\"/>\n        <transform name=\"to_world\">\n            <lookat origin=\"{}\" target=\"{}\" up=\"{}\"/>\n        </transform>\n        <sampler type=\"independent\">\n            <integer name=\"sample_count\" value=\"$spp\"/>\n        </sampler>\n        <film type=\"hdrfilm\">\n            <integer name=\"width\" value=\"{}\"/>\n            <integer name=\"height\" value=\"{}\"/>\n            <string name=\"pixel_format\" value=\"rgba\"/>\n            <rfilter type=\"box\"/>\n        </film>\n    </sensor>",
-            escape(&cam.name),
+            sensor_id(&cam.name),
             cam.yfov.to_degrees(),
             triple(cam.origin_world),
             triple(target),
@@ -173,6 +175,12 @@ pub fn write(
 /// `x, y, z` for an XML attribute.
 fn triple(v: Vec3) -> String {
     format!("{}, {}, {}", v.x, v.y, v.z)
+}
+
+/// A view's name as a sensor `id`: Mitsuba substitutes `$name` in every attribute value, so a
+/// `$` becomes `_` (the comment atop the file lists the views by index as they are named).
+fn sensor_id(name: &str) -> String {
+    escape(&name.replace('$', "_"))
 }
 
 /// Text safe inside an XML attribute or comment.
