@@ -18,7 +18,7 @@ use super::super::{Albedo, Scene};
 use crate::envmap::Envmap;
 use crate::envmap::latlong::{self, Filter, Target};
 use crate::error::Result;
-use crate::imageio::{self, Image};
+use crate::imageio;
 
 /// Width of the envmap's lat-long EXR (its height is half). Cycles' bilinear lookup shrinks
 /// the map's bright cells by about half a pixel, −0.08% of their power at this width.
@@ -48,17 +48,7 @@ pub fn write(
                 std::fs::create_dir_all(&tex_dir)
                     .map_err(|e| crate::error::Error::io(&tex_dir, e))?;
                 let file = format!("blender_textures/{m}.exr");
-                let img = Image {
-                    width: texture.width,
-                    height: texture.height,
-                    rgb: texture
-                        .texels
-                        .iter()
-                        .map(|t| (*t * *factor).clamp(Vec3::ZERO, Vec3::ONE))
-                        .collect(),
-                    alpha: None,
-                };
-                imageio::write_exr(&dir.join(&file), &img)?;
+                imageio::write_exr(&dir.join(&file), &super::albedo_image(texture, *factor))?;
                 (Vec3::ONE, Some(file))
             }
         };

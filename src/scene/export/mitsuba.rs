@@ -26,7 +26,7 @@ use super::super::{Albedo, Scene, SphereLight};
 use crate::envmap::Envmap;
 use crate::envmap::latlong::{self, Filter, Target};
 use crate::error::{Error, Result};
-use crate::imageio::{self, Image};
+use crate::imageio;
 
 /// Width of the envmap's lat-long EXR (its height is half): Mitsuba interpolates between
 /// pixels, which blurs a cell's edges by half a pixel (the worst cell of 9 rings loses 0.7% of
@@ -114,17 +114,7 @@ pub fn write(
                     ));
                 }
                 let file = format!("textures/{m}.exr");
-                let img = Image {
-                    width: texture.width,
-                    height: texture.height,
-                    rgb: texture
-                        .texels
-                        .iter()
-                        .map(|t| (*t * *factor).clamp(Vec3::ZERO, Vec3::ONE))
-                        .collect(),
-                    alpha: None,
-                };
-                imageio::write_exr(&dir.join(&file), &img)?;
+                imageio::write_exr(&dir.join(&file), &super::albedo_image(texture, *factor))?;
                 format!(
                     "<texture type=\"bitmap\" name=\"reflectance\">\n                <string name=\"filename\" value=\"{file}\"/>\n                <string name=\"filter_type\" value=\"bilinear\"/>\n                <string name=\"wrap_mode\" value=\"repeat\"/>\n                <boolean name=\"raw\" value=\"true\"/>\n            </texture>"
                 )

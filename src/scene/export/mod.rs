@@ -16,6 +16,21 @@ use super::SphereLight;
 use super::gltf::{LUMENS_PER_WATT, percent_decode};
 use crate::error::{Error, Result};
 
+/// The albedo a textured material has, as lightprobe looks it up: the texture times the
+/// factor, clamped to [0, 1] (written as a linear float EXR for other renderers).
+fn albedo_image(texture: &super::Texture, factor: glam::Vec3) -> crate::imageio::Image {
+    crate::imageio::Image {
+        width: texture.width,
+        height: texture.height,
+        rgb: texture
+            .texels
+            .iter()
+            .map(|t| (*t * factor).clamp(glam::Vec3::ZERO, glam::Vec3::ONE))
+            .collect(),
+        alpha: None,
+    }
+}
+
 /// An envmap written beside the glTF, named in its scene's `extras.lightprobe_envmap`.
 #[derive(Debug, Clone)]
 pub struct EnvmapNote {
