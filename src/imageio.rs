@@ -295,6 +295,31 @@ pub fn read_photo(path: &Path, decoding: Decoding) -> Result<(Image, Vec<bool>)>
     Ok((img, usable))
 }
 
+/// Reads a lat-long environment map as linear radiance: OpenEXR or Radiance `.hdr` (the
+/// formats that hold radiance above 1), by extension.
+pub fn read_latlong(path: &Path) -> Result<Image> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default();
+    match ext.as_str() {
+        "exr" => read_exr(path),
+        "hdr" => Ok(read_decoded(
+            path,
+            Decoding {
+                linear: true,
+                saturation: None,
+            },
+        )?
+        .0),
+        _ => Err(Error::file(
+            path,
+            "is not an environment map lightprobe reads: give an OpenEXR (.exr) or Radiance (.hdr) lat-long image",
+        )),
+    }
+}
+
 /// The size of an image [`read_photo`] reads, from its header.
 pub fn photo_size(path: &Path) -> Result<(u32, u32)> {
     if path

@@ -341,3 +341,105 @@ fn per_view_exposures_of_photographs_are_fitted_and_bad_uses_refused() {
     );
     assert!(!out.join("report.json").exists());
 }
+
+#[test]
+fn environment_maps_are_read_from_exr_and_hdr() {
+    // A lat-long map as EXR and as Radiance .hdr: import-envmap gives the same cells (to the
+    // .hdr's 8-bit mantissa), and render-reference --envmap with the image renders exactly
+    // what it renders with the ring envmap import-envmap makes of it. Other formats are
+    // refused naming the file.
+    let tmp = tempfile::tempdir().unwrap();
+    let (w, h) = (64u32, 32u32);
+    let mut img = Image::new(w, h);
+    for (i, p) in img.rgb.iter_mut().enumerate() {
+        let (x, y) = (
+            (i as u32 % w) as f32 / w as f32,
+            (i as u32 / w) as f32 / h as f32,
+        );
+        *p = Vec3::new(0.2 + 3.0 * x, 0.5 + 0.5 * y, 1.0 + (6.0 * x).sin().abs());
+    }
+    let exr = tmp.path().join("sky.exr");
+    imageio::write_exr(&exr, &img).unwrap();
+    let hdr = tmp.path().join("sky.hdr");
+    let pixels: Vec<image::Rgb<f32>> = img.rgb.iter().map(|c| image::Rgb(c.to_array())).collect();
+    image::codecs::hdr::HdrEncoder::new(std::fs::File::create(&hdr).unwrap())
+        .encode(&pixels, w as usize, h as usize)
+        .unwrap();
+    let bin = env!("CARGO_BIN_EXE_lightprobe");
+    let run = |args: &[&str]| std::process::Command::new(bin).args(args).output().unwrap();
+    let ok = |o: std::process::Output| {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    let cells = |from: &Path, name: &str| {
+        let out = tmp.path().join(name);
+        ok(run(&[
+            "import-envmap",
+            from.to_str().unwrap(),
+            "--rings",
+            "9",
+            "--target",
+            "blender",
+            "--out",
+            out.to_str().unwrap(),
+        ]));
+        lightprobe::envmap::Envmap::load(&out).unwrap()
+    };
+    let (a, b) = (cells(&exr, "a.ron"), cells(&hdr, "b.ron"));
+    for (x, y) in a.radiance().iter().zip(b.radiance()) {
+        assert!(
+            (*x - *y).abs().max_element() < 0.01 * x.max_element(),
+            "{x} vs {y}"
+        );
+    }
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.ron");
+    let render = |envmap: &Path, out: &str| {
+        let out = tmp.path().join(out);
+        ok(run(&[
+            "render-reference",
+            scene,
+            "--envmap",
+            envmap.to_str().unwrap(),
+            "--envmap-target",
+            "blender",
+            "--envmap-rings",
+            "9",
+            "--no-sphere-lights",
+            "--height",
+            "12",
+            "--spp",
+            "4",
+            "--out",
+            out.to_str().unwrap(),
+            "--quiet",
+        ]));
+        std::fs::read(out.join("cam_side.exr")).unwrap()
+    };
+    assert!(render(&exr, "from_exr") == render(&tmp.path().join("a.ron"), "from_ron"));
+    let png = tmp.path().join("sky.png");
+    write_png8(&png, &img);
+    for args in [
+        vec![
+            "import-envmap",
+            png.to_str().unwrap(),
+            "--rings",
+            "3",
+            "--out",
+            "x.ron",
+        ],
+        vec![
+            "render-reference",
+            scene,
+            "--envmap",
+            png.to_str().unwrap(),
+            "--out",
+            "x",
+        ],
+    ] {
+        let o = run(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains("sky.png") && err.contains(".hdr"),
+            "{err}"
+        );
+    }
+}

@@ -31,7 +31,7 @@ pub struct ExportArgs {
 
 #[derive(clap::Args)]
 pub struct ImportArgs {
-    /// A lat-long RGB OpenEXR.
+    /// A lat-long map: OpenEXR (RGB or RGBA) or Radiance .hdr.
     image: PathBuf,
     /// Ring count of the grid to average onto (1..=1000).
     #[arg(long)]
@@ -96,7 +96,7 @@ pub fn import(a: ImportArgs) -> anyhow::Result<()> {
             a.out.display()
         );
     }
-    let img = imageio::read_exr(&a.image)?;
+    let img = imageio::read_latlong(&a.image)?;
     if img.width != 2 * img.height {
         // Any size is read as lat-long, but one that is not 2:1 is probably something else.
         say(&format!(

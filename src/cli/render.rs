@@ -17,6 +17,37 @@ use lightprobe::scene::{Camera, sidecar};
 
 use super::{Bars, SceneArgs, StrategyArg, check_memory, outln, prepare_out_dir};
 
+/// A ring envmap file, or a lat-long image averaged into `rings` rings.
+fn load_envmap(
+    path: &std::path::Path,
+    target: lightprobe::envmap::latlong::Target,
+    rings: u32,
+) -> anyhow::Result<Envmap> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    if ["png", "jpg", "jpeg", "tif", "tiff", "bmp"].contains(&ext.as_str()) {
+        // 8- and 16-bit images clip the sky's bright parts: no radiance to light with.
+        anyhow::bail!(
+            "{}: is not an environment map lightprobe reads: give a ring envmap (.ron) or a lat-long OpenEXR (.exr) or Radiance (.hdr) image",
+            path.display()
+        );
+    }
+    if ext != "exr" && ext != "hdr" {
+        return Ok(Envmap::load(path)?);
+    }
+    anyhow::ensure!(
+        (1..=lightprobe::envmap::MAX_RINGS).contains(&rings),
+        "--envmap-rings must be between 1 and {}, got {rings}",
+        lightprobe::envmap::MAX_RINGS
+    );
+    let img = lightprobe::imageio::read_latlong(path)?;
+    Ok(lightprobe::envmap::latlong::import(&img, target, rings)
+        .map_err(|m| lightprobe::Error::file(path, m))?)
+}
+
 #[derive(clap::Args)]
 pub struct Args {
     #[command(flatten)]
@@ -39,9 +70,18 @@ pub struct Args {
     /// Show emitters seen directly by the camera (default: black, like Mitsuba's hide_emitters).
     #[arg(long)]
     show_emitters: bool,
-    /// Also light the scene with this ring envmap (envmap.ron); escaping rays see it.
+    /// Also light the scene with this environment map (escaping rays see it): a ring envmap
+    /// (envmap.ron), or a lat-long OpenEXR or Radiance .hdr in --envmap-target's convention,
+    /// averaged into --envmap-rings rings (as import-envmap does).
     #[arg(long)]
     envmap: Option<PathBuf>,
+    /// Whose lat-long convention an --envmap image follows (Blender's for a map Blender uses
+    /// as its World).
+    #[arg(long, value_enum, default_value_t = super::TargetArg::Mitsuba, requires = "envmap")]
+    envmap_target: super::TargetArg,
+    /// Rings an --envmap image is averaged into (1..=1000; 64 rings are cells of about 3°).
+    #[arg(long, default_value_t = 64, requires = "envmap")]
+    envmap_rings: u32,
     /// Leave out the scene's sphere and point lights (e.g. to light with --envmap alone).
     #[arg(long)]
     no_sphere_lights: bool,
@@ -82,7 +122,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         scene.lights.clone()
     });
     if let Some(p) = &a.envmap {
-        lights.env = Some(Envmap::load(p)?);
+        lights.env = Some(load_envmap(p, a.envmap_target.into(), a.envmap_rings)?);
     }
     anyhow::ensure!(
         !(settings.strategy == lightprobe::render::Strategy::BsdfOnly
