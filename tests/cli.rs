@@ -296,8 +296,9 @@ fn sky_sidecar(spp: u32) -> String {
     )
 }
 
-/// A glTF with one triangle at y = 0 and one camera above it looking up, away from it.
-const SKY_GLTF: &str = r#"{"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0, 1]}], "nodes": [{"mesh": 0}, {"name": "up", "camera": 0, "translation": [0, 1, 0], "rotation": [0.70710678, 0, 0, 0.70710678]}], "cameras": [{"type": "perspective", "perspective": {"yfov": 0.5, "znear": 0.01}}], "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}], "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [-1, 0, -1], "max": [1, 0, 1]}], "bufferViews": [{"buffer": 0, "byteLength": 36}], "buffers": [{"byteLength": 36, "uri": "data:application/octet-stream;base64,AACAvwAAAAAAAIC/AACAPwAAAAAAAIC/AAAAAAAAAAAAAIA/"}]}"#;
+/// A glTF with one triangle at y = 0 and one camera above it looking up, away from it; its
+/// material is Lambertian, so loading it says nothing.
+const SKY_GLTF: &str = r#"{"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0, 1]}], "nodes": [{"mesh": 0}, {"name": "up", "camera": 0, "translation": [0, 1, 0], "rotation": [0.70710678, 0, 0, 0.70710678]}], "cameras": [{"type": "perspective", "perspective": {"yfov": 0.5, "znear": 0.01}}], "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0}]}], "materials": [{"pbrMetallicRoughness": {"metallicFactor": 0}}], "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [-1, 0, -1], "max": [1, 0, 1]}], "bufferViews": [{"buffer": 0, "byteLength": 36}], "buffers": [{"byteLength": 36, "uri": "data:application/octet-stream;base64,AACAvwAAAAAAAIC/AACAPwAAAAAAAIC/AAAAAAAAAAAAAIA/"}]}"#;
 
 fn sidecar(extra_fields: &str, lights: &str) -> Vec<u8> {
     format!(

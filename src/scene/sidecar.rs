@@ -48,7 +48,7 @@ pub struct Sidecar {
     pub views: Vec<String>,
     /// Views whose poses come from elsewhere (SLAM, structure from motion), beside the glTF's
     /// camera nodes; they are picked by `views` like those.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub cameras: Vec<CameraDesc>,
     /// Image size in pixels of every view. Absent: each view is `--height` (default 480)
     /// pixels high at its glTF camera's aspectRatio (4:3 where it has none), or as large as
