@@ -257,6 +257,13 @@ def judge(renders: tuple, photo: np.ndarray, floor: float, mask: np.ndarray) -> 
             "bias": bias, "fails": fails}
 
 
+def mitsuba_renders(mi, xml: Path, spp: int | None = None) -> dict:
+    """Mitsuba's renders of each sensor of `xml` (at `spp`, else the file's), seeds 0 and 1."""
+    sc = mi.load_file(str(xml)) if spp is None else mi.load_file(str(xml), spp=spp)
+    return {s.id(): [np.array(mi.render(sc, sensor=i, seed=seed), dtype=np.float64)
+                     for seed in (0, 1)] for i, s in enumerate(sc.sensors())}
+
+
 def sphere_exports(args, work: Path, mi, exr) -> list[str]:
     """c. The sphere model's exports on the bundled scene: `estimate --model spheres:2`, then
     spheres/mitsuba/scene.xml (Mitsuba) and spheres/blender.py (Cycles) against lightprobe's
@@ -291,11 +298,6 @@ def sphere_exports(args, work: Path, mi, exr) -> list[str]:
         for v in views:
             cycles[v].append(exr(dest / f"{v}.exr"))
 
-    def mitsuba(xml: Path) -> dict:
-        sc = mi.load_file(str(xml))
-        return {s.id(): [np.array(mi.render(sc, sensor=i, seed=seed), dtype=np.float64)
-                         for seed in (0, 1)] for i, s in enumerate(sc.sensors())}
-
     def judged(label: str, renders: dict) -> list[str]:
         bad = []
         for v in views:
@@ -313,7 +315,7 @@ def sphere_exports(args, work: Path, mi, exr) -> list[str]:
         return bad
 
     fails = judged("Cycles ", cycles)
-    fails += judged("Mitsuba", mitsuba(spheres / "mitsuba" / "scene.xml"))
+    fails += judged("Mitsuba", mitsuba_renders(mi, spheres / "mitsuba" / "scene.xml"))
     if not args.no_self_test:
         xml = (spheres / "mitsuba" / "scene.xml").read_text()
 
@@ -323,7 +325,7 @@ def sphere_exports(args, work: Path, mi, exr) -> list[str]:
         wrong = re.sub(r'(?<=<rgb name="radiance" value=)"([^"]*)"', brighter, xml)
         assert wrong != xml
         (spheres / "mitsuba" / "wrong.xml").write_text(wrong)
-        caught = judged("x1.03  ", mitsuba(spheres / "mitsuba" / "wrong.xml"))
+        caught = judged("x1.03  ", mitsuba_renders(mi, spheres / "mitsuba" / "wrong.xml"))
         log(f"  self-test, sphere radiance x1.03 (Mitsuba): "
             f"{'fails, as it must' if caught else 'PASSES: the check cannot see it'}")
         if not caught:
@@ -421,12 +423,6 @@ def main() -> int:
                 out[n].append(exr(dest / f"{n}.exr"))
         return out
 
-    def mitsuba_renders(folder: Path) -> dict:
-        """Mitsuba's renders of OUT/mitsuba/scene.xml's sensors, at seeds 0 and 1."""
-        sc = mi.load_file(str(folder / "mitsuba" / "scene.xml"), spp=BACK_SPP)
-        return {s.id(): [np.array(mi.render(sc, sensor=i, seed=seed), dtype=np.float64)
-                         for seed in (0, 1)] for i, s in enumerate(sc.sensors())}
-
     def judge_all(renders: dict, exposures: dict, label: str) -> list[str]:
         bad = []
         for n in EXPOSURES:
@@ -441,7 +437,8 @@ def main() -> int:
     t = time.time()
     log("b. the estimate rendered back, against the photographs over their fitted exposures:")
     fails += judge_all(cycles_renders(out, "estimate"), fitted, "Cycles ")
-    fails += judge_all(mitsuba_renders(out), fitted, "Mitsuba")
+    back = mitsuba_renders(mi, out / "mitsuba" / "scene.xml", BACK_SPP)
+    fails += judge_all(back, fitted, "Mitsuba")
     log(f"  ({time.time() - t:.1f} s)")
 
     fails += sphere_exports(args, work, mi, exr)
@@ -457,14 +454,15 @@ def main() -> int:
             "envmap a quarter turn off (Cycles)": lambda: judge_all(
                 cycles_renders(wrong, "rolled"), fitted, "rolled "),
             "exposures not applied (Mitsuba)": lambda: judge_all(
-                mitsuba_renders(out), {n: 1.0 for n in EXPOSURES}, "no-exp "),
+                back, {n: 1.0 for n in EXPOSURES}, "no-exp "),
         }
 
         def shared():
             so = work / "out_shared"
             run([args.lightprobe, "estimate", glb, "--reference", work / "photos", "-o", so],
                 "lightprobe estimate --exposure shared")
-            return judge_all(mitsuba_renders(so), {n: 1.0 for n in EXPOSURES}, "shared ")
+            return judge_all(mitsuba_renders(mi, so / "mitsuba" / "scene.xml", BACK_SPP),
+                             {n: 1.0 for n in EXPOSURES}, "shared ")
         cases["estimated with --exposure shared (Mitsuba)"] = shared
         for what, case in cases.items():
             caught = case()

@@ -275,11 +275,7 @@ pub const PHOTO_EXTENSIONS: &[&str] = &["exr", "hdr", "png", "jpg", "jpeg"];
 /// Also returns which pixels are usable: not saturated (any channel at the format's maximum,
 /// or at `decoding.saturation`).
 pub fn read_photo(path: &Path, decoding: Decoding) -> Result<(Image, Vec<bool>)> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .unwrap_or_default();
+    let ext = extension(path);
     let (img, mut usable) = if ext == "exr" {
         let img = read_exr(path)?;
         let n = img.rgb.len();
@@ -295,14 +291,18 @@ pub fn read_photo(path: &Path, decoding: Decoding) -> Result<(Image, Vec<bool>)>
     Ok((img, usable))
 }
 
+/// A file's extension in lower case ("" without one): image formats are told by it.
+pub fn extension(path: &Path) -> String {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default()
+}
+
 /// Reads a lat-long environment map as linear radiance: OpenEXR or Radiance `.hdr` (the
 /// formats that hold radiance above 1), by extension.
 pub fn read_latlong(path: &Path) -> Result<Image> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase)
-        .unwrap_or_default();
+    let ext = extension(path);
     match ext.as_str() {
         "exr" => read_exr(path),
         "hdr" => Ok(read_decoded(

@@ -23,11 +23,7 @@ fn load_envmap(
     target: lightprobe::envmap::latlong::Target,
     rings: u32,
 ) -> anyhow::Result<Envmap> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase();
+    let ext = lightprobe::imageio::extension(path);
     if ["png", "jpg", "jpeg", "tif", "tiff", "bmp"].contains(&ext.as_str()) {
         // 8- and 16-bit images clip the sky's bright parts: no radiance to light with.
         anyhow::bail!(
