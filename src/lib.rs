@@ -16,6 +16,7 @@ pub mod imageio;
 pub mod math;
 pub mod memory;
 pub mod metrics;
+pub mod noise;
 pub mod output;
 pub mod render;
 pub mod sampling;

@@ -1231,3 +1231,60 @@ fn per_view_exposures_are_recovered_and_the_lighting_is_in_their_geometric_mean(
         "relMAE per-view {pv}, shared {sh}"
     );
 }
+
+#[test]
+fn a_model_short_of_the_references_bounces_fails_the_fit_test_and_the_right_one_passes() {
+    // References of a sky-lit scene with 4 bounces. Fitted with 4 bounces the 3-ring envmap
+    // explains them within noise; fitted with 1 bounce it cannot (interreflections between
+    // the ball, the box and the table are missing), and the test must say so and name the
+    // bounce count. Given references are judged by neighbouring pixels; rendered ones by
+    // their rendered twin, and the two noise floors must agree.
+    use lightprobe::estimate::job::{self, EstimateSettings, Job, NoiseSource, References, Rings};
+    let sc = scene(vec![]);
+    let lights = Lights::env(three_ring_sky());
+    let r = Renderer::new(&sc, &lights);
+    let at = |bounces| RenderSettings {
+        max_bounces: bounces,
+        ..settings(256, 1)
+    };
+    let refs: Vec<Image> = sc
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| r.render_radiance(c, i as u64, &at(4), &|_| {}))
+        .collect();
+    let given = job::observe(&r, &at(4), References::Images(refs.clone()), &()).unwrap();
+    let rendered = job::observe(&r, &at(4), References::Render, &()).unwrap();
+    let run = |seen: &lightprobe::estimate::pipeline::SeenViews, bounces| {
+        let settings = EstimateSettings {
+            rings: Rings::Fixed(3),
+            spp: 256,
+            ..EstimateSettings::new(&sc.settings)
+        };
+        job::run(&Job::new(&r, seen, &at(bounces), &settings), &())
+            .unwrap()
+            .report
+    };
+    let right = run(&given, 4);
+    let short = run(&given, 1);
+    let twin = run(&rendered, 4);
+    let test = |rep: &job::EstimateReport| rep.fit_test.clone().unwrap();
+    assert_eq!(
+        right.noise_floor_source,
+        Some(NoiseSource::NeighbouringPixels)
+    );
+    assert_eq!(twin.noise_floor_source, Some(NoiseSource::RenderedTwin));
+    assert!(!test(&right).misfit, "{:?}", test(&right));
+    assert!(!test(&twin).misfit, "{:?}", test(&twin));
+    let bad = test(&short);
+    assert!(bad.misfit && bad.test.residual_over_noise > 2.0, "{bad:?}");
+    assert!(bad.causes.iter().any(|c| c.contains("bounce")), "{bad:?}");
+    // The same noise measured two ways: within 15%.
+    let (n, t) = (
+        right.noise_floor_rel_mae.unwrap(),
+        twin.noise_floor_rel_mae.unwrap(),
+    );
+    assert!((n / t - 1.0).abs() < 0.15, "neighbours {n}, twin {t}");
+    // Scene lights against given references are their own figure, not the noise floor.
+    assert!(right.true_lights_rel_mae.is_some() && twin.true_lights_rel_mae.is_none());
+}

@@ -11,7 +11,7 @@ const LAYERS: &[&[&str]] = &[
     &["checked", "error", "math"],
     &["cleanup", "memory"],
     &["accel", "imageio", "sampling"],
-    &["envmap", "metrics"],
+    &["envmap", "metrics", "noise"],
     &["scene"],
     &["render"],
     &["estimate"],

@@ -332,6 +332,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         say(&format!("lightprobe: note: {note}"));
     }
     let report = &estimate.report;
+    // Said once the outputs are written: a run that fails says only why it failed.
+    if let Some(t) = report.fit_test.as_ref().filter(|t| t.misfit) {
+        say(&misfit_warning(t));
+    }
     if a.json {
         super::print(&output::report_json(report).map_err(anyhow::Error::msg)?)?;
     } else {
@@ -386,13 +390,12 @@ fn summary(r: &EstimateReport) -> Vec<String> {
     }
     for v in &r.views {
         let Some(e) = v.estimate else { continue };
-        let mut line = format!("{:<12} relMAE {:.2}%", v.view, 100.0 * e.rel_mae);
-        if let Some(nf) = v.noise_floor {
-            line += &format!(
-                "  noise floor {:.2}% (×{:.2})",
-                100.0 * nf.rel_mae,
-                e.rel_mae / nf.rel_mae
-            );
+        let mut line = format!("envmap, {:<12} relMAE {:.2}%", v.view, 100.0 * e.rel_mae);
+        if let Some(nf) = v.noise_floor_rel_mae {
+            line += &format!("  noise floor {:.2}% (×{:.2})", 100.0 * nf, e.rel_mae / nf);
+        }
+        if let Some(t) = v.true_lights {
+            line += &format!("  scene's lights {:.2}%", 100.0 * t.rel_mae);
         }
         if let Some(l) = v.representation_limit {
             line += &format!(
@@ -429,6 +432,29 @@ fn summary(r: &EstimateReport) -> Vec<String> {
     if let Some(s) = &r.spheres {
         lines.extend(spheres_summary(s, r.rel_mae));
     }
+    if let (Some(source), Some(floor)) = (r.noise_floor_source, r.noise_floor_rel_mae) {
+        lines.push(format!(
+            "noise floor {:.2}% ({})",
+            100.0 * floor,
+            match source {
+                job::NoiseSource::RenderedTwin => "a second render of the true lights",
+                job::NoiseSource::NeighbouringPixels => "from the residual's neighbouring pixels",
+            }
+        ));
+    }
+    if let Some(t) = &r.fit_test {
+        lines.push(format!(
+            "fit test, {}: residual {:.2}× what the noise explains (Σr²), p = {}: {}",
+            t.model,
+            t.test.residual_over_noise,
+            p_value(t.test.p_value),
+            if t.misfit {
+                "does not explain the images (see the warning)"
+            } else {
+                "within noise"
+            }
+        ));
+    }
     if let Some(e) = &r.exposure {
         lines.push(format!(
             "exposures relative to their geometric mean (the lighting's unit), {} fits, last change {:.2}%: {}",
@@ -446,6 +472,28 @@ fn summary(r: &EstimateReport) -> Vec<String> {
         r.timings.fit_seconds, r.timings.transport_seconds, r.timings.solve_seconds
     ));
     lines
+}
+
+/// A p-value as people read it: tiny ones as a bound.
+fn p_value(p: f64) -> String {
+    if p < 1e-12 {
+        "< 1e-12".into()
+    } else if p < 1e-3 {
+        format!("{p:.1e}")
+    } else {
+        format!("{p:.3}")
+    }
+}
+
+/// The warning of a model that does not explain the images, with what to check.
+fn misfit_warning(t: &job::ModelFitTest) -> String {
+    format!(
+        "lightprobe: warning: the {} model does not explain the images: its residual is {:.2}× what their noise explains (Σr², p = {}). Check, most likely first: {}.",
+        t.model,
+        t.test.residual_over_noise,
+        p_value(t.test.p_value),
+        t.causes.join("; ")
+    )
 }
 
 /// Lines for a sphere-model estimate, beside the envmap's relMAE.

@@ -37,6 +37,7 @@ use crate::envmap::MAX_RINGS;
 use crate::error::{Error, Result};
 use crate::imageio::Image;
 use crate::metrics::Metrics;
+use crate::noise::{FitTest, ResidualNoise};
 use crate::render::{RenderSettings, Renderer};
 use crate::scene::{Camera, SceneSettings};
 
@@ -312,6 +313,7 @@ pub fn observe<'a>(
     };
     let t = Instant::now();
     let mut usable = None;
+    let rendered = matches!(references, References::Render);
     let images = match references {
         References::Folder(dir, decoding) => {
             let (images, ok) = pipeline::load_references(dir, &views, decoding)?;
@@ -347,6 +349,7 @@ pub fn observe<'a>(
     }
     let mut seen = pipeline::seen_views(&views, images, masks);
     seen.seconds = t.elapsed().as_secs_f64();
+    seen.rendered = rendered;
     if seen.views.is_empty() {
         return Err(Error::Invalid(format!(
             "no view has a pixel to fit ({}: {why}): there is nothing to fit",
@@ -427,8 +430,16 @@ pub struct EstimateReport {
     pub settings: RenderSettings,
     /// Mean relMAE over views of the envmap estimate's re-render.
     pub rel_mae: Option<f64>,
-    /// Mean relMAE over views of a second render of the true lights.
+    /// The noise floor: mean over views of the relMAE that the images' noise alone gives a
+    /// perfect model's re-render, measured as `noise_floor_source` says.
     pub noise_floor_rel_mae: Option<f64>,
+    pub noise_floor_source: Option<NoiseSource>,
+    /// With given references and lights in the scene: mean relMAE over views of those lights
+    /// re-rendered against the references. How well the scene's lights describe the images;
+    /// not a noise figure.
+    pub true_lights_rel_mae: Option<f64>,
+    /// Whether the model the estimate ends with explains the images within their noise.
+    pub fit_test: Option<ModelFitTest>,
     /// Mean relMAE over views of the best envmap of this resolution (`--oracle`).
     pub representation_limit_rel_mae: Option<f64>,
     pub views: Vec<ViewReport>,
@@ -458,12 +469,53 @@ pub struct EstimateReport {
 #[derive(Debug, Clone, Serialize, JsonSchema)]
 pub struct ViewReport {
     pub view: String,
+    /// The envmap estimate's re-render against the reference.
     pub estimate: Option<Metrics>,
-    pub noise_floor: Option<Metrics>,
+    /// relMAE that the noise alone gives ([`EstimateReport::noise_floor_source`]).
+    pub noise_floor_rel_mae: Option<f64>,
+    /// With given references: the scene's own lights re-rendered against them.
+    pub true_lights: Option<Metrics>,
     pub representation_limit: Option<Metrics>,
     pub rel_mae_over_noise_floor: Option<f64>,
     pub rel_mae_over_representation_limit: Option<f64>,
+    /// The fit test of the model the estimate ends with, in this view.
+    pub fit_test: Option<FitTest>,
 }
+
+/// How the noise floor was measured.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum NoiseSource {
+    /// lightprobe rendered the references: a second render of the same lights with other
+    /// random numbers is their exact twin, and the floor is its relMAE against them.
+    RenderedTwin,
+    /// From the residual's differences between neighbouring pixels ([`crate::noise`]):
+    /// assumes noise independent from pixel to pixel (true of lightprobe's and most
+    /// renderers' samplers and of 8-bit quantisation; a demosaiced photograph's correlated
+    /// noise reads as less noise than there is).
+    NeighbouringPixels,
+}
+
+/// The fit test of the model an estimate ends with: its residual against the images' noise.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct ModelFitTest {
+    /// `envmap`, `spheres:K` or `envmap+spheres:K`.
+    pub model: String,
+    #[serde(flatten)]
+    pub test: FitTest,
+    /// The residual is significantly (p < [`MISFIT_P_VALUE`]) and materially (×
+    /// [`MISFIT_RATIO`] the noise's `Σ r²` or more) above the noise: the model does not
+    /// explain these images.
+    pub misfit: bool,
+    /// With a misfit: what to check, most likely first.
+    pub causes: Vec<String>,
+}
+
+/// A residual more likely than this under a model that explains the images is not a misfit.
+pub const MISFIT_P_VALUE: f64 = 1e-3;
+/// A residual's `Σ r²` within this factor of the noise's is not called a misfit however
+/// significant: with 10⁵–10⁶ pixels a test detects misfits far below what matters.
+pub const MISFIT_RATIO: f64 = 1.2;
 
 /// A sphere-light model's estimate.
 #[derive(Debug, Clone, Serialize, JsonSchema)]
@@ -798,11 +850,60 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         seconds: sphere_fit_seconds,
     } = fit_spheres(job, &envmap, rings, progress)?;
     let sphere_reports: Vec<SpheresReport> = candidates.iter().map(spheres_report).collect();
+    let model = match (&model_selection, &spheres) {
+        (Some(m), _) => m.chosen.clone(),
+        (None, Some(so)) => so.fit.model_name(),
+        (None, None) => "envmap".to_string(),
+    };
+
+    // ---- The noise floor, and the fit test of the model the estimate ends with ----
+    let finals = match &spheres {
+        Some(so) => &so.renders,
+        None => &envmap.renders,
+    };
+    // The truth's second render is the references' twin only where it rendered them; against
+    // given references it is a separate figure.
+    let twin = seen.rendered && !envmap.noise_floor.is_empty();
+    let measured: Vec<ResidualNoise> = references
+        .iter()
+        .zip(finals)
+        .zip(masks)
+        .enumerate()
+        .map(|(i, ((r, x), m))| ResidualNoise::of(r, x, m, envmap.twins.get(i).filter(|_| twin)))
+        .collect();
+    let (floors, source): (Vec<Option<f64>>, _) = if twin {
+        let floors = envmap.noise_floor.iter().map(|m| Some(m.rel_mae)).collect();
+        (floors, Some(NoiseSource::RenderedTwin))
+    } else if !measured.is_empty() {
+        let floors = measured.iter().map(ResidualNoise::rel_mae).collect();
+        (floors, Some(NoiseSource::NeighbouringPixels))
+    } else {
+        (Vec::new(), None)
+    };
+    let true_lights = if seen.rendered {
+        Vec::new()
+    } else {
+        envmap.noise_floor.clone()
+    };
+    let fit_test = ResidualNoise::pooled(&measured).test().map(|test| {
+        let misfit = test.p_value < MISFIT_P_VALUE && test.residual_over_noise >= MISFIT_RATIO;
+        ModelFitTest {
+            causes: if misfit {
+                misfit_causes(job, &model)
+            } else {
+                Vec::new()
+            },
+            model: model.clone(),
+            test,
+            misfit,
+        }
+    });
 
     // ---- The report ----
     let fit = &envmap.fit;
     let mean = pipeline::mean_rel_mae;
     let converged = fit.channels.iter().all(|c| c.converged);
+    let known = floors.iter().flatten().copied().collect::<Vec<f64>>();
     let report = EstimateReport {
         lightprobe_version: crate::VERSION.to_string(),
         scene: job.truth.scene.source.clone(),
@@ -816,21 +917,38 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         rounds: s.rounds,
         settings: *job.render,
         rel_mae: mean(&envmap.errors),
-        noise_floor_rel_mae: mean(&envmap.noise_floor),
+        noise_floor_rel_mae: (known.len() == floors.len() && !known.is_empty())
+            .then(|| known.iter().sum::<f64>() / known.len() as f64),
+        noise_floor_source: source,
+        true_lights_rel_mae: mean(&true_lights),
+        fit_test,
         representation_limit_rel_mae: mean(&envmap.limit),
         views: views
             .iter()
             .enumerate()
-            .map(|(i, cam)| view_report(cam, &envmap, i))
+            .map(|(i, cam)| ViewReport {
+                view: cam.name.clone(),
+                estimate: envmap.errors.get(i).copied(),
+                noise_floor_rel_mae: floors.get(i).copied().flatten(),
+                true_lights: true_lights.get(i).copied(),
+                representation_limit: envmap.limit.get(i).copied(),
+                rel_mae_over_noise_floor: envmap
+                    .errors
+                    .get(i)
+                    .zip(floors.get(i).copied().flatten())
+                    .map(|(e, n)| e.rel_mae / n),
+                rel_mae_over_representation_limit: envmap
+                    .errors
+                    .get(i)
+                    .zip(envmap.limit.get(i))
+                    .map(|(e, l)| e.rel_mae / l.rel_mae),
+                fit_test: measured.get(i).and_then(ResidualNoise::test),
+            })
             .collect(),
         views_without_geometry: seen.blind.clone(),
         channels: fit.channels.clone(),
         light_recovery: envmap.recovery.clone(),
-        model: match (&model_selection, &spheres) {
-            (Some(m), _) => m.chosen.clone(),
-            (None, Some(so)) => so.fit.model_name(),
-            (None, None) => "envmap".to_string(),
-        },
+        model,
         model_selection,
         exposure: None,
         spheres: spheres.as_ref().map(spheres_report),
@@ -1001,18 +1119,41 @@ fn fit_spheres(
     })
 }
 
-fn view_report(cam: &Camera, o: &Outcome, i: usize) -> ViewReport {
-    let e = o.errors.get(i).copied();
-    let nf = o.noise_floor.get(i).copied();
-    let limit = o.limit.get(i).copied();
-    ViewReport {
-        view: cam.name.clone(),
-        estimate: e,
-        noise_floor: nf,
-        representation_limit: limit,
-        rel_mae_over_noise_floor: e.zip(nf).map(|(e, n)| e.rel_mae / n.rel_mae),
-        rel_mae_over_representation_limit: e.zip(limit).map(|(e, l)| e.rel_mae / l.rel_mae),
+/// What to check when `model` does not explain the images, most likely first: what the
+/// job knows of its own settings and scene picks the words.
+fn misfit_causes(job: &Job, model: &str) -> Vec<String> {
+    let mut causes = Vec::new();
+    if model == "envmap" {
+        causes.push(
+            "the light model: an envmap cannot place lights near the scene (try --model auto) \
+             or resolve small ones (more --rings)"
+                .to_string(),
+        );
     }
+    causes.push(format!(
+        "the bounce count: max_bounces is {} in the render settings; light that bounces more \
+         is missing",
+        job.render.max_bounces
+    ));
+    causes.push("the albedo (the glTF's baseColor, or the sidecar's albedo)".to_string());
+    let ignored = &job.truth.scene.ignored;
+    if !ignored.is_empty() {
+        causes.push(format!(
+            "what the diffuse model leaves out: {}",
+            ignored
+                .iter()
+                .map(|i| format!("{} ({})", i.what, i.properties.join(", ")))
+                .collect::<Vec<_>>()
+                .join("; ")
+        ));
+    }
+    if job.settings.exposure == Exposure::Shared && job.seen.views.len() > 1 {
+        causes.push(
+            "the exposure: views at different exposures need --exposure per-view".to_string(),
+        );
+    }
+    causes.push("the geometry and the camera poses".to_string());
+    causes
 }
 
 fn spheres_report(so: &SphereOutcome) -> SpheresReport {

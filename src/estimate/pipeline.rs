@@ -155,6 +155,9 @@ pub struct SeenViews<'a> {
     pub blind_reason: String,
     /// Seconds spent rendering or reading the references.
     pub seconds: f64,
+    /// The references were rendered from the truth renderer's lights, so a second render of
+    /// those lights is their exact twin: same lighting, independent noise.
+    pub rendered: bool,
 }
 
 impl SeenViews<'_> {
@@ -183,6 +186,7 @@ impl SeenViews<'_> {
             blind_references: self.blind_references.clone(),
             blind_reason: self.blind_reason.clone(),
             seconds: self.seconds,
+            rendered: self.rendered,
         }
     }
 }
@@ -202,6 +206,7 @@ pub fn seen_views<'a>(
         blind_references: Vec::new(),
         blind_reason: String::new(),
         seconds: 0.0,
+        rendered: false,
     };
     for ((cam, r), m) in views.iter().zip(references).zip(masks) {
         if m.contains(&true) {
@@ -301,6 +306,9 @@ pub struct Outcome {
     pub errors: Vec<Metrics>,
     /// Error of the truth's second render, per view (empty without `noise_floor`).
     pub noise_floor: Vec<Metrics>,
+    /// That second render, per view: the references' twin where they were rendered from the
+    /// same lights.
+    pub twins: Vec<Image>,
     /// Error of the best envmap of this resolution, per view (empty without `oracle`).
     pub limit: Vec<Metrics>,
     pub recovery: Vec<LightRecovery>,
@@ -396,13 +404,14 @@ pub fn run(
     let mut images = truth_renderer
         .render_views_under(views, &evaluation_settings(render), &sets, None, progress)
         .into_iter();
-    let (mut renders, mut errors, mut noise_floor) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut renders, mut errors) = (Vec::new(), Vec::new());
+    let (mut noise_floor, mut twins) = (Vec::new(), Vec::new());
     if options.evaluate {
         renders = images.next().expect("a set per image");
         errors = compare_views(&renders, references, masks)?;
         if with_truth {
-            let again = images.next().expect("a set per image");
-            noise_floor = compare_views(&again, references, masks)?;
+            twins = images.next().expect("a set per image");
+            noise_floor = compare_views(&twins, references, masks)?;
         }
     }
     let limit = match images.next() {
@@ -417,6 +426,7 @@ pub fn run(
         renders,
         errors,
         noise_floor,
+        twins,
         limit,
         recovery,
         rerender_seconds,

@@ -1126,6 +1126,7 @@ fn observe<'a>(
         blind_references: seen.blind_references,
         blind_reason: seen.blind_reason,
         seconds: seen.seconds,
+        rendered: true,
     };
     Ok(Observed { seen, noise_floor })
 }
