@@ -13,7 +13,7 @@ macro_rules! checked {
 
         impl<'de> serde::Deserialize<'de> for $name {
             fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
-                let $v = <$inner as serde::Deserialize>::deserialize(d)?;
+                let $v = <$inner as $crate::checked::Read>::read(d)?;
                 if $check {
                     Ok($name($v))
                 } else {
@@ -25,3 +25,50 @@ macro_rules! checked {
 }
 
 pub(crate) use checked;
+
+/// How a checked value's inner type is read: as serde reads it, except that three numbers
+/// are read from a RON tuple `(x, y, z)` or a list `[x, y, z]` alike (the JSON Schema, which
+/// has no tuples, calls them an array; JSON habits write lists). They are written as tuples.
+pub trait Read<'de>: Sized {
+    fn read<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error>;
+}
+
+impl<'de> Read<'de> for u32 {
+    fn read<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        serde::Deserialize::deserialize(d)
+    }
+}
+
+impl<'de> Read<'de> for f32 {
+    fn read<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        serde::Deserialize::deserialize(d)
+    }
+}
+
+impl<'de> Read<'de> for (f32, f32, f32) {
+    fn read<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Three;
+        impl<'de> serde::de::Visitor<'de> for Three {
+            type Value = (f32, f32, f32);
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("three numbers, as (x, y, z) or [x, y, z]")
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> Result<Self::Value, A::Error> {
+                let mut v = [0f32; 3];
+                for (i, slot) in v.iter_mut().enumerate() {
+                    *slot = seq
+                        .next_element()?
+                        .ok_or_else(|| serde::de::Error::invalid_length(i, &self))?;
+                }
+                if seq.next_element::<serde::de::IgnoredAny>()?.is_some() {
+                    return Err(serde::de::Error::invalid_length(4, &self));
+                }
+                Ok((v[0], v[1], v[2]))
+            }
+        }
+        d.deserialize_any(Three)
+    }
+}

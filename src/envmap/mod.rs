@@ -42,7 +42,7 @@ checked!(
 );
 checked!(
     /// Linear RGB radiance, each channel in [0, 1e15] ([`crate::imageio::MAX_RADIANCE`]:
-    /// beyond it, a render's sums overflow).
+    /// beyond it, a render's sums overflow): `(r, g, b)` or `[r, g, b]`.
     Rgb((f32, f32, f32)), "(f32, f32, f32)", |v| [v.0, v.1, v.2].iter().all(|c| (0.0..=crate::imageio::MAX_RADIANCE).contains(c)),
     "radiance must be between 0 and 1e15 in every channel, got {:?}"
 );

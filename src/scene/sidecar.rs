@@ -248,7 +248,7 @@ checked!(
     "must be a finite number > 0, got {}"
 );
 checked!(
-    /// A finite point or vector.
+    /// A finite point or vector: `(x, y, z)` or `[x, y, z]`.
     Point((f32, f32, f32)), "(f32, f32, f32)", |v| v.0.is_finite() && v.1.is_finite() && v.2.is_finite(),
     "coordinates must be finite, got {:?}"
 );
@@ -258,7 +258,7 @@ checked!(
     "yfov must be in (0, π) radians, got {}"
 );
 checked!(
-    /// Linear RGB albedo, each channel in [0, 1].
+    /// Linear RGB albedo, each channel in [0, 1]: `(r, g, b)` or `[r, g, b]`.
     Albedo((f32, f32, f32)), "(f32, f32, f32)", |v| [v.0, v.1, v.2].iter().all(|c| (0.0..=1.0).contains(c)),
     "albedo must be in [0, 1] in every channel, got {:?}"
 );
@@ -311,6 +311,24 @@ mod tests {
     }
 
     const MINIMAL: &str = r#"Scene(gltf: "a.glb", image: (width: 4, height: 3))"#;
+
+    #[test]
+    fn three_numbers_are_read_as_a_tuple_or_a_list_and_only_three() {
+        let light = |c: &str| {
+            parse(&format!(
+                r#"Scene(gltf: "a.glb", lights: [Sphere(center: {c}, radius: 1, radiance: [1, 2, 3])])"#
+            ))
+        };
+        let center = |s: Sidecar| match s.lights[0] {
+            LightDesc::Sphere { center, .. } => center.0,
+            _ => unreachable!(),
+        };
+        assert_eq!(center(light("(1, 2.5, 3)").unwrap()), (1.0, 2.5, 3.0));
+        assert_eq!(center(light("[1, 2.5, 3]").unwrap()), (1.0, 2.5, 3.0));
+        for bad in ["[1, 2]", "(1, 2, 3, 4)", "[1, 2, \"x\"]", "[1, 2, inf]"] {
+            assert!(light(bad).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn minimal_gets_defaults() {
