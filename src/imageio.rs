@@ -547,10 +547,13 @@ pub fn auto_exposure(img: &Image) -> f32 {
     1.0 / *p99
 }
 
+/// Rec. 709 luminance weights of linear R, G, B.
+pub const LUMINANCE: [f32; 3] = [0.2126, 0.7152, 0.0722];
+
 /// Rec. 709 luminance of linear RGB.
 #[inline]
 pub fn luminance(c: Vec3) -> f32 {
-    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+    LUMINANCE[0] * c.x + LUMINANCE[1] * c.y + LUMINANCE[2] * c.z
 }
 
 /// Writes `img × exposure`, clamped and sRGB-encoded, as an 8-bit PNG.

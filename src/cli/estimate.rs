@@ -520,32 +520,60 @@ fn spheres_summary(s: &job::SpheresReport, envmap_rel_mae: Option<f64>) -> Vec<S
         ));
     }
     for (j, f) in s.lights.iter().enumerate() {
-        let sigma = |v: Option<f64>| v.map_or("?".into(), |v| format!("{v:.3}"));
+        // 95% intervals: ±1.96 σ, and ×/÷ e^(1.96 σ) for the logarithmic ones.
+        let pm = |v: Option<f64>, unit: &str| {
+            v.map_or("(no interval)".into(), |v| {
+                format!("± {:.3}{unit}", 1.96 * v)
+            })
+        };
+        let power = match (f.power_identified, f.power_sigma_relative) {
+            (Some(true), Some(p)) => format!(", power ×/÷ {:.3}", (1.96 * p).exp()),
+            (Some(_), _) => ", power not identified".into(),
+            (None, _) => String::new(),
+        };
+        let radius = match f.radius_identified {
+            Some(true) => format!("radius {:.3} ({})", f.light.radius, f.radius_interval()),
+            Some(false) => format!(
+                "radius {:.3} not identified ({})",
+                f.light.radius,
+                f.radius_interval()
+            ),
+            None => format!("radius {:.3}", f.light.radius),
+        };
         lines.push(match f.status {
             LightStatus::Identified => format!(
-                "sphere {j}: centre ({:.3}, {:.3}, {:.3}) ± {} m along its direction, radius {:.3}",
+                "{} sphere {j}: centre ({:.3}, {:.3}, {:.3}), direction {}, distance {}, {radius}{power} (95% intervals)",
+                s.model,
                 f.light.center.x, f.light.center.y, f.light.center.z,
-                sigma(f.distance_sigma_m), f.light.radius
+                pm(f.direction_sigma_degrees, "°"),
+                pm(f.distance_sigma_m, " m"),
             ),
             LightStatus::DistanceUnidentified => format!(
-                "sphere {j}: direction and power fit; its distance is not identifiable from these images (25% nearer or farther fits within {:.1} σ)",
+                "{} sphere {j}: direction {}{power}; its distance is not identifiable from these images (25% nearer or farther fits within {:.1} σ)",
+                s.model,
+                pm(f.direction_sigma_degrees, "°"),
                 f.distance_profile_sigmas.unwrap_or(0.0)
             ),
             LightStatus::Merged { into } => format!(
-                "sphere {j}: too close in direction to sphere {into} to tell apart; merged into it"
+                "{} sphere {j}: too close in direction to sphere {into} to tell apart; merged into it",
+                s.model
             ),
             LightStatus::NoContribution => format!(
-                "sphere {j}: changes no pixel (e.g. hidden below the table); left out"
+                "{} sphere {j}: changes no pixel (e.g. hidden below the table); left out",
+                s.model
             ),
         });
     }
     for (k, r) in s.recovery.iter().enumerate() {
         lines.push(match (r.centre_error_m, r.radius, r.power_ratio) {
             (Some(off), Some(rad), Some(p)) => format!(
-                "true light {k}: centre off {off:.3} m ({:.1}% of its {:.2} m distance), radius {rad:.3} (true {:.3}), power ×{p:.3}",
-                100.0 * off / r.true_distance_m, r.true_distance_m, r.true_radius
+                "{} vs true light {k}: centre off {off:.3} m ({:.1}% of its {:.2} m distance), radius {rad:.3} (true {:.3}), power ×{p:.3}",
+                s.model, 100.0 * off / r.true_distance_m, r.true_distance_m, r.true_radius
             ),
-            _ => format!("true light {k}: not recovered (the model has fewer lights)"),
+            _ => format!(
+                "{} vs true light {k}: not recovered (the model has fewer lights)",
+                s.model
+            ),
         });
     }
     lines

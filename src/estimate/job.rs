@@ -1071,9 +1071,28 @@ fn fit_spheres(
         seconds += combined.fit.seconds;
         models.push(combined);
     }
+    // The 95% intervals, for the model the estimate ends with (on every pixel).
+    let intervals = |so: &mut SphereOutcome| {
+        let grid = so.fit.background.as_ref().map(|b| b.grid.clone());
+        let all = Observations {
+            holdout: false,
+            background: grid.as_ref(),
+            ..obs
+        };
+        let residual = super::spheres::SphereSettings::new(so.fit.requested, job.render)
+            .refine
+            .residual;
+        let t = std::time::Instant::now();
+        super::spheres::measure_intervals(job.fit, &all, &mut so.fit.fitted, job.center, &residual);
+        t.elapsed().as_secs_f64()
+    };
     if !choose {
+        let mut chosen = models.pop();
+        if let Some(so) = chosen.as_mut() {
+            seconds += intervals(so);
+        }
         return Ok(SphereModels {
-            chosen: models.pop(),
+            chosen,
             seconds,
             ..SphereModels::default()
         });
@@ -1096,7 +1115,7 @@ fn fit_spheres(
     };
     // Chosen on held-out pixels: fitted again on all of them.
     progress.phase("refit on all pixels", pixels);
-    let refit = pipeline::refit_on_all_pixels(
+    let mut refit = pipeline::refit_on_all_pixels(
         job.fit,
         job.truth,
         &obs,
@@ -1108,7 +1127,7 @@ fn fit_spheres(
         &|k| progress.advance(k),
     )
     .map_err(in_spheres)?;
-    seconds += refit.fit.seconds - models[i].fit.seconds;
+    seconds += refit.fit.seconds - models[i].fit.seconds + intervals(&mut refit);
     // The candidates are reported as the estimate ends them: the chosen one refitted.
     models[i] = refit.clone();
     Ok(SphereModels {

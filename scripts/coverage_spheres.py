@@ -1,0 +1,144 @@
+#!/usr/bin/env python3
+"""Coverage of the sphere model's 95% intervals over independent trials.
+
+Each trial is the bundled scene with another sidecar seed (so new references and new render
+noise in the fit), estimated with `--model spheres:2`. For every recovered light matched to
+its true light it checks whether the truth lies inside the stated 95% interval of:
+
+- direction (degrees, per axis: the angle between estimate and truth is inside when
+  below 2.448 σ, the 95% radius of a 2-D normal),
+- distance from the scene centre (± 1.96 σ, metres),
+- radius (ln r within ± 1.96 σ; only where the radius is measured),
+- power (luminance × radius², ln within ± 1.96 σ).
+
+Writes docs/bench/coverage_spheres.json and prints a table. Not run in CI (about 25 s per
+trial on 2 cores).
+
+    python3 scripts/coverage_spheres.py --binary target/release/lightprobe --trials 20
+"""
+import argparse
+import json
+import math
+import os
+import pathlib
+import re
+import subprocess
+import tempfile
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+SCENE = ROOT / "scenes" / "tabletop" / "tabletop.ron"
+
+
+def luminance(c):
+    return 0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+
+
+def sub(a, b):
+    return [x - y for x, y in zip(a, b)]
+
+
+def norm(a):
+    return math.sqrt(sum(x * x for x in a))
+
+
+def truth_lights(text):
+    """The sidecar's sphere lights: (centre, radius, radiance)."""
+    out = []
+    for m in re.finditer(
+        r"Sphere\(center: \(([^)]*)\), radius: ([0-9.]+), radiance: \(([^)]*)\)\)", text
+    ):
+        out.append(
+            (
+                [float(v) for v in m.group(1).split(",")],
+                float(m.group(2)),
+                [float(v) for v in m.group(3).split(",")],
+            )
+        )
+    return out
+
+
+def scene_centre(binary):
+    info = json.loads(subprocess.run([binary, "info", str(SCENE)], check=True,
+                                     capture_output=True, text=True).stdout)
+    lo, hi = info["bounds"]["min"], info["bounds"]["max"]
+    return [(a + b) / 2 for a, b in zip(lo, hi)]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--binary", default=str(ROOT / "target" / "release" / "lightprobe"))
+    ap.add_argument("--trials", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=1)
+    ap.add_argument("--out", default=str(ROOT / "docs" / "bench" / "coverage_spheres.json"))
+    a = ap.parse_args()
+    text = SCENE.read_text()
+    truth = truth_lights(text)
+    centre = scene_centre(a.binary)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(a.first_seed, a.first_seed + a.trials):
+            d = pathlib.Path(tmp) / f"seed{seed}"
+            d.mkdir()
+            sidecar = re.sub(r"seed: \d+\)", f"seed: {seed})", text)
+            sidecar = sidecar.replace('"tabletop.glb"', json.dumps(str(SCENE.parent / "tabletop.glb")))
+            (d / "scene.ron").write_text(sidecar)
+            subprocess.run([a.binary, "estimate", str(d / "scene.ron"), "--out", str(d / "out"),
+                            "--model", "spheres:2", "--quiet"], check=True, capture_output=True)
+            report = json.loads((d / "out" / "report.json").read_text())
+            for f in report["spheres"]["lights"]:
+                light = f["light"]
+                c = light["center"]
+                k = min(range(len(truth)), key=lambda j: norm(sub(truth[j][0], c)))
+                tc, tr, tl = truth[k]
+                v, tv = sub(c, centre), sub(tc, centre)
+                d_est, d_true = norm(v), norm(tv)
+                cosine = sum(x * y for x, y in zip(v, tv)) / (d_est * d_true)
+                angle = math.degrees(math.acos(max(-1.0, min(1.0, cosine))))
+                row = {
+                    "seed": seed,
+                    "light": k,
+                    "angle_degrees": angle,
+                    "direction_sigma_degrees": f["direction_sigma_degrees"],
+                    "distance_error_m": d_est - d_true,
+                    "distance_sigma_m": f["distance_sigma_m"],
+                    "ln_radius_error": math.log(light["radius"] / tr),
+                    "radius_sigma_relative": f["radius_sigma_relative"],
+                    "radius_identified": f["radius_identified"],
+                    "ln_power_error": math.log(luminance(light["radiance"]) * light["radius"] ** 2
+                                               / (luminance(tl) * tr * tr)),
+                    "power_sigma_relative": f["power_sigma_relative"],
+                }
+                rows.append(row)
+            print(f"seed {seed}: done", flush=True)
+
+    def coverage(name, inside):
+        judged = [inside(r) for r in rows]
+        judged = [j for j in judged if j is not None]
+        n = len(judged)
+        return {"parameter": name, "judged": n, "of": len(rows),
+                "covered": sum(judged), "coverage": sum(judged) / n if n else None}
+
+    table = [
+        coverage("direction", lambda r: None if r["direction_sigma_degrees"] is None
+                 else r["angle_degrees"] < 2.448 * r["direction_sigma_degrees"]),
+        coverage("distance", lambda r: None if r["distance_sigma_m"] is None
+                 else abs(r["distance_error_m"]) < 1.96 * r["distance_sigma_m"]),
+        coverage("radius", lambda r: None if r["radius_sigma_relative"] is None
+                 else abs(r["ln_radius_error"]) < 1.96 * r["radius_sigma_relative"]),
+        coverage("power", lambda r: None if r["power_sigma_relative"] is None
+                 else abs(r["ln_power_error"]) < 1.96 * r["power_sigma_relative"]),
+    ]
+    unidentified = sum(1 for r in rows if r["radius_identified"] is False)
+    out = {"scene": "scenes/tabletop/tabletop.ron", "model": "spheres:2", "trials": a.trials,
+           "coverage": table, "radius_not_identified": unidentified, "lights": rows}
+    pathlib.Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
+    print("| parameter | lights judged | truth inside its 95% interval |")
+    print("| --- | ---: | ---: |")
+    for t in table:
+        cov = "–" if t["coverage"] is None else f"{100 * t['coverage']:.0f}%"
+        print(f"| {t['parameter']} | {t['judged']} of {t['of']} | {cov} |")
+    print(f"radius reported as not identified: {unidentified} of {len(rows)} lights")
+
+
+if __name__ == "__main__":
+    main()
