@@ -1,9 +1,10 @@
 #!/usr/bin/env python3
 """Coverage of the sphere model's 95% intervals over independent trials.
 
-Each trial is the bundled scene with another sidecar seed (so new references and new render
-noise in the fit), estimated with `--model spheres:2`. For every recovered light matched to
-its true light it checks whether the truth lies inside the stated 95% interval of:
+Each trial is a scene (the bundled one by default, or the sidecars given) with another sidecar
+seed (so new references and new render noise in the fit), estimated with `--model spheres:K`,
+K its number of lights. For every recovered light matched to its true light it checks whether
+the truth lies inside the stated 95% interval of:
 
 - direction (degrees, per axis: the angle between estimate and truth is inside when
   below 2.448 σ, the 95% radius of a 2-D normal),
@@ -11,10 +12,12 @@ its true light it checks whether the truth lies inside the stated 95% interval o
 - radius (ln r within ± 1.96 σ; only where the radius is measured),
 - power (luminance × radius², ln within ± 1.96 σ).
 
-Writes docs/bench/coverage_spheres.json and prints a table. Not run in CI (about 25 s per
-trial on 2 cores).
+Writes a JSON file (docs/bench/coverage_spheres.json by default) and prints a table. Not run
+in CI (about 25 s per trial on 2 cores).
 
-    python3 scripts/coverage_spheres.py --binary target/release/lightprobe --trials 20
+    python3 scripts/coverage_spheres.py --trials 20
+    python3 scripts/coverage_spheres.py --trials 2 --out docs/bench/coverage_spheres_study.json \
+        scenes/tabletop/scenarios/s{01,02,03,05,12,13,23,25,31,35,36,44,49,50,51}.ron
 """
 import argparse
 import json
@@ -44,8 +47,9 @@ def norm(a):
 def truth_lights(text):
     """The sidecar's sphere lights: (centre, radius, radiance)."""
     out = []
+    flat = re.sub(r"\s+", "", text)
     for m in re.finditer(
-        r"Sphere\(center: \(([^)]*)\), radius: ([0-9.]+), radiance: \(([^)]*)\)\)", text
+        r"Sphere\(center:\(([^)]*)\),radius:([0-9.e-]+),radiance:\(([^)]*)\),?\)", flat
     ):
         out.append(
             (
@@ -57,8 +61,8 @@ def truth_lights(text):
     return out
 
 
-def scene_centre(binary):
-    info = json.loads(subprocess.run([binary, "info", str(SCENE)], check=True,
+def scene_centre(binary, scene):
+    info = json.loads(subprocess.run([binary, "info", str(scene)], check=True,
                                      capture_output=True, text=True).stdout)
     lo, hi = info["bounds"]["min"], info["bounds"]["max"]
     return [(a + b) / 2 for a, b in zip(lo, hi)]
@@ -70,46 +74,51 @@ def main():
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench" / "coverage_spheres.json"))
+    ap.add_argument("scenes", nargs="*", default=[str(SCENE)])
     a = ap.parse_args()
-    text = SCENE.read_text()
-    truth = truth_lights(text)
-    centre = scene_centre(a.binary)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for seed in range(a.first_seed, a.first_seed + a.trials):
-            d = pathlib.Path(tmp) / f"seed{seed}"
-            d.mkdir()
-            sidecar = re.sub(r"seed: \d+\)", f"seed: {seed})", text)
-            sidecar = sidecar.replace('"tabletop.glb"', json.dumps(str(SCENE.parent / "tabletop.glb")))
-            (d / "scene.ron").write_text(sidecar)
-            subprocess.run([a.binary, "estimate", str(d / "scene.ron"), "--out", str(d / "out"),
-                            "--model", "spheres:2", "--quiet"], check=True, capture_output=True)
-            report = json.loads((d / "out" / "report.json").read_text())
-            for f in report["spheres"]["lights"]:
-                light = f["light"]
-                c = light["center"]
-                k = min(range(len(truth)), key=lambda j: norm(sub(truth[j][0], c)))
-                tc, tr, tl = truth[k]
-                v, tv = sub(c, centre), sub(tc, centre)
-                d_est, d_true = norm(v), norm(tv)
-                cosine = sum(x * y for x, y in zip(v, tv)) / (d_est * d_true)
-                angle = math.degrees(math.acos(max(-1.0, min(1.0, cosine))))
-                row = {
-                    "seed": seed,
-                    "light": k,
-                    "angle_degrees": angle,
-                    "direction_sigma_degrees": f["direction_sigma_degrees"],
-                    "distance_error_m": d_est - d_true,
-                    "distance_sigma_m": f["distance_sigma_m"],
-                    "ln_radius_error": math.log(light["radius"] / tr),
-                    "radius_sigma_relative": f["radius_sigma_relative"],
-                    "radius_identified": f["radius_identified"],
-                    "ln_power_error": math.log(luminance(light["radiance"]) * light["radius"] ** 2
-                                               / (luminance(tl) * tr * tr)),
-                    "power_sigma_relative": f["power_sigma_relative"],
-                }
-                rows.append(row)
-            print(f"seed {seed}: done", flush=True)
+        for scene in map(pathlib.Path, a.scenes):
+            text = scene.read_text()
+            truth = truth_lights(text)
+            centre = scene_centre(a.binary, scene)
+            gltf = re.search(r'gltf:\s*"([^"]*)"', text).group(1)
+            for seed in range(a.first_seed, a.first_seed + a.trials):
+                d = pathlib.Path(tmp) / f"{scene.stem}_seed{seed}"
+                d.mkdir()
+                sidecar = re.sub(r"seed:\s*\d+", f"seed: {seed}", text)
+                sidecar = sidecar.replace(f'"{gltf}"', json.dumps(str((scene.parent / gltf).resolve())))
+                (d / "scene.ron").write_text(sidecar)
+                subprocess.run([a.binary, "estimate", str(d / "scene.ron"), "--out", str(d / "out"),
+                                "--model", f"spheres:{len(truth)}", "--quiet"],
+                               check=True, capture_output=True)
+                report = json.loads((d / "out" / "report.json").read_text())
+                for f in report["spheres"]["lights"]:
+                    light = f["light"]
+                    c = light["center"]
+                    k = min(range(len(truth)), key=lambda j: norm(sub(truth[j][0], c)))
+                    tc, tr, tl = truth[k]
+                    v, tv = sub(c, centre), sub(tc, centre)
+                    d_est, d_true = norm(v), norm(tv)
+                    cosine = sum(x * y for x, y in zip(v, tv)) / (d_est * d_true)
+                    angle = math.degrees(math.acos(max(-1.0, min(1.0, cosine))))
+                    row = {
+                        "scene": scene.stem,
+                        "seed": seed,
+                        "light": k,
+                        "angle_degrees": angle,
+                        "direction_sigma_degrees": f["direction_sigma_degrees"],
+                        "distance_error_m": d_est - d_true,
+                        "distance_sigma_m": f["distance_sigma_m"],
+                        "ln_radius_error": math.log(light["radius"] / tr),
+                        "radius_sigma_relative": f["radius_sigma_relative"],
+                        "radius_identified": f["radius_identified"],
+                        "ln_power_error": math.log(luminance(light["radiance"]) * light["radius"] ** 2
+                                                   / (luminance(tl) * tr * tr)),
+                        "power_sigma_relative": f["power_sigma_relative"],
+                    }
+                    rows.append(row)
+                print(f"{scene.stem} seed {seed}: done", flush=True)
 
     def coverage(name, inside):
         judged = [inside(r) for r in rows]
@@ -129,7 +138,8 @@ def main():
                  else abs(r["ln_power_error"]) < 1.96 * r["power_sigma_relative"]),
     ]
     unidentified = sum(1 for r in rows if r["radius_identified"] is False)
-    out = {"scene": "scenes/tabletop/tabletop.ron", "model": "spheres:2", "trials": a.trials,
+    out = {"scenes": [str(pathlib.Path(s).resolve().relative_to(ROOT)) for s in a.scenes],
+           "model": "spheres:K, K the scene's light count", "trials_per_scene": a.trials,
            "coverage": table, "radius_not_identified": unidentified, "lights": rows}
     pathlib.Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
     print("| parameter | lights judged | truth inside its 95% interval |")

@@ -320,6 +320,14 @@ fn per_view_exposures_of_photographs_are_fitted_and_bad_uses_refused() {
         "{front} / {side}"
     );
     assert!(((front * side).sqrt() - 1.0).abs() < 1e-9);
+    // The noise floor comes from the photographs themselves, not from the sidecar's sphere
+    // light (which did not light them): that light's render is its own, far worse figure.
+    // The 3-ring model explains the photographs within their noise.
+    assert_eq!(r["noise_floor_source"], "neighbouring-pixels");
+    let floor = r["noise_floor_rel_mae"].as_f64().unwrap();
+    let lights = r["true_lights_rel_mae"].as_f64().unwrap();
+    assert!(floor > 0.0 && lights > 10.0 * floor, "{floor} {lights}");
+    assert_eq!(r["fit_test"]["misfit"], false, "{}", r["fit_test"]);
 
     let (o, out) = estimate(&png, "fit_only", &["--fit-only"]);
     let err = String::from_utf8_lossy(&o.stderr);
