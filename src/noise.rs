@@ -60,6 +60,9 @@ pub struct FitTest {
     pub p_value: f64,
     /// Pixels tested.
     pub pixels: usize,
+    /// `(Σ r² − the noise's share) / pixels`: the misfit's own energy per pixel, comparable
+    /// between runs whose noise differs.
+    pub excess_per_pixel: f64,
 }
 
 impl ResidualNoise {
@@ -180,6 +183,7 @@ impl ResidualNoise {
             z,
             p_value: 0.5 * libm::erfc(z / std::f64::consts::SQRT_2),
             pixels: self.pixels,
+            excess_per_pixel: (self.residual_sq - self.noise_sq) / self.pixels as f64,
         })
     }
 }

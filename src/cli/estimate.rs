@@ -186,6 +186,7 @@ impl Args {
                 ExposureArg::Shared => Exposure::Shared,
                 ExposureArg::PerView => Exposure::PerView,
             },
+            diagnose: true,
         }
     }
 

@@ -107,6 +107,9 @@ pub struct EstimateSettings {
     pub oracle: bool,
     /// Whether the references share one exposure or each has its own.
     pub exposure: Exposure,
+    /// When the envmap model misfits, re-fit it with one more bounce at a quarter of the
+    /// samples to tell whether the bounce count is the cause ([`bounce_probe`]).
+    pub diagnose: bool,
 }
 
 /// How the references' exposures relate.
@@ -171,6 +174,7 @@ impl EstimateSettings {
             noise_floor: true,
             oracle: false,
             exposure: Exposure::Shared,
+            diagnose: true,
         }
     }
 
@@ -616,6 +620,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         spp: quarter(job.settings.spp, job.settings.rounds),
         noise_floor: false,
         oracle: false,
+        diagnose: false,
         ..job.settings.clone()
     };
     let mut render = RenderSettings {
@@ -885,7 +890,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     } else {
         envmap.noise_floor.clone()
     };
-    let fit_test = ResidualNoise::pooled(&measured).test().map(|test| {
+    let mut fit_test = ResidualNoise::pooled(&measured).test().map(|test| {
         let misfit = test.p_value < MISFIT_P_VALUE && test.residual_over_noise >= MISFIT_RATIO;
         ModelFitTest {
             causes: if misfit {
@@ -898,6 +903,13 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             misfit,
         }
     });
+
+    if let Some(t) = fit_test
+        .as_mut()
+        .filter(|t| t.misfit && t.model == "envmap" && s.diagnose)
+    {
+        bounce_probe(job, rings, t)?;
+    }
 
     // ---- The report ----
     let fit = &envmap.fit;
@@ -1136,6 +1148,58 @@ fn fit_spheres(
         selection: Some(sel),
         seconds,
     })
+}
+
+/// Re-fits the envmap with one more bounce, at a quarter of the samples, and says in `test`'s
+/// causes how much of the misfit's energy that removes: more than half puts the bounce count
+/// first. The misfit's energy per pixel (the residual's less the noise's) is compared, not the
+/// ratio, since the probe's fewer samples raise its noise.
+fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) -> Result<()> {
+    let bounces = job.render.max_bounces + 1;
+    if bounces > crate::scene::sidecar::MAX_BOUNCES {
+        return Ok(());
+    }
+    let render = RenderSettings {
+        max_bounces: bounces,
+        spp: (job.render.spp / 4).max(16),
+        ..*job.render
+    };
+    let s = job.settings;
+    let settings = EstimateSettings {
+        rings: Rings::Fixed(rings),
+        model: LightModel::Envmap,
+        spp: (s.spp / 4).max(s.rounds),
+        oracle: false,
+        diagnose: false,
+        ..s.clone()
+    };
+    let probe = run_once(
+        &Job {
+            render: &render,
+            settings: &settings,
+            ..*job
+        },
+        &(),
+    )?;
+    let Some(after) = probe.report.fit_test.map(|t| t.test.excess_per_pixel) else {
+        return Ok(());
+    };
+    let before = test.test.excess_per_pixel;
+    let removed = 1.0 - after.max(0.0) / before.max(f64::MIN_POSITIVE);
+    let Some(i) = test
+        .causes
+        .iter()
+        .position(|c| c.starts_with("the bounce count"))
+    else {
+        return Ok(());
+    };
+    let mut cause = test.causes.remove(i);
+    cause += &format!(
+        " (a quick re-fit with {bounces} bounces removed {:.0}% of the misfit)",
+        100.0 * removed.clamp(0.0, 1.0)
+    );
+    test.causes.insert(if removed > 0.5 { 0 } else { i }, cause);
+    Ok(())
 }
 
 /// What to check when `model` does not explain the images, most likely first: what the

@@ -887,6 +887,8 @@ fn trial_settings(
         noise_floor: false,
         oracle: false,
         exposure: crate::estimate::job::Exposure::Shared,
+        // A trial's record has no place for the diagnosis; it would cost a fit per misfit.
+        diagnose: false,
     }
 }
 
