@@ -47,9 +47,11 @@ def norm(a):
 def truth_lights(text):
     """The sidecar's sphere lights: (centre, radius, radiance)."""
     out = []
+    # Points and colours as RON tuples or lists, as the sidecar accepts them.
     flat = re.sub(r"\s+", "", text)
     for m in re.finditer(
-        r"Sphere\(center:\(([^)]*)\),radius:([0-9.e-]+),radiance:\(([^)]*)\),?\)", flat
+        r"Sphere\(center:[([]([^)\]]*)[)\]],radius:([0-9.e-]+),radiance:[([]([^)\]]*)[)\]],?\)",
+        flat,
     ):
         out.append(
             (
@@ -86,6 +88,8 @@ def main():
             for seed in range(a.first_seed, a.first_seed + a.trials):
                 d = pathlib.Path(tmp) / f"{scene.stem}_seed{seed}"
                 d.mkdir()
+                if not re.search(r"seed:\s*\d+", text):
+                    raise SystemExit(f"{scene}: its render settings name no seed to vary")
                 sidecar = re.sub(r"seed:\s*\d+", f"seed: {seed}", text)
                 sidecar = sidecar.replace(f'"{gltf}"', json.dumps(str((scene.parent / gltf).resolve())))
                 (d / "scene.ron").write_text(sidecar)
@@ -138,7 +142,11 @@ def main():
                  else abs(r["ln_power_error"]) < 1.96 * r["power_sigma_relative"]),
     ]
     unidentified = sum(1 for r in rows if r["radius_identified"] is False)
-    out = {"scenes": [str(pathlib.Path(s).resolve().relative_to(ROOT)) for s in a.scenes],
+    def shown(s):
+        p = pathlib.Path(s).resolve()
+        return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(p)
+
+    out = {"scenes": [shown(s) for s in a.scenes],
            "model": "spheres:K, K the scene's light count", "trials_per_scene": a.trials,
            "coverage": table, "radius_not_identified": unidentified, "lights": rows}
     pathlib.Path(a.out).write_text(json.dumps(out, indent=1) + "\n")

@@ -451,6 +451,8 @@ fn summary(r: &EstimateReport) -> Vec<String> {
             p_value(t.test.p_value),
             if t.misfit {
                 "does not explain the images (see the warning)"
+            } else if t.test.p_value < job::MISFIT_P_VALUE {
+                "a small excess, below the 1.2× that counts as a misfit"
             } else {
                 "within noise"
             }
@@ -521,11 +523,10 @@ fn spheres_summary(s: &job::SpheresReport, envmap_rel_mae: Option<f64>) -> Vec<S
         ));
     }
     for (j, f) in s.lights.iter().enumerate() {
-        // 95% intervals: ±1.96 σ, and ×/÷ e^(1.96 σ) for the logarithmic ones.
-        let pm = |v: Option<f64>, unit: &str| {
-            v.map_or("(no interval)".into(), |v| {
-                format!("± {:.3}{unit}", 1.96 * v)
-            })
+        // 95% intervals: ±1.96 σ, ×/÷ e^(1.96 σ) for the logarithmic ones, and for the
+        // direction a cone of 2.448 σ (σ per axis: the 95% radius of a 2-D normal).
+        let pm = |v: Option<f64>, k: f64, unit: &str| {
+            v.map_or("(no interval)".into(), |v| format!("± {:.3}{unit}", k * v))
         };
         let power = match (f.power_identified, f.power_sigma_relative) {
             (Some(true), Some(p)) => format!(", power ×/÷ {:.3}", (1.96 * p).exp()),
@@ -546,13 +547,13 @@ fn spheres_summary(s: &job::SpheresReport, envmap_rel_mae: Option<f64>) -> Vec<S
                 "{} sphere {j}: centre ({:.3}, {:.3}, {:.3}), direction {}, distance {}, {radius}{power} (95% intervals)",
                 s.model,
                 f.light.center.x, f.light.center.y, f.light.center.z,
-                pm(f.direction_sigma_degrees, "°"),
-                pm(f.distance_sigma_m, " m"),
+                pm(f.direction_sigma_degrees, 2.448, "°"),
+                pm(f.distance_sigma_m, 1.96, " m"),
             ),
             LightStatus::DistanceUnidentified => format!(
                 "{} sphere {j}: direction {}{power}; its distance is not identifiable from these images (25% nearer or farther fits within {:.1} σ)",
                 s.model,
-                pm(f.direction_sigma_degrees, "°"),
+                pm(f.direction_sigma_degrees, 2.448, "°"),
                 f.distance_profile_sigmas.unwrap_or(0.0)
             ),
             LightStatus::Merged { into } => format!(

@@ -904,11 +904,13 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         }
     });
 
+    // References lightprobe rendered share the model's bounces, albedo and geometry: only
+    // the light model can be wrong there, so there is nothing to probe.
     if let Some(t) = fit_test
         .as_mut()
-        .filter(|t| t.misfit && t.model == "envmap" && s.diagnose)
+        .filter(|t| t.misfit && t.model == "envmap" && s.diagnose && !seen.rendered)
     {
-        bounce_probe(job, rings, t)?;
+        bounce_probe(job, rings, t);
     }
 
     // ---- The report ----
@@ -947,7 +949,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                 rel_mae_over_noise_floor: envmap
                     .errors
                     .get(i)
-                    .zip(floors.get(i).copied().flatten())
+                    .zip(floors.get(i).copied().flatten().filter(|n| *n > 0.0))
                     .map(|(e, n)| e.rel_mae / n),
                 rel_mae_over_representation_limit: envmap
                     .errors
@@ -1154,10 +1156,11 @@ fn fit_spheres(
 /// causes how much of the misfit's energy that removes: more than half puts the bounce count
 /// first. The misfit's energy per pixel (the residual's less the noise's) is compared, not the
 /// ratio, since the probe's fewer samples raise its noise.
-fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) -> Result<()> {
+/// A probe that fails leaves the causes as they were: it is a diagnosis, not the estimate.
+fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) {
     let bounces = job.render.max_bounces + 1;
     if bounces > crate::scene::sidecar::MAX_BOUNCES {
-        return Ok(());
+        return;
     }
     let render = RenderSettings {
         max_bounces: bounces,
@@ -1173,16 +1176,18 @@ fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) -> Result<()> {
         diagnose: false,
         ..s.clone()
     };
-    let probe = run_once(
+    let Ok(probe) = run_once(
         &Job {
             render: &render,
             settings: &settings,
             ..*job
         },
         &(),
-    )?;
+    ) else {
+        return;
+    };
     let Some(after) = probe.report.fit_test.map(|t| t.test.excess_per_pixel) else {
-        return Ok(());
+        return;
     };
     let before = test.test.excess_per_pixel;
     let removed = 1.0 - after.max(0.0) / before.max(f64::MIN_POSITIVE);
@@ -1191,7 +1196,7 @@ fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) -> Result<()> {
         .iter()
         .position(|c| c.starts_with("the bounce count"))
     else {
-        return Ok(());
+        return;
     };
     let mut cause = test.causes.remove(i);
     cause += &format!(
@@ -1199,13 +1204,25 @@ fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) -> Result<()> {
         100.0 * removed.clamp(0.0, 1.0)
     );
     test.causes.insert(if removed > 0.5 { 0 } else { i }, cause);
-    Ok(())
 }
 
 /// What to check when `model` does not explain the images, most likely first: what the
 /// job knows of its own settings and scene picks the words.
 fn misfit_causes(job: &Job, model: &str) -> Vec<String> {
     let mut causes = Vec::new();
+    if job.seen.rendered {
+        // Rendered by this scene with these settings: only the light model can differ.
+        causes.push(if model == "envmap" {
+            "the light model: an envmap cannot place the scene's lights near it (try --model \
+             auto) or resolve small ones (more --rings)"
+                .to_string()
+        } else {
+            "the light model: more or fewer lights (try --model auto), or a fit that stopped \
+             short"
+                .to_string()
+        });
+        return causes;
+    }
     if model == "envmap" {
         causes.push(
             "the light model: an envmap cannot place lights near the scene (try --model auto) \
