@@ -1095,9 +1095,9 @@ pub struct FittedLight {
     pub distance_profile_sigmas: Option<f64>,
     /// One standard deviation of the centre along its direction from the scene centre, and
     /// across it (metres, per axis), from [`uncertainty`]'s sandwich covariance (None where the
-    /// images hold no measure of it). Over twenty seeds of the bundled scene the 95%
-    /// intervals held the truth for direction 90%, distance 98%, radius 84% and power 98% of
-    /// the lights; over the 15-scenario study 86%, 91%, 86%, 84% (docs/results.md).
+    /// images hold no measure of it). Over ten seeds of the bundled scene the 95% intervals
+    /// held the truth for direction 95%, distance 100%, radius 87% and power 100% of the
+    /// lights; over the 15-scenario study 100%, 100%, 94%, 100% (docs/results.md).
     pub distance_sigma_m: Option<f64>,
     pub lateral_sigma_m: Option<f64>,
     /// One standard deviation of the direction from the scene centre, per axis, degrees.
@@ -1457,7 +1457,8 @@ fn residual_envmap(
 /// radiance.
 ///
 /// The sandwich `N⁻¹ (Σ_i g_i g_iᵀ) N⁻¹`, with `N = ½ (J_aᵀ J_b + J_bᵀ J_a)` and
-/// `g_i = ½ (J_a,i r_b,i + J_b,i r_a,i)` each binned row's share of the gradient, from a twin
+/// `g_i = ½ (J_a,i r_b,i + J_b,i r_a,i)` each bin's share of the gradient (its three channels
+/// summed: they share their paths' noise), from a twin
 /// render at the final lights ([`twin_problem`]: another seed, half the residual's samples
 /// per half). It holds the references' noise and the renders' alike, whatever their
 /// distribution, with no noise level assumed. (Minimising `r_aᵀ r_b` in the refinement
