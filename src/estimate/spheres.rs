@@ -1527,8 +1527,11 @@ pub fn uncertainty(
         .collect();
     let base = twin_problem(renderer, obs, lights, None, &at);
     let (rows, cols) = (base.rows(), base.lights);
-    let twin_of = |p: &SphereProblem| p.twin.clone().expect("a twin problem");
-    let (base_a, base_b) = (base.t.clone(), twin_of(&base));
+    // `twin_problem` always sets the twin; borrowed, not copied (one copy per parameter).
+    fn twin_of(p: &SphereProblem) -> &[Vec<f32>; 3] {
+        p.twin.as_ref().expect("twin_problem sets the twin")
+    }
+    let (base_a, base_b) = (&base.t, twin_of(&base));
     // Columns of the Jacobian of `T(θ) L − y` at fixed L, per half, channel-major rows.
     let (mut ja, mut jb): (Vec<Vec<f64>>, Vec<Vec<f64>>) = (Vec::new(), Vec::new());
     let steps = [0.005, 0.005, 0.02, 0.03];
@@ -1553,8 +1556,8 @@ pub fn uncertainty(
             }
             d
         };
-        ja.push(derivative(&base_a, &column.t));
-        jb.push(derivative(&base_b, &twin_of(&column)));
+        ja.push(derivative(base_a, &column.t));
+        jb.push(derivative(base_b, twin_of(&column)));
     }
     for c in 0..cols {
         let per = 1.0 / sin2.get(c).copied().unwrap_or(1.0);
@@ -1566,8 +1569,8 @@ pub fn uncertainty(
                 }
                 d
             };
-            ja.push(linear(&base_a));
-            jb.push(linear(&base_b));
+            ja.push(linear(base_a));
+            jb.push(linear(base_b));
         }
     }
     let residual_of = |t: &[Vec<f32>; 3]| -> Vec<f64> {
@@ -1586,7 +1589,7 @@ pub fn uncertainty(
             })
             .collect()
     };
-    let (ra, rb) = (residual_of(&base_a), residual_of(&base_b));
+    let (ra, rb) = (residual_of(base_a), residual_of(base_b));
     let n = ja.len();
     if n == 0 {
         return None;
