@@ -10,7 +10,10 @@ the truth lies inside the stated 95% interval of:
   below 2.448 σ, the 95% radius of a 2-D normal),
 - distance from the scene centre (± 1.96 σ, metres),
 - radius (ln r within ± 1.96 σ; only where the radius is measured),
-- power (luminance × radius², ln within ± 1.96 σ).
+- power (luminance × radius², ln within ± 1.96 σ),
+- colour (radiance / its luminance, each channel within ± 1.96 σ; three judgements a light).
+
+Each coverage is given with its Wilson 95% interval, the binomial error of so many trials.
 
 Writes a JSON file (docs/bench/coverage_spheres.json by default) and prints a table. Not run
 in CI (about 25 s per trial on 2 cores).
@@ -120,26 +123,44 @@ def main():
                         "ln_power_error": math.log(luminance(light["radiance"]) * light["radius"] ** 2
                                                    / (luminance(tl) * tr * tr)),
                         "power_sigma_relative": f["power_sigma_relative"],
+                        "colour_error": sub([x / luminance(light["radiance"]) for x in light["radiance"]],
+                                            [x / luminance(tl) for x in tl]),
+                        "colour_sigma": f.get("colour_sigma"),
                     }
                     rows.append(row)
                 print(f"{scene.stem} seed {seed}: done", flush=True)
 
-    def coverage(name, inside):
-        judged = [inside(r) for r in rows]
+    def wilson(k, n, z=1.96):
+        if n == 0:
+            return None
+        p = k / n
+        mid = (p + z * z / (2 * n)) / (1 + z * z / n)
+        half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+        return [mid - half, mid + half]
+
+    def coverage(name, inside, per_light=1):
+        judged = [j for r in rows for j in (inside(r) or [None] * per_light)]
         judged = [j for j in judged if j is not None]
         n = len(judged)
-        return {"parameter": name, "judged": n, "of": len(rows),
-                "covered": sum(judged), "coverage": sum(judged) / n if n else None}
+        return {"parameter": name, "judged": n, "of": per_light * len(rows),
+                "covered": sum(judged), "coverage": sum(judged) / n if n else None,
+                "wilson_95": wilson(sum(judged), n)}
+
+    def one(test):
+        return lambda r: (lambda v: None if v is None else [v])(test(r))
 
     table = [
-        coverage("direction", lambda r: None if r["direction_sigma_degrees"] is None
-                 else r["angle_degrees"] < 2.448 * r["direction_sigma_degrees"]),
-        coverage("distance", lambda r: None if r["distance_sigma_m"] is None
-                 else abs(r["distance_error_m"]) < 1.96 * r["distance_sigma_m"]),
-        coverage("radius", lambda r: None if r["radius_sigma_relative"] is None
-                 else abs(r["ln_radius_error"]) < 1.96 * r["radius_sigma_relative"]),
-        coverage("power", lambda r: None if r["power_sigma_relative"] is None
-                 else abs(r["ln_power_error"]) < 1.96 * r["power_sigma_relative"]),
+        coverage("direction", one(lambda r: None if r["direction_sigma_degrees"] is None
+                 else r["angle_degrees"] < 2.448 * r["direction_sigma_degrees"])),
+        coverage("distance", one(lambda r: None if r["distance_sigma_m"] is None
+                 else abs(r["distance_error_m"]) < 1.96 * r["distance_sigma_m"])),
+        coverage("radius", one(lambda r: None if r["radius_sigma_relative"] is None
+                 else abs(r["ln_radius_error"]) < 1.96 * r["radius_sigma_relative"])),
+        coverage("power", one(lambda r: None if r["power_sigma_relative"] is None
+                 else abs(r["ln_power_error"]) < 1.96 * r["power_sigma_relative"])),
+        coverage("colour", lambda r: None if r["colour_sigma"] is None
+                 else [abs(e) < 1.96 * s for e, s in zip(r["colour_error"], r["colour_sigma"])],
+                 per_light=3),
     ]
     unidentified = sum(1 for r in rows if r["radius_identified"] is False)
     def shown(s):
@@ -150,11 +171,12 @@ def main():
            "model": "spheres:K, K the scene's light count", "trials_per_scene": a.trials,
            "coverage": table, "radius_not_identified": unidentified, "lights": rows}
     pathlib.Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
-    print("| parameter | lights judged | truth inside its 95% interval |")
-    print("| --- | ---: | ---: |")
+    print("| parameter | judged | truth inside its 95% interval | binomial 95% range |")
+    print("| --- | ---: | ---: | ---: |")
     for t in table:
         cov = "–" if t["coverage"] is None else f"{100 * t['coverage']:.0f}%"
-        print(f"| {t['parameter']} | {t['judged']} of {t['of']} | {cov} |")
+        rng = "–" if t["wilson_95"] is None else "{:.0f}–{:.0f}%".format(*[100 * v for v in t["wilson_95"]])
+        print(f"| {t['parameter']} | {t['judged']} of {t['of']} | {cov} | {rng} |")
     print(f"radius reported as not identified: {unidentified} of {len(rows)} lights")
 
 

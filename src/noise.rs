@@ -6,9 +6,9 @@
 //! image. So in a residual `r = reference − render` the difference of two neighbouring pixels
 //! holds the noise of both: `E[(r_i − r_j)²] / 2` is the noise variance there. Summed over the
 //! image it is what the residual's `Σ r²` would be if the model explained everything but the
-//! noise; the ratio of the two is the test statistic (1 within noise). Where a twin of the
-//! reference is known (lightprobe rendered the references, so it can render their lights
-//! again), the twin's difference gives the noise instead, exactly.
+//! noise; the ratio of the two is the test statistic (1 within noise). Where twins are known
+//! (lightprobe rendered the references, so it can render their lights again; or the user gives
+//! a second capture of each view), their differences give the noise instead, exactly.
 //!
 //! Caveats of the neighbouring pixels, stated where the figures are reported. Misfit is not
 //! smooth at 100-pixel scales: albedo texture modulates it and near lights' shadow edges are
@@ -19,6 +19,8 @@
 //! there is, so as misfit.
 
 use serde::Serialize;
+
+use glam::Vec3;
 
 use crate::imageio::Image;
 
@@ -67,21 +69,20 @@ pub struct FitTest {
 
 impl ResidualNoise {
     /// Measures the residual `reference − render` over `mask` (pixels in both images' order),
-    /// its noise from `twin` where given (an image of the same lighting as the reference with
-    /// independent noise, as noisy as the render: `Σ (reference − twin)²` is then the noise's
-    /// share exactly), else from neighbouring pixels. Images of different sizes give an empty
-    /// measure.
+    /// its noise from `noise` where given (per pixel, a sample of the residual's noise from
+    /// twins: its `Σ n²` is then the noise's share exactly), else from neighbouring pixels.
+    /// Images of different sizes give an empty measure.
     pub fn of(
         reference: &Image,
         render: &Image,
         mask: &[bool],
-        twin: Option<&Image>,
+        noise: Option<&[Vec3]>,
     ) -> ResidualNoise {
         let (w, h) = (reference.width as usize, reference.height as usize);
         let mut out = ResidualNoise::default();
         let same = |i: &Image| (i.width, i.height) == (reference.width, reference.height);
         if !same(render)
-            || !twin.is_none_or(same)
+            || noise.is_some_and(|n| n.len() != w * h)
             || mask.len() != w * h
             || reference.rgb.len() != w * h
         {
@@ -98,9 +99,9 @@ impl ResidualNoise {
                     continue;
                 }
                 let ri = r(i);
-                let (noise_sq, noise_abs) = match twin {
-                    Some(t) => {
-                        let d = (reference.rgb[i] - t.rgb[i]).as_dvec3();
+                let (noise_sq, noise_abs) = match noise {
+                    Some(n) => {
+                        let d = n[i].as_dvec3();
                         (d.length_squared(), d.abs().element_sum())
                     }
                     None => {

@@ -451,3 +451,119 @@ fn environment_maps_are_read_from_exr_and_hdr() {
         );
     }
 }
+
+#[test]
+fn twins_of_the_references_measure_their_noise_and_test_the_fit() {
+    // The bundled scene under a 3-ring sky, rendered with `--twin`: the 3-ring model explains
+    // the images, so against the twins its fit test reads 1 within noise, and the floor agrees
+    // with the neighbouring pixels' (which are calibrated under a right model); a 1-ring model
+    // cannot hold the sky and fails the test. A missing or misshapen twin is refused.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tmp.path().join("s.ron");
+    std::fs::write(
+        &scene,
+        format!(
+            "Scene(gltf: {:?}, image: (width: 64, height: 48), render: (spp: 64))",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb")
+        ),
+    )
+    .unwrap();
+    let sky = tmp.path().join("sky.ron");
+    std::fs::write(
+        &sky,
+        "Envmap(rings: 3, radiance: [(0.6, 0.7, 1.0), (3.0, 2.0, 1.0), (0.2, 0.3, 0.5), \
+         (1.5, 1.5, 1.5), (0.4, 0.8, 2.0), (0.3, 0.3, 0.3)])",
+    )
+    .unwrap();
+    let bin = env!("CARGO_BIN_EXE_lightprobe");
+    let run = |args: &[&str]| std::process::Command::new(bin).args(args).output().unwrap();
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let refs = tmp.path().join("refs");
+    let o = run(&[
+        "render-reference",
+        &s(&scene),
+        "--envmap",
+        &s(&sky),
+        "--twin",
+        "--out",
+        &s(&refs),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(refs.join("cam_front_b.exr").is_file() && refs.join("cam_side_b.exr").is_file());
+    let estimate = |refs: &Path, rings: &str, out: &str| {
+        let o = run(&[
+            "estimate",
+            &s(&scene),
+            "--reference",
+            &s(refs),
+            "--rings",
+            rings,
+            "--spp",
+            "64",
+            "--out",
+            &s(&tmp.path().join(out)),
+            "--json",
+            "--quiet",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+    };
+    let right = estimate(&refs, "3", "right");
+    assert_eq!(right["noise_floor_source"], "given-twins");
+    let t = &right["fit_test"];
+    let ratio = t["residual_over_noise"].as_f64().unwrap();
+    assert!(
+        !t["misfit"].as_bool().unwrap() && (0.85..1.15).contains(&ratio),
+        "{t}"
+    );
+
+    // The same references without their twins: the neighbouring pixels' floor.
+    let alone = tmp.path().join("alone");
+    std::fs::create_dir(&alone).unwrap();
+    for v in ["cam_front", "cam_side"] {
+        std::fs::copy(
+            refs.join(format!("{v}.exr")),
+            alone.join(format!("{v}.exr")),
+        )
+        .unwrap();
+    }
+    let neighbours = estimate(&alone, "3", "neighbours");
+    assert_eq!(neighbours["noise_floor_source"], "neighbouring-pixels");
+    let (a, b) = (
+        right["noise_floor_rel_mae"].as_f64().unwrap(),
+        neighbours["noise_floor_rel_mae"].as_f64().unwrap(),
+    );
+    assert!((a - b).abs() < 0.1 * a, "twins {a}, neighbours {b}");
+
+    let wrong = estimate(&refs, "1", "wrong");
+    assert!(
+        wrong["fit_test"]["misfit"].as_bool().unwrap(),
+        "{}",
+        wrong["fit_test"]
+    );
+
+    // A twin for one view only, then one of the wrong size: refused, naming what is wrong.
+    std::fs::remove_file(refs.join("cam_side_b.exr")).unwrap();
+    let refuse = |want: &[&str]| {
+        let o = run(&["estimate", &s(&scene), "--reference", &s(&refs), "--out"]
+            .into_iter()
+            .chain([s(&tmp.path().join("refused")).as_str(), "--quiet"])
+            .collect::<Vec<_>>());
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        assert!(!o.status.success(), "{err}");
+        for w in want {
+            assert!(err.contains(w), "{err:?} lacks {w:?}");
+        }
+        assert!(!tmp.path().join("refused").join("report.json").exists());
+    };
+    refuse(&["cam_side", "twin", "every view"]);
+    let small = Image {
+        width: 32,
+        height: 24,
+        rgb: vec![Vec3::ONE; 32 * 24],
+        alpha: None,
+    };
+    imageio::write_exr(&refs.join("cam_side_b.exr"), &small).unwrap();
+    refuse(&["cam_side_b.exr", "32×24", "twin"]);
+}

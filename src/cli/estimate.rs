@@ -440,6 +440,9 @@ fn summary(r: &EstimateReport) -> Vec<String> {
             match source {
                 job::NoiseSource::RenderedTwin => "a second render of the true lights",
                 job::NoiseSource::NeighbouringPixels => "from the residual's neighbouring pixels",
+                job::NoiseSource::GivenTwins => {
+                    "from the references' twins and a second render of the model"
+                }
             }
         ));
     }

@@ -81,6 +81,10 @@ pub struct Args {
     /// Leave out the scene's sphere and point lights (e.g. to light with --envmap alone).
     #[arg(long)]
     no_sphere_lights: bool,
+    /// Also write `<view>_b.exr`, a twin: the same render with other random numbers. Beside
+    /// the references, twins let `estimate --reference` measure their noise exactly.
+    #[arg(long)]
+    twin: bool,
     /// Also write geometry buffers at pixel centres: depth (metres), normal (world), albedo.
     #[arg(long, value_delimiter = ',', value_parser = ["depth", "normal", "albedo"])]
     aov: Vec<String>,
@@ -146,7 +150,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let renderer = Renderer::new(&scene, &lights);
     let bvh_seconds = t_bvh.elapsed().as_secs_f64();
 
-    let bars = Bars::single(a.quiet, "rendering", scene.pixel_count());
+    let renders = if a.twin { 2 } else { 1 };
+    let bars = Bars::single(a.quiet, "rendering", renders * scene.pixel_count());
     let mut views = Vec::new();
     let t_all = Instant::now();
     for cam in &scene.cameras {
@@ -217,6 +222,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// A twin's seed: the references' seed with these bits flipped, far from the small offsets an
+/// estimate gives its own renders.
+const TWIN_SEED: u64 = 0x7477_696e_5f62_0000;
+
 /// Renders one view and writes its EXR, PNG preview and geometry buffers into `--out`.
 fn render_view(
     renderer: &Renderer,
@@ -239,6 +248,24 @@ fn render_view(
     let (exr, png) = (file("exr"), file("png"));
     imageio::write_exr(&exr, &img)?;
     imageio::write_png(&png, &img, imageio::auto_exposure(&img))?;
+    let twin = if a.twin {
+        let other = RenderSettings {
+            seed: settings.seed ^ TWIN_SEED,
+            ..*settings
+        };
+        let img = renderer.render_radiance(cam, view_stream(cam), &other, &|n| bars.advance(n));
+        anyhow::ensure!(
+            img.rgb.iter().all(|c| c.is_finite()),
+            "view {:?}: its twin render produced non-finite pixels from {}",
+            cam.name,
+            a.scene.scene.display()
+        );
+        let path = a.out.join(format!("{}_b.exr", cam.name));
+        imageio::write_exr(&path, &img)?;
+        Some(path)
+    } else {
+        None
+    };
     let mut aov = BTreeMap::new();
     if !a.aov.is_empty() {
         let aovs = renderer.aovs(cam);
@@ -262,6 +289,7 @@ fn render_view(
         height: cam.height,
         exr,
         png,
+        twin,
         aov,
         mean_rgb: img.mean().to_array(),
         coverage,

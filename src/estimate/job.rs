@@ -38,7 +38,7 @@ use crate::error::{Error, Result};
 use crate::imageio::Image;
 use crate::metrics::Metrics;
 use crate::noise::{FitTest, ResidualNoise};
-use crate::render::{RenderSettings, Renderer};
+use crate::render::{Lights, RenderSettings, Renderer};
 use crate::scene::{Camera, SceneSettings};
 
 /// Most samples per pixel a transport may take.
@@ -107,8 +107,10 @@ pub struct EstimateSettings {
     pub oracle: bool,
     /// Whether the references share one exposure or each has its own.
     pub exposure: Exposure,
-    /// When the envmap model misfits, re-fit it with one more bounce at a quarter of the
-    /// samples to tell whether the bounce count is the cause ([`bounce_probe`]).
+    /// Make the fit test against given twins (which needs the final model rendered again
+    /// for its render noise), and when the envmap model misfits, re-fit it with one more bounce at a
+    /// quarter of the samples to tell whether the bounce count is the cause
+    /// ([`bounce_probe`]).
     pub diagnose: bool,
 }
 
@@ -279,7 +281,8 @@ pub enum References<'p> {
     /// Rendered from the truth renderer's lights with the scene's settings.
     Render,
     /// `<view>.exr` (or `.hdr`, `.png`, `.jpg`) in this folder, each the size of its view's
-    /// image, decoded so; `<view>.mask.png` and saturated pixels leave pixels out.
+    /// image, decoded so; `<view>.mask.png` and saturated pixels leave pixels out, and
+    /// `<view>_b.exr` twins, where given, measure their noise ([`pipeline::twin_path`]).
     Folder(&'p Path, crate::imageio::Decoding),
     /// Given, one per view of the scene in order.
     Images(Vec<Image>),
@@ -317,10 +320,12 @@ pub fn observe<'a>(
     };
     let t = Instant::now();
     let mut usable = None;
+    let mut twins = Vec::new();
     let rendered = matches!(references, References::Render);
     let images = match references {
         References::Folder(dir, decoding) => {
-            let (images, ok) = pipeline::load_references(dir, &views, decoding)?;
+            let (images, mut ok) = pipeline::load_references(dir, &views, decoding)?;
+            twins = pipeline::load_twins(dir, &views, decoding, &mut ok)?;
             usable = Some(ok);
             images
         }
@@ -351,7 +356,7 @@ pub fn observe<'a>(
             *m &= o;
         }
     }
-    let mut seen = pipeline::seen_views(&views, images, masks);
+    let mut seen = pipeline::seen_views(&views, images, twins, masks);
     seen.seconds = t.elapsed().as_secs_f64();
     seen.rendered = rendered;
     if seen.views.is_empty() {
@@ -498,6 +503,9 @@ pub enum NoiseSource {
     /// renderers' samplers and of 8-bit quantisation; a demosaiced photograph's correlated
     /// noise reads as less noise than there is).
     NeighbouringPixels,
+    /// From the references' given twins (`<view>_b`, [`pipeline::twin_path`]) and a second
+    /// render of the model: exact, whatever the noise's correlation or distribution.
+    GivenTwins,
 }
 
 /// The fit test of the model an estimate ends with: its residual against the images' noise.
@@ -866,43 +874,90 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         Some(so) => &so.renders,
         None => &envmap.renders,
     };
-    // The truth's second render is the references' twin only where it rendered them; against
-    // given references it is a separate figure.
-    let twin = seen.rendered && !envmap.noise_floor.is_empty();
+    // Twins of the references (same lighting, independent noise): the truth's second render
+    // where lightprobe rendered them (same settings, another seed), else the given `<view>_b`.
+    let twins: &[Image] = if seen.rendered {
+        &envmap.twins
+    } else {
+        &seen.twins
+    };
+    let twins = (!twins.is_empty() && twins.len() == references.len()).then_some(twins);
+    // The noise of `reference − render` pixel by pixel. lightprobe's references: `A − B`,
+    // exact where the model's render is as noisy as the true lights' (a sphere model; an
+    // envmap's render is noisier, and then the ratio is an upper bound). Given twins:
+    // `(A − B + X − X′)/√2`, X′ the model rendered again with other random numbers, holds the
+    // reference's noise and the render's own.
+    let samples: Vec<Vec<Vec3>> = match twins {
+        Some(b) if seen.rendered => references
+            .iter()
+            .zip(b)
+            .map(|(a, b)| a.rgb.iter().zip(&b.rgb).map(|(a, b)| *a - *b).collect())
+            .collect(),
+        Some(b) if s.diagnose => {
+            progress.phase("render noise", pixels);
+            let again = render_again(job, &envmap, spheres.as_ref(), &|k| progress.advance(k));
+            let k = std::f32::consts::FRAC_1_SQRT_2;
+            references
+                .iter()
+                .zip(b)
+                .zip(finals.iter().zip(&again))
+                .map(|((a, b), (x, x2))| {
+                    let both = a.rgb.iter().zip(&b.rgb).zip(x.rgb.iter().zip(&x2.rgb));
+                    both.map(|((a, b), (x, x2))| (*a - *b + *x - *x2) * k)
+                        .collect()
+                })
+                .collect()
+        }
+        _ => Vec::new(),
+    };
     let measured: Vec<ResidualNoise> = references
         .iter()
         .zip(finals)
         .zip(masks)
         .enumerate()
-        .map(|(i, ((r, x), m))| ResidualNoise::of(r, x, m, envmap.twins.get(i).filter(|_| twin)))
+        .map(|(i, ((r, x), m))| ResidualNoise::of(r, x, m, samples.get(i).map(Vec::as_slice)))
         .collect();
-    let (floors, source): (Vec<Option<f64>>, _) = if twin {
-        let floors = envmap.noise_floor.iter().map(|m| Some(m.rel_mae)).collect();
-        (floors, Some(NoiseSource::RenderedTwin))
-    } else if !measured.is_empty() {
-        let floors = measured.iter().map(ResidualNoise::rel_mae).collect();
-        (floors, Some(NoiseSource::NeighbouringPixels))
-    } else {
-        (Vec::new(), None)
+    // The floor: the references against their twins where known, else the residual's
+    // neighbouring pixels.
+    let (floors, source): (Vec<Option<f64>>, _) = match twins {
+        Some(_) if seen.rendered => {
+            let floors = envmap.noise_floor.iter().map(|m| Some(m.rel_mae)).collect();
+            (floors, Some(NoiseSource::RenderedTwin))
+        }
+        Some(b) => {
+            let floors = pipeline::compare_views(b, references, masks)?;
+            let floors = floors.iter().map(|m| Some(m.rel_mae)).collect();
+            (floors, Some(NoiseSource::GivenTwins))
+        }
+        None if !measured.is_empty() => {
+            let floors = measured.iter().map(ResidualNoise::rel_mae).collect();
+            (floors, Some(NoiseSource::NeighbouringPixels))
+        }
+        None => (Vec::new(), None),
     };
     let true_lights = if seen.rendered {
         Vec::new()
     } else {
         envmap.noise_floor.clone()
     };
-    let mut fit_test = ResidualNoise::pooled(&measured).test().map(|test| {
-        let misfit = test.p_value < MISFIT_P_VALUE && test.residual_over_noise >= MISFIT_RATIO;
-        ModelFitTest {
-            causes: if misfit {
-                misfit_causes(job, &model)
-            } else {
-                Vec::new()
-            },
-            model: model.clone(),
-            test,
-            misfit,
-        }
-    });
+    // Given twins without a second render of the model leave no exact test to make.
+    let testable = twins.is_none() || !samples.is_empty();
+    let mut fit_test = testable
+        .then(|| ResidualNoise::pooled(&measured).test())
+        .flatten()
+        .map(|test| {
+            let misfit = test.p_value < MISFIT_P_VALUE && test.residual_over_noise >= MISFIT_RATIO;
+            ModelFitTest {
+                causes: if misfit {
+                    misfit_causes(job, &model)
+                } else {
+                    Vec::new()
+                },
+                model: model.clone(),
+                test,
+                misfit,
+            }
+        });
 
     // References lightprobe rendered share the model's bounces, albedo and geometry: only
     // the light model can be wrong there, so there is nothing to probe.
@@ -1009,6 +1064,38 @@ struct SphereModels {
     /// Seconds of the sphere fits.
     seconds: f64,
 }
+
+/// The model the estimate ends with (the chosen sphere model, else the envmap), rendered again
+/// as its final render was but with other random numbers: its difference from that render
+/// measures the render's own noise. (Fewer samples and a variance scaled by the count would
+/// be cheaper, but the pixel sampler is stratified, so its variance falls faster than 1/N:
+/// at a quarter of the samples the test read 0.92 for a model within noise.)
+fn render_again(
+    job: &Job,
+    envmap: &Outcome,
+    spheres: Option<&SphereOutcome>,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Vec<Image> {
+    let lights = match spheres {
+        Some(so) => Lights {
+            spheres: so.fit.lights(),
+            env: so.fit.background.clone(),
+            alone: None,
+        },
+        None => Lights::env(envmap.fit.envmap.clone()),
+    };
+    let first = pipeline::evaluation_settings(job.render);
+    let settings = RenderSettings {
+        seed: first.seed.wrapping_add(RENDER_AGAIN_SEED),
+        ..first
+    };
+    job.truth
+        .with_lights(&lights)
+        .render_views(&job.seen.views, &settings, progress)
+}
+
+/// Seed offset of [`render_again`] from the final render's.
+const RENDER_AGAIN_SEED: u64 = 65_537;
 
 /// The sphere-light models the settings ask for, started from the envmap estimate.
 fn fit_spheres(

@@ -69,25 +69,87 @@ pub fn load_references(
     Ok((images, usable))
 }
 
+/// Reads each view's twin in `dir` ([`twin_path`]), checked as its reference is, and leaves
+/// out of `usable` the pixels the twin cannot vouch for (saturated). Empty when the folder
+/// holds no twin; an error when it holds some but not all.
+pub fn load_twins(
+    dir: &Path,
+    views: &[&Camera],
+    decoding: imageio::Decoding,
+    usable: &mut [Vec<bool>],
+) -> Result<Vec<Image>> {
+    let paths: Vec<Option<std::path::PathBuf>> =
+        views.iter().map(|cam| twin_path(dir, cam, views)).collect();
+    let Some(given) = paths.iter().flatten().next() else {
+        return Ok(Vec::new());
+    };
+    let mut twins = Vec::with_capacity(views.len());
+    for ((cam, path), ok) in views.iter().zip(&paths).zip(usable) {
+        let Some(p) = path else {
+            return Err(Error::file(
+                dir,
+                format!(
+                    "holds a twin ({}) but none for view {:?}: give a `<view>_b` twin for every view or for none",
+                    given.display(),
+                    cam.name
+                ),
+            ));
+        };
+        let (img, twin_ok) = imageio::read_photo(p, decoding)?;
+        if (img.width, img.height) != (cam.width, cam.height) {
+            return Err(Error::file(
+                p,
+                format!(
+                    "is {}×{}, but it is the twin of view {:?}'s {}×{} reference",
+                    img.width, img.height, cam.name, cam.width, cam.height
+                ),
+            ));
+        }
+        imageio::check_radiance(p, &img, false)?;
+        for (o, t) in ok.iter_mut().zip(twin_ok) {
+            *o &= t;
+        }
+        twins.push(img);
+    }
+    Ok(twins)
+}
+
+/// The twin of view `cam`'s reference in `dir`: `<view>_b.<ext>`, a second capture of the
+/// same view under the same lighting with independent noise (two renders with other seeds,
+/// two exposures of a still scene), which measures the references' noise ([`crate::noise`]).
+/// None where there is none, or where another view is called `<view>_b` (its reference is
+/// no twin).
+pub fn twin_path(dir: &Path, cam: &Camera, views: &[&Camera]) -> Option<std::path::PathBuf> {
+    let name = format!("{}_b", cam.name);
+    if views.iter().any(|v| v.name == name) {
+        return None;
+    }
+    photo_path(dir, &name)
+}
+
 /// The reference of view `cam` in `dir`: the first `<view>.<ext>` there in the order of
 /// [`imageio::PHOTO_EXTENSIONS`] (EXR first: `render-reference` writes a PNG preview beside
 /// each EXR).
 pub fn reference_path(dir: &Path, cam: &Camera) -> Result<std::path::PathBuf> {
+    photo_path(dir, &cam.name).ok_or_else(|| {
+        Error::file(
+            dir,
+            format!(
+                "has no reference for view {:?}: expected {0}.exr, .hdr, .png, .jpg or .jpeg",
+                cam.name
+            ),
+        )
+    })
+}
+
+/// The first `<name>.<ext>` in `dir`, in the order of [`imageio::PHOTO_EXTENSIONS`].
+fn photo_path(dir: &Path, name: &str) -> Option<std::path::PathBuf> {
     // Each extension as written here and in capitals, as cameras write them (`.JPG`).
     imageio::PHOTO_EXTENSIONS
         .iter()
         .flat_map(|e| [e.to_string(), e.to_ascii_uppercase()])
-        .map(|e| dir.join(format!("{}.{e}", cam.name)))
+        .map(|e| dir.join(format!("{name}.{e}")))
         .find(|p| p.is_file())
-        .ok_or_else(|| {
-            Error::file(
-                dir,
-                format!(
-                    "has no reference for view {:?}: expected {0}.exr, .hdr, .png, .jpg or .jpeg",
-                    cam.name
-                ),
-            )
-        })
 }
 
 /// The image size of each view's reference in `dir`, read from the files' headers, and the
@@ -158,29 +220,33 @@ pub struct SeenViews<'a> {
     /// The references were rendered from the truth renderer's lights, so a second render of
     /// those lights is their exact twin: same lighting, independent noise.
     pub rendered: bool,
+    /// The references' given twins ([`twin_path`]), one per view in the same order, or none.
+    pub twins: Vec<Image>,
 }
 
 impl SeenViews<'_> {
     /// The same views with each reference divided by its view's exposure (blind views keep
     /// theirs: they have none fitted).
     pub fn with_exposures(&self, exposures: &[f64]) -> Self {
-        let references = self
-            .references
-            .iter()
-            .zip(exposures)
-            .map(|(r, &e)| {
-                let inv = (1.0 / e) as f32;
-                Image {
-                    width: r.width,
-                    height: r.height,
-                    rgb: r.rgb.iter().map(|p| *p * inv).collect(),
-                    alpha: r.alpha.clone(),
-                }
-            })
-            .collect();
+        let scaled = |images: &[Image]| -> Vec<Image> {
+            images
+                .iter()
+                .zip(exposures)
+                .map(|(r, &e)| {
+                    let inv = (1.0 / e) as f32;
+                    Image {
+                        width: r.width,
+                        height: r.height,
+                        rgb: r.rgb.iter().map(|p| *p * inv).collect(),
+                        alpha: r.alpha.clone(),
+                    }
+                })
+                .collect()
+        };
         SeenViews {
             views: self.views.clone(),
-            references,
+            references: scaled(&self.references),
+            twins: scaled(&self.twins),
             masks: self.masks.clone(),
             blind: self.blind.clone(),
             blind_references: self.blind_references.clone(),
@@ -196,8 +262,10 @@ impl SeenViews<'_> {
 pub fn seen_views<'a>(
     views: &[&'a Camera],
     references: Vec<Image>,
+    twins: Vec<Image>,
     masks: Vec<Vec<bool>>,
 ) -> SeenViews<'a> {
+    let mut twins = twins.into_iter();
     let mut out = SeenViews {
         views: Vec::new(),
         references: Vec::new(),
@@ -207,11 +275,14 @@ pub fn seen_views<'a>(
         blind_reason: String::new(),
         seconds: 0.0,
         rendered: false,
+        twins: Vec::new(),
     };
     for ((cam, r), m) in views.iter().zip(references).zip(masks) {
+        let twin = twins.next();
         if m.contains(&true) {
             out.views.push(*cam);
             out.references.push(r);
+            out.twins.extend(twin);
             out.masks.push(m);
         } else {
             out.blind.push(cam.name.clone());

@@ -1105,6 +1105,9 @@ pub struct FittedLight {
     pub radius_sigma_relative: Option<f64>,
     /// One standard deviation of the power (luminance × radius²), relative.
     pub power_sigma_relative: Option<f64>,
+    /// One standard deviation of the colour: each channel of the radiance divided by its
+    /// luminance (linear RGB, so a white light is (1, 1, 1); absolute, as a channel may be 0).
+    pub colour_sigma: Option<[f64; 3]>,
     /// The radius's 95% interval lies within a factor [`IDENTIFIED_FACTOR`] of it either way
     /// (None where not measured: the intervals are measured for the model an estimate ends
     /// with, not for every candidate).
@@ -1757,6 +1760,7 @@ pub fn judge(
             direction_sigma_degrees: None,
             radius_sigma_relative: None,
             power_sigma_relative: None,
+            colour_sigma: None,
             radius_identified: None,
             power_identified: None,
         });
@@ -1806,6 +1810,21 @@ pub fn measure_intervals(
         let mut g = vec![(at(2), 2.0)];
         g.extend((0..3).map(|ch| (n + 3 * j + ch, w[ch] as f64 / lum)));
         let power = sd(&g);
+        // Colour c = Φ / luminance(Φ) (the size cancels): ∂c_k/∂Φ_m = (δ_km − c_k w_m) / lum.
+        let phi: Vec<f64> = (0..3).map(|ch| radiance[j][ch] as f64 * sin2).collect();
+        let colour: Option<Vec<f64>> = (0..3)
+            .map(|k| {
+                let c_k = phi[k] / lum;
+                let g: Vec<(usize, f64)> = (0..3)
+                    .map(|m| {
+                        let own = if m == k { 1.0 } else { 0.0 };
+                        (n + 3 * j + m, (own - c_k * w[m] as f64) / lum)
+                    })
+                    .collect();
+                sd(&g)
+            })
+            .collect();
+        f.colour_sigma = colour.map(|c| [c[0], c[1], c[2]]);
         f.distance_sigma_m = sd(&[(at(2), 1.0)]).map(|v| distance * v);
         f.lateral_sigma_m = angle.map(|v| distance * v);
         f.direction_sigma_degrees = angle.map(f64::to_degrees);

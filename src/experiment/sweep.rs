@@ -1129,6 +1129,7 @@ fn observe<'a>(
         blind_reason: seen.blind_reason,
         seconds: seen.seconds,
         rendered: true,
+        twins: Vec::new(),
     };
     Ok(Observed { seen, noise_floor })
 }

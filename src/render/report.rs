@@ -68,6 +68,9 @@ pub struct ViewRender {
     pub height: u32,
     pub exr: PathBuf,
     pub png: PathBuf,
+    /// With `--twin`: `<view>_b.exr`, the same render with other random numbers.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub twin: Option<PathBuf>,
     /// Geometry buffers written, by name (`depth`, `normal`, `albedo`).
     pub aov: std::collections::BTreeMap<String, PathBuf>,
     /// Mean linear RGB over all pixels.
