@@ -9,7 +9,9 @@ and reads both stages through the USD library, not as text:
  1. stage metadata: upAxis Y, metersPerUnit 1 (glTF's frame), default prim;
  2. every SphereLight's radius, color x intensity x 2^exposure (its radiance,
     normalize off) and world-space position equal the fitted lights of
-    spheres/lights.ron and of report.json (f32 precision);
+    spheres/lights.ron and of report.json (f32 precision); a radius report.json
+    calls not identified carries lightprobe:radiusIdentified = false and its
+    95% interval (lightprobe:radius95), an identified one neither;
  3. the DomeLight: texture format latlong, intensity 1, its texture file
     resolves; and the texture's orientation is OpenEXR's lat-long convention,
     which UsdLux adopts for a +Y-up stage. This is checked independently of
@@ -97,7 +99,11 @@ def main() -> int:
             gain = li.GetIntensityAttr().Get() * 2.0 ** li.GetExposureAttr().Get()
             pos = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(
                 Usd.TimeCode.Default()).ExtractTranslation()
+            ident = prim.GetAttribute("lightprobe:radiusIdentified")
+            interval = prim.GetAttribute("lightprobe:radius95")
             usd.append({"name": prim.GetName(), "radius": li.GetRadiusAttr().Get(),
+                        "identified": ident.Get() if ident.IsValid() else None,
+                        "radius95": list(interval.Get()) if interval.IsValid() else None,
                         "radiance": np.array(li.GetColorAttr().Get()) * gain,
                         "center": np.array(pos), "normalize": li.GetNormalizeAttr().Get()})
     lights_ok = len(usd) == len(ron) == 2
@@ -120,6 +126,24 @@ def main() -> int:
     log(f"[2] report.json's spheres.lights: {len(fitted)} lights -> "
         f"{'same' if same else 'DIFFERENT'}")
     lights_ok &= same
+    # A radius the images do not identify says so through USD: a custom attribute, with the
+    # 95% interval ×/÷ exp(1.96 σ) where report.json measures one; identified ones carry none.
+    kept = [f for f in (report.get("spheres") or {}).get("lights", [])
+            if f.get("status") in ("identified", "distance_unidentified")]
+    for f, u in zip(kept, usd):
+        sigma = f.get("radius_sigma_relative")
+        if f.get("radius_identified") is False:
+            want = [f["light"]["radius"] / math.exp(1.96 * sigma),
+                    f["light"]["radius"] * math.exp(1.96 * sigma)] if sigma is not None else None
+            good = u["identified"] is False and (
+                u["radius95"] is None if want is None
+                else u["radius95"] is not None and np.allclose(u["radius95"], want, rtol=1e-5))
+        else:
+            good = u["identified"] is None and u["radius95"] is None
+        log(f"[2] {u['name']}: report radius_identified {f.get('radius_identified')}, USD "
+            f"lightprobe:radiusIdentified {u['identified']}, radius95 {u['radius95']} -> "
+            f"{'same' if good else 'DIFFERENT'}")
+        lights_ok &= good
     ok &= lights_ok
 
     # ---- 3: the dome

@@ -88,19 +88,20 @@ pub fn write_estimate(
             dir,
             scene,
             &[],
+            &[],
             Some(env),
             Some(&note),
             &render,
         )?);
     }
-    write_usd(dir, &[], Some(("envmap", env)))?;
+    write_usd(dir, &[], &[], Some(("envmap", env)))?;
     if !estimate.envmap.renders.is_empty() {
         write_renders(&dir.join("estimate"), &estimate.envmap.renders, seen)?;
     }
     if let Some(so) = &estimate.spheres {
         let spheres = dir.join("spheres");
         write_spheres(&spheres, so, seen)?;
-        let lights = so.fit.lights();
+        let (lights, doubts) = (so.fit.lights(), so.fit.radius_doubts());
         let background = so.fit.background.as_ref();
         if let Some(scene) = scene {
             let note = background.map(|bg| envmap_note("background", bg));
@@ -108,12 +109,18 @@ pub fn write_estimate(
                 &spheres,
                 scene,
                 &lights,
+                &doubts,
                 background,
                 note.as_ref(),
                 &render,
             )?);
         }
-        write_usd(&spheres, &lights, background.map(|bg| ("background", bg)))?;
+        write_usd(
+            &spheres,
+            &lights,
+            &doubts,
+            background.map(|bg| ("background", bg)),
+        )?;
     }
     estimate.report.timings.total_seconds = started.elapsed().as_secs_f64();
     write_report(dir, &estimate.report)?;
@@ -196,11 +203,12 @@ fn write_scene(
     dir: &Path,
     scene: &Scene,
     lights: &[crate::scene::SphereLight],
+    doubts: export::RadiusDoubts,
     envmap: Option<&Envmap>,
     note: Option<&export::EnvmapNote>,
     render: &crate::render::RenderSettings,
 ) -> Result<Vec<String>> {
-    let gltf = export::write_with_lights(&scene.gltf, dir, lights, note)?;
+    let gltf = export::write_with_lights(&scene.gltf, dir, lights, doubts, note)?;
     let name = gltf
         .file_name()
         .and_then(|n| n.to_str())
@@ -210,6 +218,7 @@ fn write_scene(
         &dir.join("mitsuba"),
         scene,
         lights,
+        doubts,
         envmap,
         export::mitsuba::Render {
             spp: render.spp,
@@ -223,6 +232,7 @@ fn write_scene(
 fn write_usd(
     dir: &Path,
     lights: &[crate::scene::SphereLight],
+    doubts: export::RadiusDoubts,
     dome: Option<(&str, &Envmap)>,
 ) -> Result<()> {
     let file = dome.map(|(name, _)| format!("{name}_usd.exr"));
@@ -232,7 +242,7 @@ fn write_usd(
             &latlong::export(env, Target::Usd, Filter::Box, LATLONG_WIDTH),
         )?;
     }
-    let text = export::usda(lights, file.as_deref());
+    let text = export::usda(lights, doubts, file.as_deref());
     imageio::write_bytes(&dir.join("lights.usda"), text.as_bytes())
 }
 

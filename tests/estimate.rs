@@ -1,6 +1,7 @@
 //! The estimator against known answers: a known envmap recovered, a distant sphere light
 //! located, and the solvers at the optimum.
 
+use std::path::Path;
 use std::time::Duration;
 
 use glam::Vec3;
@@ -1369,4 +1370,55 @@ fn a_radius_the_images_cannot_see_is_not_identified_and_the_intervals_hold_the_t
         background: None,
     };
     assert!(fit.fragment().contains("Radius not identified"));
+    // Colour (radiance over its luminance) within 3 σ per channel.
+    let colour = |l: &SphereLight| l.radiance / lightprobe::imageio::luminance(l.radiance);
+    for (f, truth) in [(near, &NEAR_LIGHT), (far, &small)] {
+        let (c, t, sigma) = (colour(&f.light), colour(truth), f.colour_sigma.unwrap());
+        for ch in 0..3 {
+            assert!((c[ch] - t[ch]).abs() as f64 <= 3.0 * sigma[ch], "{f:?}");
+        }
+    }
+    // And so do the exports: the glTF's extras, USD's attributes and the Mitsuba scene.
+    use lightprobe::scene::export;
+    // (The near light's radius, from 256-spp references, is not identified either: ×/÷ 2.4.)
+    let doubts = fit.radius_doubts();
+    let unidentified = fitted.iter().filter(|f| f.radius_identified == Some(false));
+    assert_eq!(doubts.iter().flatten().count(), unidentified.count());
+    assert!(doubts[1].is_some_and(|f| f > 1.5), "{doubts:?}");
+    let (doubted, measured) = (
+        doubts.iter().flatten().count(),
+        doubts.iter().flatten().filter(|f| f.is_finite()).count(),
+    );
+    let usda = export::usda(&fit.lights(), &doubts, None);
+    let n = usda.matches("lightprobe:radiusIdentified = 0").count();
+    assert_eq!(n, doubted, "{usda}");
+    assert_eq!(usda.matches("lightprobe:radius95").count(), measured);
+    assert!(
+        usda.contains("# radius not identified by the images"),
+        "{usda}"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let glb = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb");
+    let written =
+        export::write_with_lights(Path::new(glb), dir.path(), &fit.lights(), &doubts, None)
+            .unwrap();
+    let bytes = std::fs::read(&written).unwrap();
+    let text = String::from_utf8_lossy(&bytes);
+    assert_eq!(text.matches("\"radius_identified\":false").count(), doubted);
+    assert_eq!(text.matches("\"radius_95_interval\"").count(), measured);
+    // Still a scene lightprobe loads, with the fitted radius.
+    let back = Scene::load(&written).unwrap();
+    assert!(
+        back.lights
+            .iter()
+            .any(|l| (l.radius - far.light.radius).abs() < 1e-6)
+    );
+    let xml_dir = dir.path().join("mitsuba");
+    let render = export::mitsuba::Render {
+        spp: 16,
+        max_bounces: 2,
+    };
+    export::mitsuba::write(&xml_dir, &sc, &fit.lights(), &doubts, None, render).unwrap();
+    let xml = std::fs::read_to_string(xml_dir.join("scene.xml")).unwrap();
+    assert_eq!(xml.matches("<!-- radius not identified").count(), doubted);
 }

@@ -109,7 +109,7 @@ fn the_mitsuba_scene_holds_the_meshes_views_and_lights() {
         spp: 64,
         max_bounces: 3,
     };
-    let notes = mitsuba::write(dir.path(), &scene, &lights, Some(&env), render).unwrap();
+    let notes = mitsuba::write(dir.path(), &scene, &lights, &[], Some(&env), render).unwrap();
     assert!(notes.is_empty(), "{notes:?}");
     let text = std::fs::read_to_string(dir.path().join("scene.xml")).unwrap();
     let doc = roxmltree::Document::parse(&text).unwrap();
@@ -245,7 +245,7 @@ fn vertex_colours_reach_mitsuba_and_a_texture_with_them_is_named() {
         spp: 4,
         max_bounces: 1,
     };
-    let notes = mitsuba::write(dir.path(), &scene, &[], None, render).unwrap();
+    let notes = mitsuba::write(dir.path(), &scene, &[], &[], None, render).unwrap();
     assert_eq!(notes.len(), 1, "{notes:?}");
     assert!(notes[0].contains("\"textured\"") && notes[0].contains("vertex colours"));
     let text = std::fs::read_to_string(dir.path().join("scene.xml")).unwrap();

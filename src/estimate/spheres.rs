@@ -1195,17 +1195,31 @@ impl SphereFit {
         format!("{bg}spheres:{}", self.requested)
     }
 
+    /// The fitted lights that contribute and were not merged away.
+    fn kept(&self) -> impl Iterator<Item = &FittedLight> {
+        self.fitted.iter().filter(|f| {
+            matches!(
+                f.status,
+                LightStatus::Identified | LightStatus::DistanceUnidentified
+            )
+        })
+    }
+
     /// The model's lights: those that contribute and were not merged away.
     pub fn lights(&self) -> Vec<SphereLight> {
-        self.fitted
-            .iter()
-            .filter(|f| {
-                matches!(
-                    f.status,
-                    LightStatus::Identified | LightStatus::DistanceUnidentified
-                )
+        self.kept().map(|f| f.light).collect()
+    }
+
+    /// Per light of [`Self::lights`], what the exports say of a radius the images do not
+    /// identify: its 95% interval factor (×/÷; infinite where they hold no measure of it).
+    pub fn radius_doubts(&self) -> Vec<Option<f64>> {
+        self.kept()
+            .map(|f| {
+                (f.radius_identified == Some(false)).then(|| {
+                    f.radius_sigma_relative
+                        .map_or(f64::INFINITY, |s| (1.96 * s).exp())
+                })
             })
-            .map(|f| f.light)
             .collect()
     }
 
@@ -1215,19 +1229,11 @@ impl SphereFit {
         let mut s = String::from(
             "// Sphere lights recovered by `lightprobe estimate --model spheres`: paste into a\n// sidecar's `lights` to render with them.\nlights: [\n",
         );
-        let kept = self.fitted.iter().filter(|f| {
-            matches!(
-                f.status,
-                LightStatus::Identified | LightStatus::DistanceUnidentified
-            )
-        });
-        for f in kept {
+        for (f, doubt) in self.kept().zip(self.radius_doubts()) {
             let l = f.light;
-            if f.radius_identified == Some(false) {
-                s += &format!(
-                    "    // Radius not identified by the images ({}): any size near it renders\n    // them as well.\n",
-                    f.radius_interval()
-                );
+            if let Some(factor) = doubt {
+                let words = crate::scene::export::radius_doubt_words(l.radius, factor);
+                s += &format!("    // {}{}.\n", words[..1].to_uppercase(), &words[1..]);
             }
             s += &format!(
                 "    Sphere(center: ({}, {}, {}), radius: {}, radiance: ({}, {}, {})),\n",

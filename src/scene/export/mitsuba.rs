@@ -47,6 +47,7 @@ pub fn write(
     dir: &Path,
     scene: &Scene,
     lights: &[SphereLight],
+    doubts: super::RadiusDoubts,
     envmap: Option<&Envmap>,
     render: Render,
 ) -> Result<Vec<String>> {
@@ -132,7 +133,14 @@ pub fn write(
             escape(&material.name).replace("--", "- -")
         );
     }
-    for l in lights {
+    for (k, l) in lights.iter().enumerate() {
+        if let Some(f) = super::doubt(doubts, k) {
+            let _ = writeln!(
+                xml,
+                "    <!-- {} -->",
+                super::radius_doubt_words(l.radius, f)
+            );
+        }
         if l.is_point() {
             let _ = writeln!(
                 xml,

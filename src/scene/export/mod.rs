@@ -44,6 +44,35 @@ pub struct EnvmapNote {
 /// How the lat-long EXR beside an export is laid out (what `extras` says of it).
 const LATLONG_CONVENTION: &str = "lat-long, linear RGB radiance, Mitsuba 3 envmap convention in glTF's frame (+Y up): column u = atan2(x, -z) / 2pi, the first and last rows are the poles; load it as Mitsuba's `envmap` emitter, or in Blender with `lightprobe export-envmap --target blender`";
 
+/// Per light (or none at all), a radius the images do not identify: its 95% interval factor
+/// (×/÷; infinite where they hold no measure of it). The exports keep the fitted radius and
+/// say that it is not identified, with the interval.
+pub type RadiusDoubts<'a> = &'a [Option<f64>];
+
+/// The doubt over light `k`'s radius, if any.
+fn doubt(doubts: RadiusDoubts, k: usize) -> Option<f64> {
+    doubts.get(k).copied().flatten()
+}
+
+/// A comment's words on a radius `r` (metres) the images do not identify, with the 95% factor.
+pub fn radius_doubt_words(r: f32, factor: f64) -> String {
+    if factor <= 100.0 {
+        format!(
+            "radius not identified by the images: any from {:.4} to {:.4} m (95%) fits them; {r} is the fit's value",
+            r as f64 / factor,
+            r as f64 * factor
+        )
+    } else if factor.is_finite() {
+        format!(
+            "radius not identified by the images, which hold next to no measure of it (95% interval ×/÷ {factor:.3e}); {r} is the fit's value"
+        )
+    } else {
+        format!(
+            "radius not identified by the images, which hold no measure of it; {r} is the fit's value"
+        )
+    }
+}
+
 /// Writes `source` (a `.glb` or `.gltf`) into `dir` as `scene.glb` or `scene.gltf` (with
 /// copies of the files it refers to) with `lights` and `envmap` in it. Returns the path
 /// written.
@@ -51,6 +80,7 @@ pub fn write_with_lights(
     source: &Path,
     dir: &Path,
     lights: &[SphereLight],
+    doubts: RadiusDoubts,
     envmap: Option<&EnvmapNote>,
 ) -> Result<PathBuf> {
     let bytes = crate::memory::read_input(source)?;
@@ -62,7 +92,7 @@ pub fn write_with_lights(
         (&bytes[..], &[][..])
     };
     let mut doc: Value = serde_json::from_slice(json).map_err(|e| bad(e.to_string()))?;
-    put_lights(&mut doc, lights, envmap).map_err(bad)?;
+    put_lights(&mut doc, lights, doubts, envmap).map_err(bad)?;
     // Files the source refers to go beside the copy (a GLB may refer to some too). The loader
     // refused URIs that leave the source's folder, so they stay inside `dir`.
     let from = source.parent().unwrap_or(Path::new(""));
@@ -160,7 +190,7 @@ fn external_uris(doc: &Value) -> Vec<String> {
 /// `SphereLight` at its centre (`inputs:radius`; `inputs:color` × `inputs:intensity` = its
 /// radiance, `normalize` off, exposure 0), and with `dome` (the lat-long EXR in OpenEXR's
 /// convention, relative to the stage) a `DomeLight` of intensity 1.
-pub fn usda(lights: &[SphereLight], dome: Option<&str>) -> String {
+pub fn usda(lights: &[SphereLight], doubts: RadiusDoubts, dome: Option<&str>) -> String {
     let mut s = String::from(
         "#usda 1.0\n(\n    doc = \"Lights estimated by lightprobe: linear RGB radiance, W/(sr m^2); SphereLight color x intensity is the sphere's radiance (normalize off)\"\n    metersPerUnit = 1\n    upAxis = \"Y\"\n    defaultPrim = \"Lights\"\n)\n\ndef Xform \"Lights\"\n{\n",
     );
@@ -176,8 +206,24 @@ pub fn usda(lights: &[SphereLight], dome: Option<&str>) -> String {
         } else {
             glam::Vec3::ONE
         };
+        // Unidentified: a comment, and custom attributes a pipeline can read.
+        let (note, attributes) = match doubt(doubts, k) {
+            Some(f) => (
+                format!("    # {}\n", radius_doubt_words(l.radius, f)),
+                if f.is_finite() {
+                    format!(
+                        "        custom bool lightprobe:radiusIdentified = 0\n        custom float2 lightprobe:radius95 = ({}, {})\n",
+                        l.radius as f64 / f,
+                        l.radius as f64 * f
+                    )
+                } else {
+                    "        custom bool lightprobe:radiusIdentified = 0\n".to_string()
+                },
+            ),
+            None => (String::new(), String::new()),
+        };
         s += &format!(
-            "    def SphereLight \"Light{k}\"\n    {{\n        float inputs:radius = {}\n        float inputs:intensity = {peak}\n        float inputs:exposure = 0\n        color3f inputs:color = ({}, {}, {})\n        bool inputs:normalize = 0\n        double3 xformOp:translate = ({}, {}, {})\n        uniform token[] xformOpOrder = [\"xformOp:translate\"]\n    }}\n",
+            "{note}    def SphereLight \"Light{k}\"\n    {{\n        float inputs:radius = {}\n        float inputs:intensity = {peak}\n        float inputs:exposure = 0\n        color3f inputs:color = ({}, {}, {})\n        bool inputs:normalize = 0\n{attributes}        double3 xformOp:translate = ({}, {}, {})\n        uniform token[] xformOpOrder = [\"xformOp:translate\"]\n    }}\n",
             l.radius, c.x, c.y, c.z, l.center.x, l.center.y, l.center.z
         );
     }
@@ -185,8 +231,9 @@ pub fn usda(lights: &[SphereLight], dome: Option<&str>) -> String {
 }
 
 /// A sphere light as a KHR_lights_punctual point light: colour = intensity over its largest
-/// channel, `intensity` = that channel × 683 candela, the radius in `extras`.
-pub fn punctual_light(k: usize, l: &SphereLight) -> Value {
+/// channel, `intensity` = that channel × 683 candela, the radius in `extras` (with
+/// `radius_identified: false` and its 95% interval where the images do not identify it).
+pub fn punctual_light(k: usize, l: &SphereLight, doubt: Option<f64>) -> Value {
     let i = l.intensity();
     let peak = i.max_element();
     let color = if peak > 0.0 {
@@ -199,7 +246,15 @@ pub fn punctual_light(k: usize, l: &SphereLight) -> Value {
         "type": "point",
         "color": color.to_array(),
         "intensity": peak.max(0.0) * LUMENS_PER_WATT,
-        "extras": { "radius": l.radius },
+        "extras": match doubt {
+            None => json!({ "radius": l.radius }),
+            Some(f) if f.is_finite() => json!({
+                "radius": l.radius,
+                "radius_identified": false,
+                "radius_95_interval": [l.radius as f64 / f, l.radius as f64 * f],
+            }),
+            Some(_) => json!({ "radius": l.radius, "radius_identified": false }),
+        },
     })
 }
 
@@ -208,6 +263,7 @@ pub fn punctual_light(k: usize, l: &SphereLight) -> Value {
 fn put_lights(
     doc: &mut Value,
     lights: &[SphereLight],
+    doubts: RadiusDoubts,
     envmap: Option<&EnvmapNote>,
 ) -> std::result::Result<(), String> {
     const EXT: &str = "KHR_lights_punctual";
@@ -235,7 +291,7 @@ fn put_lights(
             .ok_or("its extensions are not an object")?;
         ext.insert(
             EXT.into(),
-            json!({ "lights": lights.iter().enumerate().map(|(k, l)| punctual_light(k, l)).collect::<Vec<_>>() }),
+            json!({ "lights": lights.iter().enumerate().map(|(k, l)| punctual_light(k, l, doubt(doubts, k))).collect::<Vec<_>>() }),
         );
         let nodes = root.entry("nodes").or_insert_with(|| json!([]));
         let nodes = nodes.as_array_mut().ok_or("its nodes are not an array")?;
