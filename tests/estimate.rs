@@ -113,6 +113,7 @@ fn fit_settings(rings: u32, spp: u32, solver: Solver, ridge: f64) -> FitSettings
         rounds: 1,
         time_limit: Duration::from_secs(60),
         holdout: false,
+        jackknife: 0,
     }
 }
 

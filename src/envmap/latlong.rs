@@ -133,27 +133,42 @@ fn smooth(env: &Envmap, theta: f64, phi: f64) -> Vec3 {
 }
 
 /// Averages a lat-long image over each cell of an `rings`-ring grid (weighted by pixel solid
-/// angle). Errors if the image is too coarse for some cell to contain a pixel centre.
+/// angle). Errors if the image is too coarse for some cell to contain a pixel centre, or if
+/// a pixel is not finite. Small negative values, which captured HDRs carry from their
+/// processing (Blender's bundled Poly Haven worlds hold pixels at −5e-5), are averaged in as
+/// the noise they are, a cell whose average is negative taken as 0; an image whose negative
+/// light exceeds [`MAX_NEGATIVE_SHARE`] of its positive light is refused as not radiance.
 pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<Envmap, String> {
     let grid = super::RingGrid::new(rings);
     let n = grid.cell_count();
     let mut sum = vec![DVec3::ZERO; n];
     let mut weight = vec![0f64; n];
+    let (mut positive, mut negative) = (DVec3::ZERO, DVec3::ZERO);
     for row in 0..img.height {
         let w = pixel_solid_angle(target, img.width, img.height, row);
         for col in 0..img.width {
             let c = img.rgb[(row * img.width + col) as usize];
-            if !(c.is_finite() && c.min_element() >= 0.0) {
+            if !c.is_finite() {
                 return Err(format!(
-                    "pixel ({col}, {row}) is {:?}; radiance must be finite and >= 0",
+                    "pixel ({col}, {row}) is {:?}; radiance must be finite",
                     c.to_array()
                 ));
             }
             let (theta, phi) = pixel_angles(target, img.width, img.height, col, row);
             let cell = grid.lookup_angles(theta, phi) as usize;
-            sum[cell] += c.as_dvec3() * w;
+            let c = c.as_dvec3() * w;
+            sum[cell] += c;
             weight[cell] += w;
+            positive += c.max(DVec3::ZERO);
+            negative -= c.min(DVec3::ZERO);
         }
+    }
+    if let Some(ch) = (0..3).find(|&ch| negative[ch] > MAX_NEGATIVE_SHARE * positive[ch]) {
+        return Err(format!(
+            "its negative pixels hold {:.3}% of the light of its positive ones in channel {ch} (more than the {}% processing noise leaves): not radiance",
+            100.0 * negative[ch] / positive[ch].max(f64::MIN_POSITIVE),
+            100.0 * MAX_NEGATIVE_SHARE
+        ));
     }
     if let Some(cell) = weight.iter().position(|&w| w == 0.0) {
         return Err(format!(
@@ -164,10 +179,14 @@ pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<En
     let radiance = sum
         .iter()
         .zip(&weight)
-        .map(|(s, w)| (*s / *w).as_vec3())
+        .map(|(s, w)| (*s / *w).max(DVec3::ZERO).as_vec3())
         .collect();
     Envmap::new(rings, radiance)
 }
+
+/// Most negative light (solid-angle weighted, per channel) [`import`] takes for processing
+/// noise, as a share of the positive light.
+pub const MAX_NEGATIVE_SHARE: f64 = 1e-3;
 
 #[cfg(test)]
 mod tests {
@@ -196,6 +215,30 @@ mod tests {
                 assert_eq!(back.radiance(), env.radiance(), "{target:?} {rings}");
             }
         }
+    }
+
+    #[test]
+    fn processing_noise_below_zero_averages_in_and_a_negative_image_is_refused() {
+        // A uniform sky of 1 with one pixel in 61 at −0.05 (a captured HDR's processing
+        // noise): it imports, each cell the solid-angle mean of its pixels, never below 0.
+        let (w, h) = (128, 64);
+        let noisy = |v: f32| Image {
+            width: w,
+            height: h,
+            rgb: (0..w * h)
+                .map(|i| Vec3::splat(if i % 61 == 7 { v } else { 1.0 }))
+                .collect(),
+            alpha: None,
+        };
+        let env = import(&noisy(-0.05), Target::Blender, 5).unwrap();
+        for c in env.radiance() {
+            assert!((c.x - 1.0).abs() < 0.03 && c.min_element() >= 0.0, "{c}");
+        }
+        // Half the light negative is no noise: refused, naming the channel.
+        let e = import(&noisy(-40.0), Target::Blender, 5).unwrap_err();
+        assert!(e.contains("negative") && e.contains("channel 0"), "{e}");
+        let e = import(&noisy(f32::NAN), Target::Blender, 5).unwrap_err();
+        assert!(e.contains("finite"), "{e}");
     }
 
     #[test]

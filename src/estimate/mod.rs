@@ -78,6 +78,20 @@ pub struct FitSettings {
     /// Fit on three quarters of the pixels only, leaving the quarter [`is_held_out`] picks for
     /// judging candidates on re-renders ([`select`]).
     pub holdout: bool,
+    /// With NNLS and at most [`MAX_JACKKNIFE_CELLS`] cells, also fit this many delete-a-group
+    /// jackknife replicates ([`Fit::replicates`]); below 2, none.
+    pub jackknife: u32,
+}
+
+/// Most cells [`FitSettings::jackknife`] fits replicates for (17 rings): the sums are kept per
+/// group (groups × 1.3 MB at 330 cells) and each replicate is a solve of its own.
+pub const MAX_JACKKNIFE_CELLS: usize = 330;
+
+/// The jackknife group of pixel `(view, pixel)` among `groups`: a hash, so each group is
+/// scattered over every view (the pixels' noise is independent, so any split samples it).
+fn jackknife_group((view, pixel): (usize, u32), groups: usize) -> usize {
+    (crate::sampling::mix64(((view as u64) << 32 | pixel as u64) ^ 0x0000_1ACC_0A1F)
+        % groups as u64) as usize
 }
 
 /// The fixed quarter of the pixels a hold-out fit leaves out, by (view, pixel index): a hash,
@@ -155,6 +169,7 @@ impl FitSettings {
             rounds,
             time_limit: Duration::from_secs(60),
             holdout: false,
+            jackknife: 0,
         }
     }
 }
@@ -178,6 +193,11 @@ pub struct Fit {
     pub transport_bytes: usize,
     /// The solver produced values that are not finite (replaced by 0): the fit failed.
     pub non_finite: bool,
+    /// Delete-a-group jackknife replicates ([`FitSettings::jackknife`]): the same fit without
+    /// one group of pixels each. With G of them, the variance of any function θ of the envmap
+    /// is `(G−1)/G Σ_k (θ_k − θ̄)²`: the references' noise, the transport's and their
+    /// dependence on the pixel are all in it, with no noise model assumed.
+    pub replicates: Vec<Envmap>,
 }
 
 /// Pairs of neighbouring cells: adjacent in a ring, or overlapping in azimuth across rings.
@@ -313,6 +333,12 @@ pub fn fit(
         return fit_gradient(renderer, cameras, references, masks, settings, progress);
     }
     let grid = RingGrid::new(settings.rings);
+    let groups = settings.jackknife as usize;
+    if groups >= 2 && grid.cell_count() <= MAX_JACKKNIFE_CELLS {
+        return fit_jackknife(
+            renderer, cameras, references, masks, settings, groups, progress,
+        );
+    }
     let fit_pixel = |p| settings.fits(p).then_some(0);
     let targets = Targets::one(&grid, &fit_pixel);
     let pass = nnls_pass(
@@ -324,6 +350,56 @@ pub fn fit(
         settings,
         (pass.seconds, pass.bytes),
     )
+}
+
+/// [`fit`] with its jackknife replicates: one pass whose sums are kept per group of pixels
+/// (the same pilot, parts and rendered rows as without groups, so the fit differs only by
+/// the order of its sums), each replicate solved on the sums of the other groups.
+fn fit_jackknife(
+    renderer: &Renderer,
+    cameras: &[&Camera],
+    references: &[Image],
+    masks: &[Vec<bool>],
+    settings: &FitSettings,
+    groups: usize,
+    progress: &(dyn Fn(u64) + Sync),
+) -> Fit {
+    let grid = RingGrid::new(settings.rings);
+    let group_of = |p| settings.fits(p).then(|| jackknife_group(p, groups));
+    let targets = Targets {
+        grids: std::slice::from_ref(&grid),
+        sets: groups,
+        set_of: &group_of,
+    };
+    let pass = nnls_pass(
+        renderer, cameras, references, masks, settings, &grid, &targets, progress,
+    );
+    let mut all = pass.sums[0][0].clone();
+    for per_grid in &pass.sums[1..] {
+        all.add(&per_grid[0]);
+    }
+    let mut fit = solved(&all, &grid, settings, (pass.seconds, pass.bytes));
+    let t = Instant::now();
+    let pairs = smoothing_pairs(&grid, settings);
+    let zero = vec![vec![0.0f64; all.cells]; 3];
+    fit.replicates = pass
+        .sums
+        .iter()
+        .filter_map(|per_grid| {
+            let ne = all.without(&per_grid[0]);
+            let (radiance, non_finite) =
+                radiance_of(&solve_all(&ne, &pairs, settings, &zero, None));
+            (!non_finite)
+                .then(|| Envmap::new(grid.rings(), radiance).ok())
+                .flatten()
+        })
+        .collect();
+    // A replicate that failed leaves no interval rather than a narrower one.
+    if fit.replicates.len() != groups {
+        fit.replicates.clear();
+    }
+    fit.solve_seconds += t.elapsed().as_secs_f64();
+    fit
 }
 
 /// The sums of an NNLS transport pass, and what the pass cost.
@@ -338,7 +414,7 @@ pub struct Pass {
     pub bytes: usize,
 }
 
-/// The NNLS estimator's transport. A pilot pass ([`in_pilot`] pixels of set 0, one part, the
+/// The NNLS estimator's transport. A pilot pass ([`in_pilot`] pixels of any set, one part, the
 /// cells of `pilot` sampled by solid angle) is solved on its own Gram to steer the cell
 /// sampling of the main pass: `rounds` independent parts of `spp / rounds` samples each,
 /// sampled by the pilot's estimate plus a defensive floor, accumulated into `targets` (whose
@@ -363,8 +439,8 @@ fn nnls_pass(
             sampling: constant,
             settings: part_seed(settings, rounds),
         };
-        let in_set0 = |p| ((targets.set_of)(p) == Some(0) && in_pilot(p)).then_some(0);
-        let pilot_targets = Targets::one(pilot, &in_set0);
+        let in_a_set = |p| ((targets.set_of)(p).is_some() && in_pilot(p)).then_some(0);
+        let pilot_targets = Targets::one(pilot, &in_a_set);
         let ne = &accumulate(
             renderer,
             cameras,
@@ -449,6 +525,7 @@ fn solved(
         solve_seconds: t.elapsed().as_secs_f64(),
         transport_bytes,
         non_finite,
+        replicates: Vec::new(),
     }
 }
 
@@ -601,6 +678,7 @@ fn fit_gradient(
         solve_seconds,
         transport_bytes: transport::memory_needed(n, 1),
         non_finite,
+        replicates: Vec::new(),
     }
 }
 

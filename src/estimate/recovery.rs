@@ -91,6 +91,30 @@ pub struct Cluster {
 /// The bright clusters of an estimate, brightest first, from the estimate alone (see the
 /// module doc): at most 8, each with at least 5% of the total power.
 pub fn clusters(env: &Envmap) -> Vec<Cluster> {
+    cluster_cells(env)
+        .iter()
+        .map(|cells| measure(env, cells))
+        .collect()
+}
+
+/// Power-weighted centroid and power of `env` over `cells`.
+fn measure(env: &Envmap, cells: &[u32]) -> Cluster {
+    let (mut sum, mut p_sum) = (Vec3::ZERO, 0.0f32);
+    for &c in cells {
+        let p = luminance(env.radiance()[c as usize]) * env.solid_angle(c);
+        sum += env.grid.center(c) * p;
+        p_sum += p;
+    }
+    let first = cells.first().map_or(Vec3::Y, |&c| env.grid.center(c));
+    Cluster {
+        direction: sum.normalize_or(first),
+        power: p_sum,
+        cells: cells.len(),
+    }
+}
+
+/// The cells of each of [`clusters`], brightest cluster first.
+fn cluster_cells(env: &Envmap) -> Vec<Vec<u32>> {
     let g = &env.grid;
     let n = g.cell_count() as u32;
     let power: Vec<f32> = (0..n)
@@ -104,7 +128,7 @@ pub fn clusters(env: &Envmap) -> Vec<Cluster> {
     let radius = (2.0 * spacing).max(25f32.to_radians()) + 1e-4;
     let mut taken = vec![false; n as usize];
     let total: f32 = power.iter().sum();
-    let mut clusters: Vec<Cluster> = Vec::new();
+    let mut clusters: Vec<Vec<u32>> = Vec::new();
     while clusters.len() < 8 {
         let free: Vec<u32> = (0..n).filter(|&c| !taken[c as usize]).collect();
         let window = |axis: Vec3| {
@@ -123,23 +147,77 @@ pub fn clusters(env: &Envmap) -> Vec<Cluster> {
         if window(axis) < 0.05 * total || total <= 0.0 {
             break;
         }
-        let (mut sum, mut p_sum, mut count) = (Vec3::ZERO, 0.0f32, 0);
-        for &c in &free {
-            if g.center(c).angle_between(axis) <= radius {
-                taken[c as usize] = true;
-                sum += g.center(c) * power[c as usize];
-                p_sum += power[c as usize];
-                count += 1;
-            }
+        let cells: Vec<u32> = free
+            .iter()
+            .copied()
+            .filter(|&c| g.center(c).angle_between(axis) <= radius)
+            .collect();
+        for &c in &cells {
+            taken[c as usize] = true;
         }
-        clusters.push(Cluster {
-            direction: sum.normalize_or(axis),
-            power: p_sum,
-            cells: count,
-        });
+        clusters.push(cells);
     }
-
     clusters
+}
+
+/// A bright cluster of the envmap estimate ([`clusters`]) with its 95% intervals: what the
+/// envmap says of the lights it holds, whether or not the true ones are known.
+#[derive(Debug, Clone, Serialize, schemars::JsonSchema)]
+pub struct ClusterEstimate {
+    /// Power-weighted centroid direction of its cells (unit, world frame, seen from the
+    /// scene centre's infinity).
+    pub direction: [f32; 3],
+    /// Σ luminance × solid angle of its cells (W/m², linear radiance × steradians).
+    pub power: f32,
+    /// Its cells' indices in the envmap's ring grid (ring by ring from +Y, as envmap.ron).
+    pub cells: Vec<u32>,
+    /// One standard deviation of the direction per axis, degrees, from the fit's jackknife
+    /// replicates over the same cells (None without replicates). It holds the references'
+    /// and the transport's noise, not the grid's resolution: a 9-ring cell is 22° across.
+    pub direction_sigma_degrees: Option<f64>,
+    /// One standard deviation of the power, relative, from the same replicates.
+    pub power_sigma_relative: Option<f64>,
+}
+
+/// The bright clusters of `env`, each with the jackknife standard deviations of its
+/// direction and power: the same cells measured in each replicate of `replicates` (the
+/// delete-a-group fits of [`super::FitSettings::jackknife`]), `(G−1)/G Σ (θ_k − θ̄)²`.
+pub fn cluster_estimates(env: &Envmap, replicates: &[Envmap]) -> Vec<ClusterEstimate> {
+    let g = replicates.len() as f64;
+    cluster_cells(env)
+        .iter()
+        .map(|cells| {
+            let c = measure(env, cells);
+            let jackknife = |values: &[f64]| {
+                let mean = values.iter().sum::<f64>() / g;
+                ((g - 1.0) / g * values.iter().map(|v| (v - mean).powi(2)).sum::<f64>()).sqrt()
+            };
+            let (mut direction_sigma, mut power_sigma) = (None, None);
+            if replicates.len() >= 2 && c.power > 0.0 {
+                // Angles of each replicate's centroid in the tangent plane at this one's.
+                let d = c.direction;
+                let u = d.any_orthonormal_vector();
+                let v = d.cross(u);
+                let reps: Vec<Cluster> = replicates.iter().map(|r| measure(r, cells)).collect();
+                let along = |axis: Vec3| -> Vec<f64> {
+                    reps.iter()
+                        .map(|r| (r.direction.dot(axis) as f64).atan2(r.direction.dot(d) as f64))
+                        .collect()
+                };
+                let (su, sv) = (jackknife(&along(u)), jackknife(&along(v)));
+                direction_sigma = Some(((su * su + sv * sv) / 2.0).sqrt().to_degrees());
+                let powers: Vec<f64> = reps.iter().map(|r| r.power as f64).collect();
+                power_sigma = Some(jackknife(&powers) / c.power as f64);
+            }
+            ClusterEstimate {
+                direction: c.direction.to_array(),
+                power: c.power,
+                cells: cells.clone(),
+                direction_sigma_degrees: direction_sigma,
+                power_sigma_relative: power_sigma,
+            }
+        })
+        .collect()
 }
 
 /// Recovery figures of one true sphere light against a sphere-model estimate.

@@ -246,6 +246,21 @@ impl NormalEquations {
         self.yy += other.yy;
     }
 
+    /// These sums without `part` (sums of the same parts over some of these pixels).
+    pub fn without(&self, part: &NormalEquations) -> NormalEquations {
+        assert_eq!((self.cells, self.parts), (part.cells, part.parts));
+        let mut out = self.clone();
+        out.rows -= part.rows;
+        for (a, b) in out.cross.iter_mut().zip(&part.cross) {
+            *a -= *b;
+        }
+        for (a, b) in out.sty.iter_mut().zip(&part.sty) {
+            *a -= *b;
+        }
+        out.yy -= part.yy;
+        out
+    }
+
     /// Adds a chunk of rendered rows: `row(r, a)` is row r's transport in part a, `y[r]` its
     /// value. By dense products or sparse updates, whichever visits fewer entries.
     fn add_rows<'r>(&mut self, y: &[DVec3], row: impl Fn(usize, usize) -> &'r CellRow + Sync) {
