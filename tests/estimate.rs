@@ -1423,3 +1423,77 @@ fn a_radius_the_images_cannot_see_is_not_identified_and_the_intervals_hold_the_t
     let xml = std::fs::read_to_string(xml_dir.join("scene.xml")).unwrap();
     assert_eq!(xml.matches("<!-- radius not identified").count(), doubted);
 }
+
+#[test]
+fn the_jackknife_intervals_of_envmap_clusters_match_their_spread_over_seeds() {
+    // A known 5-ring envmap fitted from 8 independent seeds (new references and transport
+    // each time): the brightest cluster's power and direction scatter over the seeds as
+    // much as each fit's own jackknife says, within a factor of 2 either way (an estimate of
+    // a spread from 8 samples is itself ±27%). Measured: power 0.26% against a stated 0.42%,
+    // direction 0.25° against 0.30° (the jackknife errs wide, as it is known to).
+    let rings = 5;
+    let truth = known_envmap(rings);
+    let sc = scene(vec![]);
+    let lights = Lights::env(truth);
+    let r = Renderer::new(&sc, &lights);
+    let cams: Vec<&Camera> = sc.cameras.iter().collect();
+    let mut fits = Vec::new();
+    for seed in 0..8u64 {
+        let (refs, masks) = render_all(&r, &sc, 64, 100 + seed);
+        let settings = FitSettings {
+            rounds: 4,
+            jackknife: 16,
+            transport: settings(64, 200 + seed),
+            ..fit_settings(rings, 256, Solver::Nnls, 1e-3)
+        };
+        let fit = estimate::fit(&r, &cams, &refs, &masks, &settings, &|_| {});
+        assert_eq!(fit.replicates.len(), 16);
+        let c = recovery::cluster_estimates(&fit.envmap, &fit.replicates);
+        fits.push(c[0].clone());
+    }
+    let n = fits.len() as f64;
+    let mean_power = fits.iter().map(|c| c.power as f64).sum::<f64>() / n;
+    let spread_power = (fits
+        .iter()
+        .map(|c| (c.power as f64 / mean_power - 1.0).powi(2))
+        .sum::<f64>()
+        / (n - 1.0))
+        .sqrt();
+    let stated_power = (fits
+        .iter()
+        .map(|c| c.power_sigma_relative.unwrap().powi(2))
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    let mean_dir = fits
+        .iter()
+        .map(|c| Vec3::from(c.direction))
+        .sum::<Vec3>()
+        .normalize();
+    // Two axes: the mean squared angle is twice the per-axis variance.
+    let spread_dir = (fits
+        .iter()
+        .map(|c| {
+            (Vec3::from(c.direction).angle_between(mean_dir) as f64)
+                .to_degrees()
+                .powi(2)
+        })
+        .sum::<f64>()
+        / (2.0 * (n - 1.0)))
+        .sqrt();
+    let stated_dir = (fits
+        .iter()
+        .map(|c| c.direction_sigma_degrees.unwrap().powi(2))
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    eprintln!(
+        "power: spread {spread_power:.4}, stated {stated_power:.4}; direction: spread {spread_dir:.3}°, stated {stated_dir:.3}°"
+    );
+    for (spread, stated) in [(spread_power, stated_power), (spread_dir, stated_dir)] {
+        assert!(
+            (0.5..2.0).contains(&(spread / stated)),
+            "spread {spread}, stated {stated}"
+        );
+    }
+}
