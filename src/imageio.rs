@@ -419,6 +419,47 @@ fn read_decoded(path: &Path, decoding: Decoding) -> Result<(Image, Vec<bool>)> {
 /// low enough that sums of squares over 10^7 pixels stay finite in f32.
 pub const MAX_RADIANCE: f32 = 1e15;
 
+/// Most negative light an image may hold, per channel, as a share of its positive light:
+/// small negative values are noise that processing leaves in captured HDRs (a denoiser, a
+/// colour matrix; seven of the eight Poly Haven worlds bundled with Blender hold some) and
+/// that linear data keeps; more is not radiance.
+pub const MAX_NEGATIVE_SHARE: f64 = 1e-3;
+
+/// The error for an image whose negative light, per channel, exceeds [`MAX_NEGATIVE_SHARE`]
+/// of its positive light (sums as given: plain, or weighted by solid angle).
+pub fn negative_share_error(positive: [f64; 3], negative: [f64; 3]) -> Option<String> {
+    let ch = (0..3).find(|&ch| negative[ch] > MAX_NEGATIVE_SHARE * positive[ch])?;
+    Some(if positive[ch] > 0.0 {
+        format!(
+            "its negative pixels hold {:.3}% of the light of its positive ones in channel {ch} (more than the {}% that processing noise leaves): not radiance",
+            100.0 * negative[ch] / positive[ch],
+            100.0 * MAX_NEGATIVE_SHARE
+        )
+    } else {
+        format!("channel {ch} is negative where it is not zero: not radiance")
+    })
+}
+
+/// Refuses an image whose negative pixels hold more than [`MAX_NEGATIVE_SHARE`] of its light
+/// in a channel, naming the file.
+pub fn check_negative_share(path: &Path, img: &Image) -> Result<()> {
+    let (mut positive, mut negative) = ([0.0f64; 3], [0.0f64; 3]);
+    for c in &img.rgb {
+        for ch in 0..3 {
+            let v = c[ch] as f64;
+            if v > 0.0 {
+                positive[ch] += v;
+            } else {
+                negative[ch] -= v;
+            }
+        }
+    }
+    match negative_share_error(positive, negative) {
+        Some(why) => Err(Error::file(path, why)),
+        None => Ok(()),
+    }
+}
+
 /// Checks an image's pixels as radiance: colour finite, within ±[`MAX_RADIANCE`] and, unless
 /// `negative_ok`, not negative; alpha (coverage) finite and in [0, 1]. The error names the
 /// file, the first bad pixel and how many others there are.
@@ -675,6 +716,28 @@ mod tests {
         std::fs::write(&p, b"not an exr at all").unwrap();
         let e = read_exr(&p).unwrap_err().to_string();
         assert!(e.contains("bad.exr"), "{e}");
+    }
+
+    #[test]
+    fn small_negatives_pass_as_noise_and_a_negative_image_is_refused() {
+        let img = |low: f32| Image {
+            width: 100,
+            height: 1,
+            rgb: (0..100)
+                .map(|i| Vec3::splat(if i == 0 { low } else { 1.0 }))
+                .collect(),
+            alpha: None,
+        };
+        let p = Path::new("ref.exr");
+        assert!(check_negative_share(p, &img(-0.05)).is_ok());
+        let e = check_negative_share(p, &img(-1.0)).unwrap_err().to_string();
+        assert!(e.contains("ref.exr") && e.contains("1.010%"), "{e}");
+        let black = Image {
+            rgb: vec![Vec3::new(0.0, -0.5, 0.0); 100],
+            ..img(0.0)
+        };
+        let e = check_negative_share(p, &black).unwrap_err().to_string();
+        assert!(e.contains("channel 1 is negative"), "{e}");
     }
 
     #[test]

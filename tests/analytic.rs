@@ -24,6 +24,7 @@ fn scene(mesh: Mesh, albedo: Vec3, camera: Camera, lights: Vec<SphereLight>) -> 
             rings: 1,
         },
         size_given: true,
+        camera_names: Vec::new(),
         ignored: Vec::new(),
         source: Default::default(),
         gltf: Default::default(),

@@ -566,4 +566,64 @@ fn twins_of_the_references_measure_their_noise_and_test_the_fit() {
     };
     imageio::write_exr(&refs.join("cam_side_b.exr"), &small).unwrap();
     refuse(&["cam_side_b.exr", "32×24", "twin"]);
+    // A twin that is its reference again (the same seed) measures no noise.
+    std::fs::copy(refs.join("cam_side.exr"), refs.join("cam_side_b.exr")).unwrap();
+    refuse(&["cam_side_b.exr", "equals", "another seed"]);
+
+    // A camera named as a view's twin: its reference is no twin, and --twin will not
+    // overwrite it.
+    let named = tmp.path().join("named.ron");
+    std::fs::write(
+        &named,
+        format!(
+            "Scene(gltf: {:?}, image: (width: 64, height: 48), render: (spp: 16), \
+             views: [\"cam_front\", \"cam_side\"], \
+             cameras: [(name: \"cam_side_b\", yfov: 0.7, pose: LookAt(eye: (0, 1, 3), target: (0, 0, 0)))])",
+            concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb")
+        ),
+    )
+    .unwrap();
+    let o = run(&[
+        "render-reference",
+        &s(&named),
+        "--twin",
+        "--envmap",
+        &s(&sky),
+        "--out",
+        &s(&tmp.path().join("r2")),
+        "--quiet",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("\"cam_side_b\" is a camera"),
+        "{err}"
+    );
+    assert!(!tmp.path().join("r2").join("cam_front_b.exr").exists());
+    std::fs::copy(refs.join("cam_front.exr"), refs.join("cam_side_b.exr")).unwrap();
+    let o = run(&[
+        "estimate",
+        &s(&named),
+        "--reference",
+        &s(&refs),
+        "--out",
+        &s(&tmp.path().join("refused")),
+        "--quiet",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("is a camera of the scene"),
+        "{err}"
+    );
+    // Rendering again without --twin removes the twins an earlier --twin left.
+    let o = run(&[
+        "render-reference",
+        &s(&scene),
+        "--envmap",
+        &s(&sky),
+        "--out",
+        &s(&refs),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!refs.join("cam_front_b.exr").exists() && refs.join("cam_front.exr").exists());
 }

@@ -408,15 +408,16 @@ fn summary(r: &EstimateReport) -> Vec<String> {
         lines.push(line);
     }
     // The brightest clusters, with 95% intervals where the jackknife measured them: a cone of
-    // 2.448 σ per axis, ×/÷ e^(1.96 σ) on the power.
+    // 2.448 σ per axis, ± 1.96 σ on the power (the scatter of the fit; a coarse grid's or a
+    // near light's bias is not in it).
     for (k, c) in r.clusters.iter().take(3).enumerate() {
         let d = c.direction;
         let intervals = match (c.direction_sigma_degrees, c.power_sigma_relative) {
             (Some(a), Some(p)) => format!(
-                " ± {:.2}°, power {:.4} ×/÷ {:.3} (95% intervals, noise only)",
+                " ± {:.2}°, power {:.4} ± {:.1}% (95% intervals of its scatter; bias not included)",
                 2.448 * a,
                 c.power,
-                (1.96 * p).exp()
+                100.0 * 1.96 * p
             ),
             _ => format!(", power {:.4}", c.power),
         };
@@ -461,9 +462,7 @@ fn summary(r: &EstimateReport) -> Vec<String> {
             match source {
                 job::NoiseSource::RenderedTwin => "a second render of the true lights",
                 job::NoiseSource::NeighbouringPixels => "from the residual's neighbouring pixels",
-                job::NoiseSource::GivenTwins => {
-                    "from the references' twins and a second render of the model"
-                }
+                job::NoiseSource::GivenTwins => "from the references' twins",
             }
         ));
     }

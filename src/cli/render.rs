@@ -8,6 +8,7 @@ use anyhow::Context;
 
 use lightprobe::envmap::Envmap;
 use lightprobe::estimate::job::Progress;
+use lightprobe::estimate::pipeline::{twin_name, twin_name_taken};
 use lightprobe::imageio::{self, Image};
 use lightprobe::render::report::{
     EnvmapReport, ImageSize, LightReport, RenderReport, RenderTimings, ViewRender,
@@ -143,7 +144,30 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         .max_by_key(|&(w, h)| w as u64 * h as u64)
         .unwrap_or((1, 1));
     check_memory(w as u64 * h as u64 * 40, || format!("{w}×{h} images"), "")?;
+    let views: Vec<&Camera> = scene.cameras.iter().collect();
+    let taken = |cam: &Camera| twin_name_taken(cam, &views, &scene.camera_names);
+    if a.twin
+        && let Some(cam) = views.iter().find(|c| taken(c))
+    {
+        anyhow::bail!(
+            "{}: --twin would write view {:?}'s twin as {}.exr, but {:?} is a camera of the scene (rename that camera)",
+            a.scene.scene.display(),
+            cam.name,
+            twin_name(cam),
+            twin_name(cam)
+        );
+    }
     let _lock = prepare_out_dir(&a.out, lightprobe::output::LOCK_FILE)?;
+    // A twin left by an earlier run with --twin would pair with these references although
+    // it shows other lighting or noise: removed (never another camera's reference).
+    if !a.twin {
+        for cam in views.iter().filter(|c| !taken(c)) {
+            let stale = a.out.join(format!("{}.exr", twin_name(cam)));
+            if stale.is_file() {
+                std::fs::remove_file(&stale).map_err(|e| lightprobe::Error::io(&stale, e))?;
+            }
+        }
+    }
     let load_seconds = t_load.elapsed().as_secs_f64();
 
     let t_bvh = Instant::now();
@@ -159,7 +183,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     bars.finish();
     let render_seconds = t_all.elapsed().as_secs_f64();
-    let total_samples = scene.pixel_count() as f64 * settings.spp as f64;
+    // Every render counted, the twins too: the rate is of the time they all took.
+    let total_samples = (renders * scene.pixel_count()) as f64 * settings.spp as f64;
     let report = RenderReport {
         lightprobe_version: lightprobe::VERSION.to_string(),
         scene: a.scene.scene.clone(),
@@ -260,7 +285,7 @@ fn render_view(
             cam.name,
             a.scene.scene.display()
         );
-        let path = a.out.join(format!("{}_b.exr", cam.name));
+        let path = a.out.join(format!("{}.exr", twin_name(cam)));
         imageio::write_exr(&path, &img)?;
         Some(path)
     } else {

@@ -137,7 +137,8 @@ fn smooth(env: &Envmap, theta: f64, phi: f64) -> Vec3 {
 /// a pixel is not finite. Small negative values, which captured HDRs carry from their
 /// processing (Blender's bundled Poly Haven worlds hold pixels at −5e-5), are averaged in as
 /// the noise they are, a cell whose average is negative taken as 0; an image whose negative
-/// light exceeds [`MAX_NEGATIVE_SHARE`] of its positive light is refused as not radiance.
+/// light exceeds [`crate::imageio::MAX_NEGATIVE_SHARE`] of its positive light (weighted by solid
+/// angle) is refused as not radiance.
 pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<Envmap, String> {
     let grid = super::RingGrid::new(rings);
     let n = grid.cell_count();
@@ -163,12 +164,10 @@ pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<En
             negative -= c.min(DVec3::ZERO);
         }
     }
-    if let Some(ch) = (0..3).find(|&ch| negative[ch] > MAX_NEGATIVE_SHARE * positive[ch]) {
-        return Err(format!(
-            "its negative pixels hold {:.3}% of the light of its positive ones in channel {ch} (more than the {}% processing noise leaves): not radiance",
-            100.0 * negative[ch] / positive[ch].max(f64::MIN_POSITIVE),
-            100.0 * MAX_NEGATIVE_SHARE
-        ));
+    if let Some(why) =
+        crate::imageio::negative_share_error(positive.to_array(), negative.to_array())
+    {
+        return Err(why);
     }
     if let Some(cell) = weight.iter().position(|&w| w == 0.0) {
         return Err(format!(
@@ -183,10 +182,6 @@ pub fn import(img: &Image, target: Target, rings: u32) -> std::result::Result<En
         .collect();
     Envmap::new(rings, radiance)
 }
-
-/// Most negative light (solid-angle weighted, per channel) [`import`] takes for processing
-/// noise, as a share of the positive light.
-pub const MAX_NEGATIVE_SHARE: f64 = 1e-3;
 
 #[cfg(test)]
 mod tests {

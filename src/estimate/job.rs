@@ -283,7 +283,7 @@ pub enum References<'p> {
     Render,
     /// `<view>.exr` (or `.hdr`, `.png`, `.jpg`) in this folder, each the size of its view's
     /// image, decoded so; `<view>.mask.png` and saturated pixels leave pixels out, and
-    /// `<view>_b.exr` twins, where given, measure their noise ([`pipeline::twin_path`]).
+    /// `<view>_b.exr` twins, where given, measure their noise ([`pipeline::load_twins`]).
     Folder(&'p Path, crate::imageio::Decoding),
     /// Given, one per view of the scene in order.
     Images(Vec<Image>),
@@ -326,7 +326,8 @@ pub fn observe<'a>(
     let images = match references {
         References::Folder(dir, decoding) => {
             let (images, mut ok) = pipeline::load_references(dir, &views, decoding)?;
-            twins = pipeline::load_twins(dir, &views, decoding, &mut ok)?;
+            let cameras = &scene.camera_names;
+            twins = pipeline::load_twins(dir, &views, cameras, &images, decoding, &mut ok)?;
             usable = Some(ok);
             images
         }
@@ -507,7 +508,7 @@ pub enum NoiseSource {
     /// renderers' samplers and of 8-bit quantisation; a demosaiced photograph's correlated
     /// noise reads as less noise than there is).
     NeighbouringPixels,
-    /// From the references' given twins (`<view>_b`, [`pipeline::twin_path`]) and a second
+    /// From the references' given twins (`<view>_b`, [`pipeline::load_twins`]) and a second
     /// render of the model: exact, whatever the noise's correlation or distribution.
     GivenTwins,
 }
@@ -906,7 +907,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             .zip(b)
             .map(|(a, b)| a.rgb.iter().zip(&b.rgb).map(|(a, b)| *a - *b).collect())
             .collect(),
-        Some(b) if s.diagnose => {
+        Some(b) if s.diagnose && !finals.is_empty() => {
             progress.phase("render noise", pixels);
             let again = render_again(job, &envmap, spheres.as_ref(), &|k| progress.advance(k));
             let k = std::f32::consts::FRAC_1_SQRT_2;
@@ -953,24 +954,21 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     } else {
         envmap.noise_floor.clone()
     };
-    // Given twins without a second render of the model leave no exact test to make.
-    let testable = twins.is_none() || !samples.is_empty();
-    let mut fit_test = testable
-        .then(|| ResidualNoise::pooled(&measured).test())
-        .flatten()
-        .map(|test| {
-            let misfit = test.p_value < MISFIT_P_VALUE && test.residual_over_noise >= MISFIT_RATIO;
-            ModelFitTest {
-                causes: if misfit {
-                    misfit_causes(job, &model)
-                } else {
-                    Vec::new()
-                },
-                model: model.clone(),
-                test,
-                misfit,
-            }
-        });
+    // (Given twins without a second render of the model, as in the bounce probe's re-fit,
+    // leave the test to the neighbouring pixels.)
+    let mut fit_test = ResidualNoise::pooled(&measured).test().map(|test| {
+        let misfit = test.p_value < MISFIT_P_VALUE && test.residual_over_noise >= MISFIT_RATIO;
+        ModelFitTest {
+            causes: if misfit {
+                misfit_causes(job, &model)
+            } else {
+                Vec::new()
+            },
+            model: model.clone(),
+            test,
+            misfit,
+        }
+    });
 
     // References lightprobe rendered share the model's bounces, albedo and geometry: only
     // the light model can be wrong there, so there is nothing to probe.
@@ -978,7 +976,17 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         .as_mut()
         .filter(|t| t.misfit && t.model == "envmap" && s.diagnose && !seen.rendered)
     {
-        bounce_probe(job, rings, t);
+        // The probe's re-fit is tested on neighbouring pixels: so is this model here, for
+        // a like-for-like comparison of the misfit's energy.
+        let neighbours: Vec<ResidualNoise> = references
+            .iter()
+            .zip(finals)
+            .zip(masks)
+            .map(|((r, x), m)| ResidualNoise::of(r, x, m, None))
+            .collect();
+        if let Some(before) = ResidualNoise::pooled(&neighbours).test() {
+            bounce_probe(job, rings, t, before.excess_per_pixel);
+        }
     }
 
     // ---- The report ----
@@ -1256,9 +1264,10 @@ fn fit_spheres(
 /// Re-fits the envmap with one more bounce, at a quarter of the samples, and says in `test`'s
 /// causes how much of the misfit's energy that removes: more than half puts the bounce count
 /// first. The misfit's energy per pixel (the residual's less the noise's) is compared, not the
-/// ratio, since the probe's fewer samples raise its noise.
+/// ratio, since the probe's fewer samples raise its noise; `before` is the model's, measured
+/// as the probe's is (on neighbouring pixels, whatever the main test used).
 /// A probe that fails leaves the causes as they were: it is a diagnosis, not the estimate.
-fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) {
+fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest, before: f64) {
     let bounces = job.render.max_bounces + 1;
     if bounces > crate::scene::sidecar::MAX_BOUNCES {
         return;
@@ -1290,7 +1299,6 @@ fn bounce_probe(job: &Job, rings: u32, test: &mut ModelFitTest) {
     let Some(after) = probe.report.fit_test.map(|t| t.test.excess_per_pixel) else {
         return;
     };
-    let before = test.test.excess_per_pixel;
     let removed = 1.0 - after.max(0.0) / before.max(f64::MIN_POSITIVE);
     let Some(i) = test
         .causes

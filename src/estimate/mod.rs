@@ -382,19 +382,26 @@ fn fit_jackknife(
     let t = Instant::now();
     let pairs = smoothing_pairs(&grid, settings);
     let zero = vec![vec![0.0f64; all.cells]; 3];
+    // All replicates together within the fit's own time budget.
+    let quick = FitSettings {
+        time_limit: settings.time_limit / groups as u32,
+        ..*settings
+    };
     fit.replicates = pass
         .sums
         .iter()
         .filter_map(|per_grid| {
             let ne = all.without(&per_grid[0]);
-            let (radiance, non_finite) =
-                radiance_of(&solve_all(&ne, &pairs, settings, &zero, None));
-            (!non_finite)
+            let mut channels = new_channels();
+            let x = solve_all(&ne, &pairs, &quick, &zero, Some(&mut channels));
+            let (radiance, non_finite) = radiance_of(&x);
+            let converged = channels.iter().all(|c| c.converged);
+            (converged && !non_finite)
                 .then(|| Envmap::new(grid.rings(), radiance).ok())
                 .flatten()
         })
         .collect();
-    // A replicate that failed leaves no interval rather than a narrower one.
+    // A replicate that failed or stopped short leaves no interval rather than a wrong one.
     if fit.replicates.len() != groups {
         fit.replicates.clear();
     }

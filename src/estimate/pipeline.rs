@@ -46,7 +46,8 @@ pub fn load_references(
                 ),
             ));
         }
-        imageio::check_radiance(&p, &img, false)?;
+        imageio::check_radiance(&p, &img, true)?;
+        imageio::check_negative_share(&p, &img)?;
         let mask_path = dir.join(format!("{}.mask.png", cam.name));
         if mask_path.exists() {
             let (mask, _) = imageio::read_photo(&mask_path, imageio::Decoding::default())?;
@@ -69,30 +70,49 @@ pub fn load_references(
     Ok((images, usable))
 }
 
-/// Reads each view's twin in `dir` ([`twin_path`]), checked as its reference is, and leaves
-/// out of `usable` the pixels the twin cannot vouch for (saturated). Empty when the folder
-/// holds no twin; an error when it holds some but not all.
+/// Reads each view's twin in `dir` ([`twin_name`]), checked as its reference is, and leaves
+/// out of `usable` the pixels the twin cannot vouch for (saturated). `cameras`: every camera
+/// name of the scene, whose references are no twins. Empty when the folder holds no twin; an
+/// error when it holds some but not all, or a twin equal to its reference (the same random
+/// numbers: it measures no noise).
 pub fn load_twins(
     dir: &Path,
     views: &[&Camera],
+    cameras: &[String],
+    references: &[Image],
     decoding: imageio::Decoding,
     usable: &mut [Vec<bool>],
 ) -> Result<Vec<Image>> {
-    let paths: Vec<Option<std::path::PathBuf>> =
-        views.iter().map(|cam| twin_path(dir, cam, views)).collect();
+    let taken = |cam: &Camera| twin_name_taken(cam, views, cameras);
+    let paths: Vec<Option<std::path::PathBuf>> = views
+        .iter()
+        .map(|cam| {
+            (!taken(cam))
+                .then(|| photo_path(dir, &twin_name(cam)))
+                .flatten()
+        })
+        .collect();
     let Some(given) = paths.iter().flatten().next() else {
         return Ok(Vec::new());
     };
     let mut twins = Vec::with_capacity(views.len());
-    for ((cam, path), ok) in views.iter().zip(&paths).zip(usable) {
+    for (((cam, path), reference), ok) in views.iter().zip(&paths).zip(references).zip(usable) {
         let Some(p) = path else {
+            let why = if taken(cam) {
+                format!(
+                    "view {:?} can have none: {:?}, its twin's name, is a camera of the scene (rename that camera)",
+                    cam.name,
+                    twin_name(cam)
+                )
+            } else {
+                format!(
+                    "none for view {:?}: give a `<view>_b` twin for every view or for none",
+                    cam.name
+                )
+            };
             return Err(Error::file(
                 dir,
-                format!(
-                    "holds a twin ({}) but none for view {:?}: give a `<view>_b` twin for every view or for none",
-                    given.display(),
-                    cam.name
-                ),
+                format!("holds a twin ({}) but {why}", given.display()),
             ));
         };
         let (img, twin_ok) = imageio::read_photo(p, decoding)?;
@@ -105,7 +125,17 @@ pub fn load_twins(
                 ),
             ));
         }
-        imageio::check_radiance(p, &img, false)?;
+        imageio::check_radiance(p, &img, true)?;
+        imageio::check_negative_share(p, &img)?;
+        if img.rgb == reference.rgb {
+            return Err(Error::file(
+                p,
+                format!(
+                    "equals view {:?}'s reference pixel for pixel: a twin needs other random numbers (another seed) to measure the noise",
+                    cam.name
+                ),
+            ));
+        }
         for (o, t) in ok.iter_mut().zip(twin_ok) {
             *o &= t;
         }
@@ -114,17 +144,18 @@ pub fn load_twins(
     Ok(twins)
 }
 
-/// The twin of view `cam`'s reference in `dir`: `<view>_b.<ext>`, a second capture of the
-/// same view under the same lighting with independent noise (two renders with other seeds,
-/// two exposures of a still scene), which measures the references' noise ([`crate::noise`]).
-/// None where there is none, or where another view is called `<view>_b` (its reference is
-/// no twin).
-pub fn twin_path(dir: &Path, cam: &Camera, views: &[&Camera]) -> Option<std::path::PathBuf> {
-    let name = format!("{}_b", cam.name);
-    if views.iter().any(|v| v.name == name) {
-        return None;
-    }
-    photo_path(dir, &name)
+/// The name of view `cam`'s twin: `<view>_b` ([`load_twins`]), a second capture of the same
+/// view under the same lighting with independent noise (two renders with other seeds, two
+/// exposures of a still scene), which measures the references' noise ([`crate::noise`]).
+pub fn twin_name(cam: &Camera) -> String {
+    format!("{}_b", cam.name)
+}
+
+/// Whether view `cam`'s twin name is a view's or another camera's name (then its file would
+/// be that camera's reference, not a twin).
+pub fn twin_name_taken(cam: &Camera, views: &[&Camera], cameras: &[String]) -> bool {
+    let name = twin_name(cam);
+    views.iter().any(|v| v.name == name) || cameras.contains(&name)
 }
 
 /// The reference of view `cam` in `dir`: the first `<view>.<ext>` there in the order of
@@ -220,7 +251,7 @@ pub struct SeenViews<'a> {
     /// The references were rendered from the truth renderer's lights, so a second render of
     /// those lights is their exact twin: same lighting, independent noise.
     pub rendered: bool,
-    /// The references' given twins ([`twin_path`]), one per view in the same order, or none.
+    /// The references' given twins ([`load_twins`]), one per view in the same order, or none.
     pub twins: Vec<Image>,
 }
 

@@ -172,8 +172,10 @@ pub struct ClusterEstimate {
     /// Its cells' indices in the envmap's ring grid (ring by ring from +Y, as envmap.ron).
     pub cells: Vec<u32>,
     /// One standard deviation of the direction per axis, degrees, from the fit's jackknife
-    /// replicates over the same cells (None without replicates). It holds the references'
-    /// and the transport's noise, not the grid's resolution: a 9-ring cell is 22° across.
+    /// replicates over the same cells (None without replicates). It holds the scatter of the
+    /// fit: the references' and the transport's noise, and under a misfit how unevenly the
+    /// pixels carry it; not the bias of a coarse grid (a 9-ring cell is 22° across) or of a
+    /// near light's parallax.
     pub direction_sigma_degrees: Option<f64>,
     /// One standard deviation of the power, relative, from the same replicates.
     pub power_sigma_relative: Option<f64>,

@@ -576,6 +576,9 @@ pub struct Scene {
     pub source: PathBuf,
     /// The glTF file the geometry came from (empty for scenes built in code).
     pub gltf: PathBuf,
+    /// Every camera the files name, views or not (a name a view's twin, `<view>_b`, may not
+    /// take; empty for scenes built in code).
+    pub camera_names: Vec<String>,
 }
 
 /// Whether `path` is a glTF file rather than a RON sidecar: by its extension, else by its
@@ -676,6 +679,7 @@ impl Scene {
             }
             cameras.push(posed_camera(desc, size, sidecar_path)?);
         }
+        let camera_names = cameras.iter().map(|c| c.name.clone()).collect();
         let cameras = pick_or_all(cameras, names, listed, &gltf_path, sidecar_path)?;
         let lights = if sidecar.lights.is_empty() {
             loaded.lights
@@ -697,6 +701,7 @@ impl Scene {
             ignored,
             source: sidecar_path.to_path_buf(),
             gltf: gltf_path,
+            camera_names,
         })
     }
 
@@ -709,9 +714,11 @@ impl Scene {
             sidecar::RenderDesc::default(),
             sidecar::EnvmapDesc::default(),
         );
+        let camera_names = loaded.cameras.iter().map(|c| c.name.clone()).collect();
         Ok(Scene {
             mesh: loaded.mesh,
             materials: loaded.materials,
+            camera_names,
             cameras: pick_or_all(
                 loaded.cameras,
                 &options.views,

@@ -54,9 +54,18 @@ fn doubt(doubts: RadiusDoubts, k: usize) -> Option<f64> {
     doubts.get(k).copied().flatten()
 }
 
+/// Widest 95% factor an export writes as an interval: beyond it the images say next to
+/// nothing of the radius, and only that it is not identified is written.
+pub const WIDEST_STATED_DOUBT: f64 = 100.0;
+
+/// The 95% interval (metres) an export states for radius `r` with 95% factor `factor`.
+fn stated_interval(r: f32, factor: f64) -> Option<[f64; 2]> {
+    (factor <= WIDEST_STATED_DOUBT).then(|| [r as f64 / factor, r as f64 * factor])
+}
+
 /// A comment's words on a radius `r` (metres) the images do not identify, with the 95% factor.
 pub fn radius_doubt_words(r: f32, factor: f64) -> String {
-    if factor <= 100.0 {
+    if factor <= WIDEST_STATED_DOUBT {
         format!(
             "radius not identified by the images: any from {:.4} to {:.4} m (95%) fits them; {r} is the fit's value",
             r as f64 / factor,
@@ -210,14 +219,11 @@ pub fn usda(lights: &[SphereLight], doubts: RadiusDoubts, dome: Option<&str>) ->
         let (note, attributes) = match doubt(doubts, k) {
             Some(f) => (
                 format!("    # {}\n", radius_doubt_words(l.radius, f)),
-                if f.is_finite() {
-                    format!(
-                        "        custom bool lightprobe:radiusIdentified = 0\n        custom float2 lightprobe:radius95 = ({}, {})\n",
-                        l.radius as f64 / f,
-                        l.radius as f64 * f
-                    )
-                } else {
-                    "        custom bool lightprobe:radiusIdentified = 0\n".to_string()
+                match stated_interval(l.radius, f) {
+                    Some([lo, hi]) => format!(
+                        "        custom bool lightprobe:radiusIdentified = 0\n        custom float2 lightprobe:radius95 = ({lo}, {hi})\n"
+                    ),
+                    None => "        custom bool lightprobe:radiusIdentified = 0\n".to_string(),
                 },
             ),
             None => (String::new(), String::new()),
@@ -246,14 +252,14 @@ pub fn punctual_light(k: usize, l: &SphereLight, doubt: Option<f64>) -> Value {
         "type": "point",
         "color": color.to_array(),
         "intensity": peak.max(0.0) * LUMENS_PER_WATT,
-        "extras": match doubt {
+        "extras": match doubt.map(|f| stated_interval(l.radius, f)) {
             None => json!({ "radius": l.radius }),
-            Some(f) if f.is_finite() => json!({
+            Some(Some(interval)) => json!({
                 "radius": l.radius,
                 "radius_identified": false,
-                "radius_95_interval": [l.radius as f64 / f, l.radius as f64 * f],
+                "radius_95_interval": interval,
             }),
-            Some(_) => json!({ "radius": l.radius, "radius_identified": false }),
+            Some(None) => json!({ "radius": l.radius, "radius_identified": false }),
         },
     })
 }
