@@ -1095,9 +1095,9 @@ pub struct FittedLight {
     pub distance_profile_sigmas: Option<f64>,
     /// One standard deviation of the centre along its direction from the scene centre, and
     /// across it (metres, per axis), from [`uncertainty`]'s sandwich covariance (None where the
-    /// images hold no measure of it). Over ten seeds of the bundled scene the 95% intervals
-    /// held the truth for direction 95%, distance 100%, radius 87% and power 100% of the
-    /// lights; over the 15-scenario study 100%, 100%, 94%, 100% (docs/results.md).
+    /// images hold no measure of it). Over 20 seeds of the bundled scene the 95% intervals
+    /// held the truth for direction 95%, distance 98%, radius 87% and power 98% of the
+    /// lights; over the 15-scenario study (2 seeds) 98%, 98%, 92%, 95% (docs/results.md).
     pub distance_sigma_m: Option<f64>,
     pub lateral_sigma_m: Option<f64>,
     /// One standard deviation of the direction from the scene centre, per axis, degrees.
