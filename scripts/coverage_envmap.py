@@ -38,18 +38,10 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "scripts"))
 import ring_grid as rg  # noqa: E402
+from coverage_spheres import wilson  # noqa: E402
 
 SCENE = ROOT / "scenes" / "tabletop" / "tabletop.ron"
 LUM = np.array([0.2126, 0.7152, 0.0722])
-
-
-def wilson(k, n, z=1.96):
-    if n == 0:
-        return None
-    p = k / n
-    mid = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return [mid - half, mid + half]
 
 
 def cluster_of(grid, radiance, cells):

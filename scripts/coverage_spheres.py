@@ -66,6 +66,16 @@ def truth_lights(text):
     return out
 
 
+def wilson(k, n, z=1.96):
+    """Wilson's 95% range of a binomial proportion: k of n judgements inside."""
+    if n == 0:
+        return None
+    p = k / n
+    mid = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return [mid - half, mid + half]
+
+
 def scene_centre(binary, scene):
     info = json.loads(subprocess.run([binary, "info", str(scene)], check=True,
                                      capture_output=True, text=True).stdout)
@@ -129,14 +139,6 @@ def main():
                     }
                     rows.append(row)
                 print(f"{scene.stem} seed {seed}: done", flush=True)
-
-    def wilson(k, n, z=1.96):
-        if n == 0:
-            return None
-        p = k / n
-        mid = (p + z * z / (2 * n)) / (1 + z * z / n)
-        half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-        return [mid - half, mid + half]
 
     def coverage(name, inside, per_light=1):
         judged = [j for r in rows for j in (inside(r) or [None] * per_light)]
