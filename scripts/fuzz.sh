@@ -6,7 +6,8 @@
 #   exr      any bytes -> the EXR reader (header checks, then decoding)
 #   reference  any bytes as a view's reference EXR -> reference loading and pixel checks
 # Usage: scripts/fuzz.sh [SECONDS_PER_TARGET] [TARGET...]   (default 60 s, all targets)
-# Crashes are left in fuzz/artifacts/<target>/; the summary prints executions and crashes.
+# Crashes are left in fuzz/artifacts/<target>/; the summary prints executions and crashes,
+# and the script exits 1 when a target crashed or its run failed (this run's files only).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 secs="${1:-60}"; shift || true
@@ -15,6 +16,8 @@ rustup toolchain list | grep -q nightly || rustup toolchain install nightly --pr
 command -v cargo-fuzz >/dev/null 2>&1 || cargo install cargo-fuzz --locked
 export RUSTFLAGS=""   # the sanitizer build sets its own flags
 summary=()
+failed=0
+started=$(mktemp); trap 'rm -f "$started"' EXIT
 for t in "${targets[@]}"; do
   corpus="fuzz/corpus/$t"; mkdir -p "$corpus" "fuzz/artifacts/$t"
   cp -n fuzz/seeds/"$t"/* "$corpus"/ 2>/dev/null || true
@@ -24,7 +27,12 @@ for t in "${targets[@]}"; do
   status=${PIPESTATUS[0]}
   set -e
   execs=$(grep -oE "^#[0-9]+" "$log" | tail -1 | tr -d '#')
-  crashes=$(find "fuzz/artifacts/$t" -name 'crash-*' -o -name 'oom-*' -o -name 'timeout-*' | wc -l)
-  summary+=("$t: ${execs:-0} executions in ${secs} s, exit $status, crash/oom/timeout files: $crashes")
+  crashes=$(find "fuzz/artifacts/$t" -newer "$started" \( -name 'crash-*' -o -name 'oom-*' -o -name 'timeout-*' \) | wc -l)
+  summary+=("$t: ${execs:-0} executions in ${secs} s, exit $status, new crash/oom/timeout files: $crashes")
+  if [ "$status" -ne 0 ] || [ "$crashes" -gt 0 ]; then failed=1; fi
 done
 printf '\n== fuzz summary ==\n'; printf '%s\n' "${summary[@]}"
+if [ "$failed" -ne 0 ]; then
+  echo "fuzz: a target crashed or failed (inputs in fuzz/artifacts/<target>/)" >&2
+  exit 1
+fi

@@ -177,7 +177,8 @@ pub struct Accel {
 /// chosen at run time: the binary is built for the baseline x86-64 (or any other target), and
 /// the x86-64-v3 copies run where the CPU has that level. Both compute the same arithmetic in
 /// the same order, so they give the same answers bit for bit (tests compare them).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Isa {
     /// Plain Rust, for any target.
     Portable,

@@ -4,6 +4,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use glam::Vec3;
+
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_lightprobe"))
 }
@@ -80,6 +82,46 @@ fn render_reference_writes_images_aovs_and_report() {
         report["views"][0]["mean_rgb"][0].as_f64().unwrap() as f32,
         mean.x
     );
+    // The buffers' contents, at pixel centres: where the centre sees geometry (all samples
+    // of a pixel did: coverage 1) depth is a positive distance within the scene's reach, the
+    // normal a unit vector and the albedo a reflectance in (0, 1]; where no sample did
+    // (coverage 0), all three are zero.
+    let read = |name: &str| lightprobe::imageio::read_exr(&out.join(name)).unwrap();
+    for view in ["cam_front", "cam_side"] {
+        let radiance = read(&format!("{view}.exr"));
+        let coverage = radiance.alpha.as_ref().unwrap();
+        let (depth, normal, albedo) = (
+            read(&format!("{view}.depth.exr")),
+            read(&format!("{view}.normal.exr")),
+            read(&format!("{view}.albedo.exr")),
+        );
+        let (mut hit, mut miss) = (0, 0);
+        for (i, &covered) in coverage.iter().enumerate() {
+            let (d, n, a) = (depth.rgb[i], normal.rgb[i], albedo.rgb[i]);
+            if covered == 1.0 {
+                hit += 1;
+                assert!(
+                    d.x > 0.1 && d.x < 30.0 && d.x == d.y && d.y == d.z,
+                    "{view} {i}: depth {d}"
+                );
+                assert!((n.length() - 1.0).abs() < 1e-3, "{view} {i}: normal {n}");
+                assert!(
+                    a.min_element() > 0.0 && a.max_element() <= 1.0,
+                    "{view} {i}: albedo {a}"
+                );
+            } else if covered == 0.0 {
+                miss += 1;
+                assert!(
+                    d == Vec3::ZERO && n == Vec3::ZERO && a == Vec3::ZERO,
+                    "{view} {i}"
+                );
+            }
+        }
+        assert!(
+            hit > 100 && miss > 10,
+            "{view}: {hit} pixels on geometry, {miss} off it"
+        );
+    }
 }
 
 #[test]
@@ -195,7 +237,43 @@ fn compare_reports_metrics_and_heatmap() {
         m["masked_out"].as_u64().unwrap() > 0,
         "the background is masked"
     );
-    assert!(heat.exists());
+    // The heat map's contents: 8× zoom of the 32×24 image beside a 90-pixel colour bar; each
+    // pixel the colour map at its mean absolute error over the scale, grey where masked out.
+    let (png, _) = lightprobe::imageio::read_photo(
+        &heat,
+        lightprobe::imageio::Decoding {
+            linear: true,
+            saturation: None,
+        },
+    )
+    .unwrap();
+    assert_eq!((png.width, png.height), (32 * 8 + 90, 24 * 8));
+    let scale = m["heatmap"]["scale"].as_f64().unwrap() as f32;
+    let (x, r) = (
+        lightprobe::imageio::read_exr(&fb).unwrap(),
+        lightprobe::imageio::read_exr(&fa).unwrap(),
+    );
+    let byte = |v: f32| (v * 255.0).round() as i32;
+    let mut worst = 0;
+    for py in 0..24usize {
+        for px in 0..32usize {
+            let i = py * 32 + px;
+            let shown = png.rgb[(py * 8 + 4) * png.width as usize + px * 8 + 4];
+            let want = if r.alpha.as_ref().unwrap()[i] > 0.0 {
+                let err = (x.rgb[i] - r.rgb[i]).abs().element_sum() / 3.0;
+                lightprobe::metrics::colormap(err / scale).map(|c| c as i32)
+            } else {
+                [96, 96, 96]
+            };
+            for c in 0..3 {
+                worst = worst.max((byte(shown[c]) - want[c]).abs());
+            }
+        }
+    }
+    assert!(
+        worst <= 1,
+        "a heat-map pixel is {worst} off its error's colour"
+    );
     let o = run(&[
         "compare",
         fa.to_str().unwrap(),
@@ -1659,6 +1737,29 @@ fn renders_are_bit_identical_on_the_portable_and_the_detected_kernels() {
     };
     render(None, "detected");
     render(Some("portable"), "portable");
+    let kernels = |out: &str| {
+        let text = std::fs::read_to_string(tmp.path().join(out).join("render.json")).unwrap();
+        let report: serde_json::Value = serde_json::from_str(&text).unwrap();
+        report["kernels"].as_str().unwrap().to_string()
+    };
+    // The comparison means something only where the CPU has the vector kernels.
+    #[cfg(target_arch = "x86_64")]
+    let avx2 = {
+        use std::arch::is_x86_feature_detected as has;
+        has!("avx2")
+            && has!("fma")
+            && has!("bmi1")
+            && has!("bmi2")
+            && has!("lzcnt")
+            && has!("popcnt")
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let avx2 = false;
+    assert_eq!(kernels("portable"), "portable");
+    assert_eq!(kernels("detected"), if avx2 { "avx2" } else { "portable" });
+    if !avx2 {
+        eprintln!("no x86-64-v3 on this CPU: both renders used the portable kernels");
+    }
     for view in ["cam_front.exr", "cam_side.exr"] {
         let a = std::fs::read(tmp.path().join("detected").join(view)).unwrap();
         let b = std::fs::read(tmp.path().join("portable").join(view)).unwrap();

@@ -566,6 +566,26 @@ fn sphere_model_writes_a_sidecar_fragment_that_renders() {
         "--quiet",
     ]));
     assert!(out.join("cam_front.exr").exists());
+    // And it holds the fitted light of report.json, as the loader reads it.
+    let info: serde_json::Value =
+        serde_json::from_str(&ok(&run(&["info", sidecar.to_str().unwrap()]))).unwrap();
+    let (read, fitted) = (&info["lights"][0], &sph["lights"][0]["light"]);
+    let close = |key: &str, k: Option<usize>, tolerance: f64| {
+        let value = |v: &serde_json::Value| match k {
+            Some(k) => v[key][k].as_f64().unwrap(),
+            None => v[key].as_f64().unwrap(),
+        };
+        let (got, want) = (value(read), value(fitted));
+        assert!(
+            (got - want).abs() <= tolerance * want.abs().max(1e-3),
+            "{key}: {read} vs {fitted}"
+        );
+    };
+    for k in 0..3 {
+        close("center", Some(k), 1e-5);
+        close("radiance", Some(k), 1e-5);
+    }
+    close("radius", None, 1e-6);
 
     // --model auto: every candidate's held-out error reported, the choice among them.
     let auto = tmp.path().join("auto");

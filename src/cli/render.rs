@@ -211,6 +211,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             }),
         settings,
         threads: rayon::current_num_threads(),
+        kernels: renderer.accel.isa(),
         timings: RenderTimings {
             load_seconds,
             bvh_seconds,

@@ -21,6 +21,9 @@ pub struct RenderReport {
     pub envmap: Option<EnvmapReport>,
     pub settings: RenderSettings,
     pub threads: usize,
+    /// The BVH traversal kernels: `avx2` (x86-64-v3, detected at run time) or `portable`
+    /// (any CPU, or `LIGHTPROBE_ISA=portable`). The images are the same either way.
+    pub kernels: crate::accel::Isa,
     pub timings: RenderTimings,
     /// Camera samples per second over all views (samples of pixels whose rays meet nothing
     /// count too: they cost nearly nothing).
