@@ -229,8 +229,10 @@ fn compare_reports_metrics_and_heatmap() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let m: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let rel = m["rel_mae"].as_f64().unwrap();
+    // Two 4-spp renders differ by their noise only: measured 0.121–0.135 for seed 1 against
+    // seeds 2–5 (cam_front, 32×24).
     assert!(
-        rel > 0.0 && rel < 0.5,
+        (0.08..0.2).contains(&rel),
         "two seeds differ by noise only: {rel}"
     );
     assert!(

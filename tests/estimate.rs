@@ -305,7 +305,7 @@ fn one_pass_recovers_a_sky_in_a_grid_it_did_not_sample_by() {
 }
 
 #[test]
-fn a_small_distant_sphere_light_is_located_within_3_degrees() {
+fn a_small_distant_sphere_light_is_located_within_its_own_disc() {
     // 100 m away, 1.4° across. (At 10 m, 6× the table's size, the same light came out
     // 3.7–4.1° off at 17–41 rings, whatever the samples: parallax, not the estimator. From
     // the table's edges it lies up to 3° either side of its direction from the centre, and
@@ -336,8 +336,9 @@ fn a_small_distant_sphere_light_is_located_within_3_degrees() {
     let rec = recovery::recover(&fit.envmap, &sc.lights, center);
     assert_eq!(rec.len(), 1);
     // Measured (21 rings, 4 rounds of 512 spp): 0.53°, power ×1.013; 17 and 31 rings: 0.43°,
-    // 0.40°; 4 rounds of 128 spp: 0.65°.
-    assert!(rec[0].angle_error_degrees < 3.0, "{:?}", rec[0]);
+    // 0.40°; 4 rounds of 128 spp: 0.65°. Inside the light's own disc (0.7° in radius) with
+    // room for that spread.
+    assert!(rec[0].angle_error_degrees < 1.0, "{:?}", rec[0]);
     assert!((0.9..1.1).contains(&rec[0].power_ratio), "{:?}", rec[0]);
 }
 
