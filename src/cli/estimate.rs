@@ -525,16 +525,7 @@ fn misfit_warning(t: &job::ModelFitTest) -> String {
 /// Lines for a sphere-model estimate, beside the envmap's relMAE.
 fn spheres_summary(s: &job::SpheresReport, envmap_rel_mae: Option<f64>) -> Vec<String> {
     let mut lines = Vec::new();
-    let kept = s
-        .lights
-        .iter()
-        .filter(|f| {
-            matches!(
-                f.status,
-                LightStatus::Identified | LightStatus::DistanceUnidentified
-            )
-        })
-        .count();
+    let kept = s.lights.iter().filter(|f| f.kept()).count();
     if let Some(e) = s.rel_mae {
         lines.push(format!(
             "{} ({kept} lights): relMAE {:.2}% (envmap {:.2}%), fit {:.1} s, {} renders",

@@ -1126,10 +1126,23 @@ fn identified(sigma_ln: Option<f64>) -> bool {
 }
 
 impl FittedLight {
+    /// Whether the model keeps the light: it contributes and was not merged away.
+    pub fn kept(&self) -> bool {
+        matches!(
+            self.status,
+            LightStatus::Identified | LightStatus::DistanceUnidentified
+        )
+    }
+
+    /// The factor (×/÷) of the radius's 95% interval, where the images measure it.
+    fn radius_factor(&self) -> Option<f64> {
+        self.radius_sigma_relative.map(|s| (1.96 * s).exp())
+    }
+
     /// The radius's 95% interval in words: "95% interval ×/÷ 1.63", or that there is none.
     pub fn radius_interval(&self) -> String {
-        match self.radius_sigma_relative {
-            Some(s) => format!("95% interval ×/÷ {:.2}", (1.96 * s).exp()),
+        match self.radius_factor() {
+            Some(f) => format!("95% interval ×/÷ {f:.2}"),
             None => "the images hold no measure of it".to_string(),
         }
     }
@@ -1197,12 +1210,7 @@ impl SphereFit {
 
     /// The fitted lights that contribute and were not merged away.
     fn kept(&self) -> impl Iterator<Item = &FittedLight> {
-        self.fitted.iter().filter(|f| {
-            matches!(
-                f.status,
-                LightStatus::Identified | LightStatus::DistanceUnidentified
-            )
-        })
+        self.fitted.iter().filter(|f| f.kept())
     }
 
     /// The model's lights: those that contribute and were not merged away.
@@ -1215,10 +1223,8 @@ impl SphereFit {
     pub fn radius_doubts(&self) -> Vec<Option<f64>> {
         self.kept()
             .map(|f| {
-                (f.radius_identified == Some(false)).then(|| {
-                    f.radius_sigma_relative
-                        .map_or(f64::INFINITY, |s| (1.96 * s).exp())
-                })
+                (f.radius_identified == Some(false))
+                    .then(|| f.radius_factor().unwrap_or(f64::INFINITY))
             })
             .collect()
     }
