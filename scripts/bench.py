@@ -239,9 +239,9 @@ def run_equal_noise(args, variant: str) -> int:
     import mitsuba as mi
     # Mitsuba warns on every rounded sample count; we report those ourselves
     mi.set_log_level(mi.LogLevel.Error)
-    info = ms.lightprobe_info(args.scene, args.bin)
-    st = info["settings"]
-    cams = {c["name"]: c for c in info["cameras"]}
+    desc = ms.described_scene(args.scene, args.bin)
+    st = desc["settings"]
+    cams = {c["name"]: c for c in desc["cameras"]}
     views = list(cams)
     w, h = st["width"], st["height"]
     spp_list = int_list(args.spp_list)
@@ -258,7 +258,7 @@ def run_equal_noise(args, variant: str) -> int:
     load_before = os.getloadavg()
 
     meshes = ms.load_meshes(ms.sidecar_gltf(args.scene))
-    S = ms.build_scene(args.scene, args.bin, info=info, meshes=meshes)
+    S = ms.build_scene(args.scene, args.bin, desc=desc, meshes=meshes)
     # Mitsuba sensors per (sampler, requested spp); keep the spp it really uses
     sensors, notes = {}, []
     for smp in samplers:
@@ -376,7 +376,7 @@ def run_equal_noise(args, variant: str) -> int:
             c["target"]["ratio_local"] = ratios_local[name]
     best = min(ratios, key=ratios.get) if ratios else None
     result = {
-        "scene": str(args.scene), "triangles": info["triangles"], "width": w, "height": h,
+        "scene": str(args.scene), "triangles": desc["triangles"], "width": w, "height": h,
         "views": views, "max_bounces": st["max_bounces"], "cpus": os.cpu_count(),
         "loadavg_before": load_before, "loadavg_after": load_after,
         "equal_noise": {
@@ -487,13 +487,13 @@ def main() -> int:
     if args.equal_noise:
         return run_equal_noise(args, variant)
 
-    info = ms.lightprobe_info(args.scene, args.bin)
-    st = info["settings"]
+    desc = ms.described_scene(args.scene, args.bin)
+    st = desc["settings"]
     spp = args.spp or st["spp"]
-    views = [c["name"] for c in info["cameras"]]
+    views = [c["name"] for c in desc["cameras"]]
     w, h = st["width"], st["height"]
     samples = w * h * spp * len(views)
-    print(f"scene {args.scene}: {info['triangles']} triangles, views {views}, {w}x{h}, "
+    print(f"scene {args.scene}: {desc['triangles']} triangles, views {views}, {w}x{h}, "
           f"{spp} spp, max_bounces {st['max_bounces']} -> {samples:,} samples per run; "
           f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
     load_before = os.getloadavg()
@@ -501,7 +501,7 @@ def main() -> int:
     # Mitsuba: build once, warm up (JIT) once per view
     meshes = ms.load_meshes(ms.sidecar_gltf(args.scene))
     t0 = time.perf_counter()
-    S = ms.build_scene(args.scene, args.bin, spp=spp, info=info, meshes=meshes)
+    S = ms.build_scene(args.scene, args.bin, spp=spp, desc=desc, meshes=meshes)
     build_s = time.perf_counter() - t0
     first = {}
     for v in views:
@@ -526,7 +526,7 @@ def main() -> int:
                                str(env_exr), "--width", "1024"])
             g = rg.RingGrid(args.envmap_rings)
             t0 = time.perf_counter()
-            S_env = ms.build_scene(args.scene, args.bin, spp=spp, info=info, meshes=meshes,
+            S_env = ms.build_scene(args.scene, args.bin, spp=spp, desc=desc, meshes=meshes,
                                    envmap=env_exr, sphere_lights=False)
             env_build_s = time.perf_counter() - t0
             env_first = 0.0
@@ -582,7 +582,7 @@ def main() -> int:
     load_after = os.getloadavg()
     result = {
         "scene": str(args.scene),
-        "triangles": info["triangles"],
+        "triangles": desc["triangles"],
         "width": w, "height": h, "spp": spp, "views": views,
         "max_bounces": st["max_bounces"], "samples_per_run": samples,
         "repeat": args.repeat, "cpus": os.cpu_count(),

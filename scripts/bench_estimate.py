@@ -391,18 +391,18 @@ def rel_mae(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
 class MitsubaFit:
     """Envmap optimisation in Mitsuba; see the module docstring."""
 
-    def __init__(self, args, info, meshes, refs: dict, width: int, height: int):
+    def __init__(self, args, desc, meshes, refs: dict, width: int, height: int):
         import drjit as dr
         import mitsuba as mi
         self.dr, self.mi = dr, mi
         self.args, self.refs, self.W, self.H = args, refs, width, height
         self.views = list(refs)
         self.masks = {v: refs[v][..., 3] > 0 for v in self.views}
-        st = info["settings"]
+        st = desc["settings"]
         self.eval_spp = args.mi_eval_spp or st["spp"]
         self.max_depth = st["max_bounces"] + 1
         t0 = time.perf_counter()
-        self.S = ms.build_scene(args.scene, args.bin, info=info, meshes=meshes,
+        self.S = ms.build_scene(args.scene, args.bin, desc=desc, meshes=meshes,
                                 envmap=np.ones((height, width, 3), np.float32),
                                 sphere_lights=False, spp=args.mi_spp)
         self.path = self.S.scene.integrator()          # validated against lightprobe
@@ -532,12 +532,12 @@ class MitsubaFit:
         }
 
 
-def crosscheck(args, info, meshes, refs: dict, envmap_exr: Path, lp_rel_mae: float,
+def crosscheck(args, desc, meshes, refs: dict, envmap_exr: Path, lp_rel_mae: float,
                k: int = 0) -> dict:
     """lightprobe's exported estimate rendered by Mitsuba, scored the same way;
     k: which map (fresh seeds per map; k = 0 is the main run's)."""
     import mitsuba as mi
-    S = ms.build_scene(args.scene, args.bin, info=info, meshes=meshes, envmap=envmap_exr,
+    S = ms.build_scene(args.scene, args.bin, desc=desc, meshes=meshes, envmap=envmap_exr,
                        sphere_lights=False)
     per_view = {}
     seed0 = 2_000_000 + len(refs) * k
@@ -550,7 +550,7 @@ def crosscheck(args, info, meshes, refs: dict, envmap_exr: Path, lp_rel_mae: flo
             "rel_mae": mean, "lightprobe_rel_mae": lp_rel_mae, "difference": mean - lp_rel_mae}
 
 
-def crosscheck_all(args, info, meshes, refs: dict, lp: dict) -> dict:
+def crosscheck_all(args, desc, meshes, refs: dict, lp: dict) -> dict:
     """crosscheck() of every lightprobe envmap run the time-to-error uses (the
     main run first, k = 0, then the --curve-spp runs); sets each run's
     rel_mae_by_mitsuba. Returns the main run's cross-check with every point's
@@ -560,7 +560,7 @@ def crosscheck_all(args, info, meshes, refs: dict, lp: dict) -> dict:
     points = []
     for k, r in enumerate(runs):
         t0 = time.perf_counter()
-        c = crosscheck(args, info, meshes, refs, Path(r["out"]) / "envmap.exr", r["rel_mae"], k)
+        c = crosscheck(args, desc, meshes, refs, Path(r["out"]) / "envmap.exr", r["rel_mae"], k)
         c.update({"transport_spp": r["transport_spp"], "main": r is main,
                   "seconds": time.perf_counter() - t0})
         r["rel_mae_by_mitsuba"] = c["rel_mae"]
@@ -855,9 +855,9 @@ def main() -> int:
     variant = ms.set_variant(require_llvm=True)
     import drjit as dr
     import mitsuba as mi
-    info = ms.lightprobe_info(args.scene, args.bin)
-    st = info["settings"]
-    views = [c["name"] for c in info["cameras"]]
+    desc = ms.described_scene(args.scene, args.bin)
+    st = desc["settings"]
+    views = [c["name"] for c in desc["cameras"]]
     binary = binary_provenance(args.bin)
     log(f"lightprobe binary {binary['path']} built {binary['mtime']} sha256 "
         f"{binary['sha256'][:12]}; repo HEAD {binary['git_head']}")
@@ -891,7 +891,7 @@ def main() -> int:
             f"{args.mi_steps} steps x {args.mi_spp} spp/view, Adam lr {args.mi_lr}, "
             f"{args.mi_loss.upper()} loss, init {args.mi_init} (load {load()}):")
         l0 = load()
-        fit = MitsubaFit(args, info, meshes, refs, w, h)
+        fit = MitsubaFit(args, desc, meshes, refs, w, h)
         if args.wait_idle:
             idle[f"mitsuba_{w}x{h}"] = wi = wait_idle(args.wait_idle)
             log(f"  waited {wi['waited_seconds']:.0f} s for an idle machine: other processes "
@@ -911,7 +911,7 @@ def main() -> int:
 
     cc = None
     if args.crosscheck:      # every lightprobe envmap run of the time-to-error
-        cc = crosscheck_all(args, info, meshes, refs, lp)
+        cc = crosscheck_all(args, desc, meshes, refs, lp)
 
     # 4. time-to-error and goals
     tte = time_to_error(lp, mitsuba)

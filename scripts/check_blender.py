@@ -22,9 +22,10 @@ What it does (default: the bundled tabletop, its 2 views, 128x96, 512 spp):
     3. `lightprobe import-envmap --target blender` of it gives the cells back.
  B. Blender, no lightprobe rendering involved:
     1. scene set-up facts: every imported camera equals the one built from
+       scripts/scene_truth.py's reading of the scene, itself checked against
        `lightprobe info` (glTF -> Blender axes (x, y, z) -> (x, -z, y)); the
        importer's corner normals equal the glTF NORMALs (flat face normals
-       where a primitive has none); materials are exactly lightprobe's albedos
+       where a primitive has none); materials are exactly the scene's albedos
        (texture: same mean linear albedo);
     2. lookup test: Cycles renders the bare World (meshes hidden, film opaque)
        through 6 cube-face cameras (64x64, 90 deg, 16 spp); every pixel whose
@@ -93,7 +94,7 @@ Cycles settings, each chosen to match lightprobe's model (docs/design.md):
     primitive has none; verified in B.1). Shadow-terminator offsets set to 0
     on every object (Cycles' default geometry offset 0.1 moves shadow-ray
     origins of smooth meshes, which lightprobe does not do).
-  * Cameras from `lightprobe info` (origin, forward, up, yfov), converted to
+  * Cameras from scripts/scene_truth.py (origin, forward, up, yfov), converted to
     Blender axes; sensor fit Vertical, angle = yfov, 128x96, pixel aspect 1.
   * Light paths: lightprobe's max_bounces = 2 counts scattering events
     (camera -> s1 -> s2 -> light: direct light at s1 and at s2). Cycles'
@@ -202,10 +203,10 @@ def worker_main(job_file: str) -> int:
     bpy.ops.import_scene.gltf(filepath=job["gltf"])     # importer defaults
     rep["import_seconds"] = time.time() - t0
     scene = bpy.context.scene
-    info = job["info"]
+    desc = job["desc"]          # the scene as scripts/scene_truth.py read it
     gj, binchunk = _glb_json_and_bin(Path(job["gltf"]))
 
-    # ---- B.1 cameras: lightprobe info -> Blender, checked against the importer's
+    # ---- B.1 cameras: the scene's own reading -> Blender, checked against the importer's
     def cam_matrix(c) -> Matrix:
         r, u, f, o = (Vector(g2b(c[k])) for k in ("right", "up", "forward", "origin"))
         m = Matrix.Identity(4)
@@ -214,7 +215,7 @@ def worker_main(job_file: str) -> int:
         return m
 
     cams, cam_check = {}, {}
-    for c in info["cameras"]:
+    for c in desc["cameras"]:
         data = bpy.data.cameras.new("lp_" + c["name"])
         data.type = "PERSP"
         data.sensor_fit = "VERTICAL"
@@ -308,8 +309,8 @@ def worker_main(job_file: str) -> int:
                 setattr(ob.cycles, attr, 0.0)
     rep["normals"] = normals_rep
 
-    # ---- materials: Lambertian (Diffuse BSDF, roughness 0) of lightprobe's albedo
-    info_mats = {m["name"]: m for m in info["materials"]}
+    # ---- materials: Lambertian (Diffuse BSDF, roughness 0) of the scene's albedo
+    desc_mats = {m["name"]: m for m in desc["materials"]}
     mats_rep = {}
     gl_by_name = {m.get("name", ""): m for m in gl_mats}
     for mat in bpy.data.materials:
@@ -319,14 +320,14 @@ def worker_main(job_file: str) -> int:
         pbr = gm.get("pbrMetallicRoughness", {})
         factor = [float(x) for x in pbr.get("baseColorFactor", [1, 1, 1, 1])[:3]]
         image = None
-        im = info_mats[mat.name]
+        im = desc_mats[mat.name]
         if "baseColorTexture" in pbr and "texture" in im:
             tex_nodes = [n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeTexImage"]
             assert len(tex_nodes) == 1, (mat.name, tex_nodes)
             image = tex_nodes[0].image
         entry = {"factor": factor}
         if image is not None:
-            assert "texture" in im, f"{mat.name}: lightprobe has no texture"
+            assert "texture" in im, f"{mat.name}: the scene has no texture"
             assert np.allclose(factor, im["albedo_factor"], atol=1e-6)
             px = np.empty(image.size[0] * image.size[1] * image.channels, dtype=np.float32)
             image.pixels.foreach_get(px)
@@ -335,13 +336,13 @@ def worker_main(job_file: str) -> int:
             entry.update(image=image.name, size=list(image.size),
                          colorspace=image.colorspace_settings.name,
                          mean_linear=lin.mean(0).tolist(),
-                         lightprobe_mean_linear=im["texture"]["mean_linear"])
+                         scene_mean_linear=im["texture"]["mean_linear"])
             image.colorspace_settings.name = "sRGB"
         else:
-            # lightprobe's constant albedo, which includes a sidecar Constant override
+            # the scene's constant albedo, which includes a sidecar Constant override
             # (an image override, i.e. a texture the glTF does not have, is not supported)
-            assert "albedo" in im, f"{mat.name}: lightprobe uses a texture the glTF lacks"
-            entry["lightprobe_albedo"] = im["albedo"]
+            assert "albedo" in im, f"{mat.name}: the sidecar gives a texture the glTF lacks"
+            entry["scene_albedo"] = im["albedo"]
             factor = [float(x) for x in im["albedo"]]
         nt = mat.node_tree
         nt.nodes.clear()
@@ -474,7 +475,7 @@ def worker_main(job_file: str) -> int:
 
     timings = []
     # ---- C / D renders
-    r.resolution_x, r.resolution_y = info["settings"]["width"], info["settings"]["height"]
+    r.resolution_x, r.resolution_y = desc["settings"]["width"], desc["settings"]["height"]
     for job_r in job["renders"]:
         for ob, energy, loc in lamps:        # (a self-test mis-scales or moves them)
             ob.data.energy = energy * float(job_r.get("energy_scale", 1.0))
@@ -705,15 +706,19 @@ def main() -> int:
         assert np.array_equal(read_rgb(perturbed["rot90"][0]), np.roll(exported, W // 4, axis=1))
 
     # ---------------- B/C. renders -------------------------------------------
-    info = lc.lightprobe_info(binary, args.scene)
-    st = info["settings"]
+    import scene_truth
+    try:
+        desc = scene_truth.described(args.scene, binary, log=log)
+    except scene_truth.TruthError as e:
+        raise lc.CheckError(str(e)) from e
+    st = desc["settings"]
     spp = args.spp or st["spp"]
     seed1 = st["seed"]
     if args.seed2 == seed1:
         raise SystemExit("--seed2 must differ from the sidecar's seed")
-    views = [c["name"] for c in info["cameras"]]
+    views = [c["name"] for c in desc["cameras"]]
     cycles_bounces = st["max_bounces"] - 1
-    log(f"scene {args.scene}: {info['triangles']} triangles, views {views}, "
+    log(f"scene {args.scene}: {desc['triangles']} triangles, views {views}, "
         f"{st['width']}x{st['height']}, {spp} spp; lightprobe max_bounces {st['max_bounces']} "
         f"-> Cycles max_bounces {cycles_bounces}")
 
@@ -754,7 +759,7 @@ def main() -> int:
     lookups = [{"envmap": str(exr_b), "out_prefix": str(bdir / "lookup_blender")}]
     for name, (p, _) in perturbed.items():
         lookups.append({"envmap": str(p), "out_prefix": str(bdir / f"lookup_{name}")})
-    job = {"gltf": str(lc.gltf_path_from_sidecar(args.scene).resolve()), "info": info,
+    job = {"gltf": str(lc.gltf_path_from_sidecar(args.scene).resolve()), "desc": desc,
            "max_bounces": cycles_bounces, "threads": args.threads, "renders": renders,
            "lookups": lookups, "report": str(work / "blender_report.json")}
     job_p = work / "blender_job.json"
@@ -783,7 +788,7 @@ def main() -> int:
         good = (c.get("imported_matrix_max_diff", 1) < 1e-4
                 and abs(c.get("imported_yfov", math.inf) - c["yfov"]) < 1e-6)
         setup_ok &= good
-        log(f"[B1] camera {v}: imported glTF camera vs lightprobe info converted to Blender axes: "
+        log(f"[B1] camera {v}: imported glTF camera vs the scene's own reading (scene_truth.py) in Blender axes: "
             f"max matrix diff {c.get('imported_matrix_max_diff', float('nan')):.2e}, yfov "
             f"{c.get('imported_yfov', float('nan')):.6f} vs {c['yfov']:.6f} -> "
             f"{'same' if good else 'DIFFERENT'}")
@@ -795,14 +800,14 @@ def main() -> int:
         f"{worst:.4f} deg -> {'PASS' if nrm_ok else 'FAIL'}")
     for name, m in brep["materials"].items():
         if "image" in m:
-            d = np.abs(np.subtract(m["mean_linear"], m["lightprobe_mean_linear"])).max()
+            d = np.abs(np.subtract(m["mean_linear"], m["scene_mean_linear"])).max()
             good = d < 1e-4 and m["colorspace"] == "sRGB"
             setup_ok &= good
             log(f"[B1] material {name}: texture {m['image']} {m['size']} colour space "
                 f"{m['colorspace']}, mean linear albedo {np.round(m['mean_linear'], 5).tolist()} "
-                f"(lightprobe {np.round(m['lightprobe_mean_linear'], 5).tolist()}) x factor "
+                f"(scene {np.round(m['scene_mean_linear'], 5).tolist()}) x factor "
                 f"{m['factor']} -> {'same' if good else 'DIFFERENT'}")
-    log(f"[B1] other materials: Diffuse BSDF (roughness 0) of lightprobe's albedo "
+    log(f"[B1] other materials: Diffuse BSDF (roughness 0) of the scene's albedo "
         f"({len(brep['materials']) - 1} materials); Cycles settings {brep['settings']}")
     ok &= setup_ok
 

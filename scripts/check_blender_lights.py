@@ -165,6 +165,11 @@ def main() -> int:
     glb_with_lights(args.glb, glb)
     proc = lc.run([binary, "info", glb, "--height", HEIGHT], "lightprobe info")
     info = json.loads(proc.stdout)
+    import scene_truth      # Blender's cameras come from the file as read here, not from info
+    try:
+        desc = scene_truth.described(glb, binary, HEIGHT, log=log)
+    except scene_truth.TruthError as e:
+        raise lc.CheckError(str(e)) from e
     st = info["settings"]
     views = [c["name"] for c in info["cameras"]]
     read_ok = (st["width"], st["height"]) == (HEIGHT * 4 // 3, HEIGHT) and \
@@ -193,7 +198,7 @@ def main() -> int:
     bdir.mkdir(exist_ok=True)
 
     def blender(name: str, gltf: Path, renders: list, **extra) -> dict | None:
-        job = {"gltf": str(gltf), "info": info, "max_bounces": st["max_bounces"] - 1,
+        job = {"gltf": str(gltf), "desc": desc, "max_bounces": st["max_bounces"] - 1,
                "threads": args.threads, "renders": renders, "keep_lights": True,
                "report": str(work / f"blender_{name}.json"), **extra}
         job_p = work / f"blender_{name}_job.json"

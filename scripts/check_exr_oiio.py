@@ -3,7 +3,8 @@
 OpenImageIO's command-line tools (iinfo, oiiotool) as an external oracle.
 
 For each *.exr in RENDER_DIR:
-  * `iinfo -v` must read it; size must be the view's camera size from `lightprobe info`;
+  * `iinfo -v` must read it; size must be the view's camera size (scene_truth.py's
+    reading of the scene, checked against `lightprobe info`);
     channels must be float R,G,B,A (beauty, `<view>.exr`) or float R,G,B (AOV,
     `<view>.<aov>.exr`, as listed in render.json views[].aov).
   * `oiiotool --printstats` channel averages of R,G,B must match lightprobe's mean within
@@ -36,7 +37,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from lpcheck_common import (DEFAULT_LIGHTPROBE, REPO, CheckError, find_lightprobe,  # noqa: E402
-                            lightprobe_info, log, read_exr, run)
+                            log, read_exr, run)
+import scene_truth  # noqa: E402
 
 REL_TOL = 1e-5
 ABS_TOL = 1e-7
@@ -112,8 +114,11 @@ def check(args, t_start: float) -> int:
     rj = json.loads(rj_path.read_text())
     scene = resolve_scene(args.scene, rj, rdir)
     binary = find_lightprobe(args.lightprobe.resolve())
-    info = lightprobe_info(binary, scene)
-    cams = {c["name"]: c for c in info["cameras"]}
+    try:
+        desc = scene_truth.described(scene, binary, log=log)
+    except scene_truth.TruthError as e:
+        raise CheckError(str(e)) from e
+    cams = {c["name"]: c for c in desc["cameras"]}
     ver = run(["oiiotool", "--version"], "oiiotool --version").stdout.strip()
     log(f"render dir: {rdir}")
     log(f"scene:      {scene}")
@@ -147,7 +152,7 @@ def check(args, t_start: float) -> int:
             problems.append(f"{f.name}: not listed in render.json (stale file?) - cannot check")
             continue
         if exp["view"] not in cams:
-            problems.append(f"{f.name}: view {exp['view']!r} is not a camera in `lightprobe info`")
+            problems.append(f"{f.name}: view {exp['view']!r} is not a camera of the scene")
             continue
         cam = cams[exp["view"]]
         want_ch = ["R", "G", "B", "A"] if exp["kind"] == "beauty" else ["R", "G", "B"]

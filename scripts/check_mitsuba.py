@@ -254,13 +254,13 @@ def main() -> int:
     print(f"workdir {work}\nMitsuba {__import__('mitsuba').__version__} variant {variant}")
     ms.verify_conventions()
 
-    info = ms.lightprobe_info(args.scene, args.bin)
-    st = info["settings"]
+    desc = ms.described_scene(args.scene, args.bin)
+    st = desc["settings"]
     spp = args.spp or st["spp"]
     seed1 = st["seed"]
     if args.seed2 == seed1:
         raise SystemExit("--seed2 must differ from the sidecar's seed")
-    print(f"scene {args.scene}: {info['triangles']} triangles, {len(info['cameras'])} views, "
+    print(f"scene {args.scene}: {desc['triangles']} triangles, {len(desc['cameras'])} views, "
           f"{st['width']}x{st['height']}, {spp} spp, max_bounces {st['max_bounces']} "
           f"(Mitsuba max_depth {st['max_bounces'] + 1})")
 
@@ -270,10 +270,10 @@ def main() -> int:
     t_lp = time.time() - t
     meshes = ms.load_meshes(ms.sidecar_gltf(args.scene))
     t = time.time()
-    S = ms.build_scene(args.scene, args.bin, spp=spp, info=info, meshes=meshes)
+    S = ms.build_scene(args.scene, args.bin, spp=spp, desc=desc, meshes=meshes)
     (work / "mitsuba").mkdir(exist_ok=True)
     mi_imgs = {}
-    for cam in info["cameras"]:
+    for cam in desc["cameras"]:
         v = cam["name"]
         mi_imgs[v] = (S.render(v, seed=0), S.render(v, seed=1))
         write_exr(work / "mitsuba" / f"{v}.exr", mi_imgs[v][0])
@@ -284,7 +284,7 @@ def main() -> int:
 
     results, ok = {}, True
     masks, lps = {}, {}
-    for cam in info["cameras"]:
+    for cam in desc["cameras"]:
         v = cam["name"]
         lp1_p, lp2_p = work / f"lp_seed{seed1}" / f"{v}.exr", work / f"lp_seed{args.seed2}" / f"{v}.exr"
         mi_p = work / "mitsuba" / f"{v}.exr"
@@ -318,7 +318,7 @@ def main() -> int:
 
     st_ok = None
     if args.self_test:
-        st_ok = self_test(args, info, meshes, masks, work)
+        st_ok = self_test(args, desc, meshes, masks, work)
     summary = {"scene": str(args.scene), "spp": spp, "variant": variant, "pass": ok,
                "self_test_pass": st_ok, "views": results,
                "seconds": time.time() - t_start}
@@ -327,15 +327,15 @@ def main() -> int:
     return 0 if ok and st_ok is not False else 1
 
 
-def self_test(args, info, meshes, masks, work) -> bool:
+def self_test(args, desc, meshes, masks, work) -> bool:
     """Mitsuba stands in for a correct renderer; the same judge() must PASS an
     unperturbed render and FAIL every injected bug."""
     spp = args.self_test_spp
     print(f"\nSELF-TEST at {spp} spp: reference = unperturbed Mitsuba (seeds 10, 11); "
           f"the control (seed 12) must PASS, every perturbation must FAIL")
     t = time.time()
-    S = ms.build_scene(args.scene, args.bin, spp=spp, info=info, meshes=meshes)
-    views = [c["name"] for c in info["cameras"]]
+    S = ms.build_scene(args.scene, args.bin, spp=spp, desc=desc, meshes=meshes)
+    views = [c["name"] for c in desc["cameras"]]
     ref = {v: (S.render(v, seed=10), S.render(v, seed=11)) for v in views}
 
     def run(label, scene) -> bool:
@@ -358,7 +358,7 @@ def self_test(args, info, meshes, masks, work) -> bool:
         print("  control FAILED: the thresholds reject an unbiased render")
         good = False
     for p, what in ms.PERTURBATIONS.items():
-        Sp = ms.build_scene(args.scene, args.bin, spp=spp, info=info, meshes=meshes, perturb=p)
+        Sp = ms.build_scene(args.scene, args.bin, spp=spp, desc=desc, meshes=meshes, perturb=p)
         if not run(p, Sp):
             print(f"  perturbation {p} ({what}) was NOT detected")
             good = False

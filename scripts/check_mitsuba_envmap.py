@@ -329,13 +329,13 @@ def main() -> int:
             f"use a larger --width")
 
     # ---------------- B. renders ------------------------------------------
-    info = ms.lightprobe_info(args.scene, args.bin)
-    st = info["settings"]
+    desc = ms.described_scene(args.scene, args.bin)
+    st = desc["settings"]
     spp = args.spp or st["spp"]
     seed1 = st["seed"]
     if args.seed2 == seed1:
         raise SystemExit("--seed2 must differ from the sidecar's seed")
-    log(f"\nscene {args.scene}: {info['triangles']} triangles, {len(info['cameras'])} views, "
+    log(f"\nscene {args.scene}: {desc['triangles']} triangles, {len(desc['cameras'])} views, "
         f"{st['width']}x{st['height']}, {spp} spp, max_bounces {st['max_bounces']}; lit by "
         f"envmap.ron only (lightprobe --no-sphere-lights; Mitsuba envmap {exr.name}, default "
         f"to_world, no sphere lights)")
@@ -345,10 +345,10 @@ def main() -> int:
     t_lp = time.time() - t
     meshes = ms.load_meshes(ms.sidecar_gltf(args.scene))
     t = time.time()
-    S = ms.build_scene(args.scene, args.bin, spp=spp, info=info, meshes=meshes, envmap=exr,
+    S = ms.build_scene(args.scene, args.bin, spp=spp, desc=desc, meshes=meshes, envmap=exr,
                        sphere_lights=False)
     (work / "mitsuba").mkdir(exist_ok=True)
-    views = [c["name"] for c in info["cameras"]]
+    views = [c["name"] for c in desc["cameras"]]
     mi_imgs = {}
     for v in views:
         mi_imgs[v] = (S.render(v, seed=0), S.render(v, seed=1))
@@ -405,7 +405,7 @@ def main() -> int:
     st_ok = None
     st_res = {}
     if args.self_test:
-        st_ok, st_res = self_test(args, info, meshes, masks, lp_refs, exported, grid, radiance, work)
+        st_ok, st_res = self_test(args, desc, meshes, masks, lp_refs, exported, grid, radiance, work)
     summary = {"scene": str(args.scene), "spp": spp, "variant": variant, "width": args.width,
                "rings": RINGS, "bright_cells": BRIGHT_CELLS, "pass": ok,
                "export_exact": exp_ok, "import_exact": imp_ok, "lookup": lk,
@@ -427,7 +427,7 @@ def cm_read_rgb(path: Path):
     return arr[..., :3].astype(np.float32), names, fmt
 
 
-def self_test(args, info, meshes, masks, lp_refs, exported, grid, radiance, work):
+def self_test(args, desc, meshes, masks, lp_refs, exported, grid, radiance, work):
     """Wrong exports rendered by Mitsuba and judged against lightprobe's
     renders with the same judge(); the unperturbed export is the control."""
     spp = args.self_test_spp
@@ -442,7 +442,7 @@ def self_test(args, info, meshes, masks, lp_refs, exported, grid, radiance, work
         cases.append((name, what, perturbed_export(name, exported, grid, radiance),
                       "fail" if must_fail else "report"))
     for name, what, img, want in cases:
-        S = ms.build_scene(args.scene, args.bin, spp=spp, info=info, meshes=meshes, envmap=img,
+        S = ms.build_scene(args.scene, args.bin, spp=spp, desc=desc, meshes=meshes, envmap=img,
                            sphere_lights=False)
         failed = []
         res[name] = {"what": what, "expect": want, "views": {}}

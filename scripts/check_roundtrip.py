@@ -279,10 +279,10 @@ def sphere_exports(args, work: Path, mi, exr) -> list[str]:
     run([args.lightprobe, "estimate", REPO / "scenes" / "tabletop" / "tabletop.ron",
          "--model", "spheres:2", "--quiet", "-o", est], "lightprobe estimate --model spheres:2")
     spheres = est / "spheres"
-    info = json.loads(run([args.lightprobe, "info", spheres / "scene.glb", "--height", "96"],
-                          "lightprobe info spheres/scene.glb").stdout)
-    views = [c["name"] for c in info["cameras"]]
-    spp = info["settings"]["spp"]
+    import scene_truth
+    desc = scene_truth.described(spheres / "scene.glb", args.lightprobe, 96, log=log)
+    views = [c["name"] for c in desc["cameras"]]
+    spp = desc["settings"]["spp"]
     lp = {v: [] for v in views}
     for seed in (1, 2):
         dest = work / f"spheres_lightprobe_{seed}"

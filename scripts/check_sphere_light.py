@@ -116,18 +116,18 @@ def main() -> int:
                        f' lights: [Sphere(center: ({c[0]}, {c[1]}, {c[2]}), radius: {r},'
                        f' radiance: ({L}, {L}, {L}))], render: (spp: {args.spp},'
                        f' max_bounces: 1, seed: 1))\n')
-        info = ms.lightprobe_info(ron, args.bin)
-        truth, keep = closed_form(info["cameras"][0], c, r, L)
+        desc = ms.described_scene(ron, args.bin)
+        truth, keep = closed_form(desc["cameras"][0], c, r, L)
         imgs = {}
         for st in ("mis", "light-only", "bsdf-only"):
             out = work / f"light{k}_{st}"
             ms.run_lightprobe([str(args.bin), "render-reference", str(ron), "--out", str(out),
                                "--strategy", st, "--quiet"])
             imgs[f"lightprobe {st}"] = np.array(mi.Bitmap(str(out / "top.exr")))[..., 0]
-        S = ms.build_scene(ron, args.bin, info=info)
+        S = ms.build_scene(ron, args.bin, desc=desc)
         imgs["Mitsuba path"] = S.render("top", seed=0)[..., 0]
         # 4x4 pixels under the light (if it is inside the image)
-        cam = info["cameras"][0]
+        cam = desc["cameras"][0]
         tx = math.tan(cam["yfov"] / 2) * W / H
         col = int(round(W / 2 + c[0] / CAM_H / tx * W / 2))
         row = int(round(H / 2 + c[2] / CAM_H / math.tan(cam["yfov"] / 2) * H / 2))

@@ -6,14 +6,15 @@
    each `info` camera (origin, right, up, forward, yfov) vs the glTF camera node as
    composed by trimesh's scene graph (1e-5).
 2. `lightprobe render-reference --spp 1 --aov depth` vs trimesh's Embree ray intersector
-   casting the same pixel-centre rays (camera poses from `lightprobe info`) against the
+   casting the same pixel-centre rays (camera poses and lights from scripts/scene_truth.py's
+   own reading of the sidecar and glTF, checked against `lightprobe info`) against the
    world-space mesh (sphere lights intersected analytically: a ray that hits a light
    first reads 0, like lightprobe's depth AOV). Per view:
      - hit/miss agree on >= 99.5 % of pixels,
      - where both hit, |depth_lp - depth_trimesh| <= 1e-4 * depth + 1e-5 on >= 99.5 %,
      - every disagreeing pixel is an edge pixel of the trimesh image (a 3x3 neighbour
        differs in hit/miss, or its depth differs by > 2 %): non-edge disagreements = 0,
-     - the depth EXR is W x H (from `info`), float R,G,B with R == G == B, finite, >= 0.
+     - the depth EXR is W x H (the scene's), float R,G,B with R == G == B, finite, >= 0.
 3. Self-test (part of the default run; alone with --self-test): the same comparison
    against deliberately wrong oracle rays (origin moved 2 cm, image flipped vertically,
    rays through pixel corners instead of centres) must FAIL for every view.
@@ -41,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from lpcheck_common import (DEFAULT_LIGHTPROBE, DEFAULT_SCENE, CheckError,  # noqa: E402
                             find_lightprobe, gltf_path_from_sidecar, lightprobe_info, log,
                             read_exr, run)
+import scene_truth  # noqa: E402
 
 AGREE_MIN = 0.995          # hit/miss agreement and depth-within-tolerance fractions
 DEPTH_REL_TOL = 1e-4
@@ -319,6 +321,10 @@ def main() -> int:
         log(f"lightprobe: {binary}")
         log(f"scene:      {scene_path}")
         info = lightprobe_info(binary, scene_path)
+        try:   # the rays below use the scene's own reading, not lightprobe's
+            desc = scene_truth.described(scene_path, binary, log=log)
+        except scene_truth.TruthError as e:
+            raise CheckError(str(e)) from e
         glb = gltf_path_from_sidecar(scene_path)
         if not glb.is_file():
             raise CheckError(f"glTF named by the sidecar not found: {glb}")
@@ -342,14 +348,14 @@ def main() -> int:
         rj = json.loads(rj_path.read_text()) if rj_path.is_file() else {"views": []}
         depth_files = {v["view"]: Path(v["aov"]["depth"]) for v in rj.get("views", [])
                        if "aov" in v and "depth" in v["aov"]}
-        cams = {c["name"]: c for c in info["cameras"]}
+        cams = {c["name"]: c for c in desc["cameras"]}
         views = [v["view"] for v in rj.get("views", [])] or list(cams)
-        lights = info.get("lights", [])
+        lights = desc.get("lights", [])
 
         lp_depths, results = {}, []
         for name in views:
             if name not in cams:
-                raise CheckError(f"render.json view {name!r} is not a camera in `info`")
+                raise CheckError(f"render.json view {name!r} is not a camera of the scene")
             cam = cams[name]
             p = depth_files.get(name, workdir / f"{name}.depth.exr")
             if not p.is_absolute():

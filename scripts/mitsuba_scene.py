@@ -26,7 +26,9 @@ Renderer model reproduced here (see lightprobe's docs):
     NORMAL attribute (trimesh would invent normals for the others); the
     others get no normals, so Mitsuba shades them with flat face normals.
     Normals are transformed by the inverse transpose of the node's matrix.
-  * Cameras come from `lightprobe info` (origin, forward, up, yfov): Mitsuba
+  * Cameras, lights, albedo overrides and render settings come from
+    scripts/scene_truth.py's own reading of the sidecar and glTF, checked against
+    `lightprobe info` (never taken from it). Cameras (origin, forward, up, yfov): Mitsuba
     `perspective`, fov_axis 'y', to_world = look_at(origin, origin+forward,
     up); pinhole; `box` reconstruction filter; `independent` sampler
     (sensor_dict/build_scene(sampler=...) picks another, e.g. for
@@ -143,9 +145,17 @@ def set_variant(prefer_llvm: bool = True, require_llvm: bool = False, log=print)
 # lightprobe / sidecar / glTF
 # --------------------------------------------------------------------------
 
-def lightprobe_info(sidecar: Path, lightprobe_bin: Path = DEFAULT_BIN) -> dict:
-    out = run_lightprobe([str(lightprobe_bin), "info", str(sidecar)])
-    return json.loads(out)
+def described_scene(sidecar: Path, lightprobe_bin: Path = DEFAULT_BIN, log=print) -> dict:
+    """The scene as scripts/scene_truth.py reads it (cameras, lights, albedos, settings),
+    after checking that `lightprobe info` loaded the same: Mitsuba is built from this
+    reading, never from lightprobe's, so a loader bug in lightprobe cannot be copied."""
+    import scene_truth
+    import time
+    for _ in range(20):            # the binary can vanish for a moment while it is rebuilt
+        if os.path.exists(lightprobe_bin):
+            break
+        time.sleep(3)
+    return scene_truth.described(Path(sidecar), Path(lightprobe_bin), log=log)
 
 
 def run_lightprobe(cmd: list[str], retries: int = 20) -> str:
@@ -377,37 +387,31 @@ def integrator_dict(max_depth: int) -> dict:
             "hide_emitters": True}
 
 
-def apply_info_materials(meshes: list[MeshData], info: dict) -> list[MeshData]:
-    """Cross-check each mesh's albedo with what lightprobe loaded (`info`
-    materials, by glTF material name), which includes the sidecar's albedo
-    overrides: a Constant override replaces the glTF albedo here too; an
+def apply_materials(meshes: list[MeshData], desc: dict) -> list[MeshData]:
+    """Each mesh's albedo as the scene description has it (glTF material by name, with the
+    sidecar's overrides): a Constant override replaces the glTF albedo and texture; an
     image (Map) override is not supported and raises."""
     import dataclasses
-    by_name = {m["name"]: m for m in info.get("materials", [])}
+    by_name = {m["name"]: m for m in desc.get("materials", [])}
     out = []
     for md in meshes:
-        im = by_name.get(md.extra.get("material", ""))
-        if im is None:
+        dm = by_name.get(md.extra.get("material", ""))
+        if dm is None:
             out.append(md)
-            continue
-        if "texture" in im:
+        elif "texture" in dm:
             if md.texture_srgb8 is None:
-                raise NotImplementedError(f"{md.name}: lightprobe uses a texture (sidecar Map "
-                                          "override?) that the glTF does not have")
+                raise NotImplementedError(f"{md.name}: the sidecar gives a texture (Map "
+                                          "override) that the glTF does not have")
             ours = srgb_to_linear(md.texture_srgb8 / 255.0).mean(axis=(0, 1))
-            if not np.allclose(ours, im["texture"]["mean_linear"], atol=1e-3):
-                raise NotImplementedError(f"{md.name}: lightprobe's texture (mean "
-                                          f"{im['texture']['mean_linear']}) differs from the "
-                                          f"glTF's (mean {ours.tolist()}): Map override?")
-            if not np.allclose(md.albedo, im.get("albedo_factor", md.albedo), atol=1e-6):
-                raise ValueError(f"{md.name}: albedo factor {md.albedo} != lightprobe's "
-                                 f"{im['albedo_factor']}")
+            if not np.allclose(ours, dm["texture"]["mean_linear"], atol=1e-3):
+                raise NotImplementedError(f"{md.name}: the sidecar replaces the glTF's texture "
+                                          "(Map override)")
             out.append(md)
         else:
-            a = np.asarray(im["albedo"], dtype=np.float64)
+            a = np.asarray(dm["albedo"], dtype=np.float64)
             if md.texture_srgb8 is not None or not np.allclose(a, md.albedo, atol=1e-6):
-                print(f"note: {md.name}: using lightprobe's albedo {a.tolist()} (sidecar "
-                      f"override) instead of the glTF's {md.albedo.tolist()}")
+                print(f"note: {md.name}: the sidecar's albedo {a.tolist()} overrides the "
+                      f"glTF's {md.albedo.tolist()}")
                 md = dataclasses.replace(md, albedo=a, texture_srgb8=None, uvs=None)
             out.append(md)
     return out
@@ -419,7 +423,7 @@ class MitsubaScene:
     sensors: dict                      # view name -> mi.Sensor
     spp: int
     max_depth: int
-    info: dict                         # lightprobe info
+    desc: dict                         # the scene as scene_truth.py read it
     meshes: list
     variant: str
 
@@ -444,7 +448,7 @@ def envmap_dict(envmap) -> dict:
 
 def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BIN,
                 spp: int | None = None, max_depth: int | None = None,
-                perturb: str | None = None, info: dict | None = None,
+                perturb: str | None = None, desc: dict | None = None,
                 meshes: list | None = None, envmap=None,
                 sphere_lights: bool = True, sampler: str = "independent") -> MitsubaScene:
     """Mitsuba scene + one sensor per view of a lightprobe sidecar. Call
@@ -455,23 +459,23 @@ def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BI
     import mitsuba as mi
     if perturb is not None and perturb not in PERTURBATIONS:
         raise ValueError(f"unknown perturbation {perturb!r}")
-    info = info or lightprobe_info(sidecar, lightprobe_bin)
-    settings = info["settings"]
+    desc = desc or described_scene(sidecar, lightprobe_bin)
+    settings = desc["settings"]
     spp = int(spp or settings["spp"])
     max_depth = int(max_depth or settings["max_bounces"] + 1)
     meshes = meshes if meshes is not None else load_meshes(sidecar_gltf(sidecar))
-    meshes = apply_info_materials(meshes, info)
+    meshes = apply_materials(meshes, desc)
     d = {"type": "scene", "integrator": integrator_dict(max_depth)}
     for i, md in enumerate(meshes):
         d[f"mesh_{i}_{md.name}"] = mitsuba_mesh(md, perturb)
     if sphere_lights:
-        d.update(light_dicts(info["lights"], perturb))
+        d.update(light_dicts(desc["lights"], perturb))
     if envmap is not None:
         d["envmap"] = envmap_dict(envmap)
     scene = mi.load_dict(d)
     sensors = {c["name"]: mi.load_dict(sensor_dict(c, spp, perturb, sampler))
-               for c in info["cameras"]}
-    return MitsubaScene(scene, sensors, spp, max_depth, info, meshes, mi.variant())
+               for c in desc["cameras"]}
+    return MitsubaScene(scene, sensors, spp, max_depth, desc, meshes, mi.variant())
 
 
 # --------------------------------------------------------------------------
