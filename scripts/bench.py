@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Speed benchmark: lightprobe vs Mitsuba 3 (llvm_ad_rgb) on the same scene.
 
-Renders every view of the sidecar (default: the bundled tabletop, 2 views at
-128x96, 512 spp, max_bounces 2) with
+Renders every view of the sidecar (default: scenes/tabletop/bench_views.ron,
+the bundled tabletop at 128x96, 512 spp, max_bounces 2, with a third view,
+cam_table, that sees geometry in every pixel) with
   * lightprobe `render-reference` (a new process per repetition): its own
     render time, render.json timings.render_seconds (all views; excludes
     loading and BVH build), and the wall time of the whole process;
@@ -21,7 +22,11 @@ same envmap exported with `lightprobe export-envmap --width 1024` (its
 `envmap` emitter; the width barely matters for speed).
 Repetitions alternate lightprobe and Mitsuba (and sphere and envmap runs) so
 that background load hits all alike; medians are reported.
-samples/s = W * H * spp * views / seconds.
+samples/s = W * H * spp * views / seconds. It counts samples of "blind" pixels
+too (pixels whose rays can meet no geometry: the same black image whoever
+renders them), which lightprobe skips: so samples/s is also given per view,
+beside the view's blind-pixel fraction (render.json coverage), and cam_table
+has none. Speed at equal noise (below) is the fair headline.
 Prints a summary and writes one JSON object (to --json OUT if given).
 
 --equal-noise runs a different benchmark instead (the samples/s one above is
@@ -30,8 +35,8 @@ whose stratified first bounce (padded Sobol) has ~7x less variance per sample
 than Mitsuba's `independent` sampler, so here Mitsuba gets each of its
 samplers (--samplers; default independent, stratified, multijitter, ldsampler,
 orthogonal) and the best one counts. In one run, interleaved as above:
-  * every view is rendered at each spp of --spp-list (default 64,128,256,512)
-    with seeds 1..K (K = max(2, --repeat)) by lightprobe and by Mitsuba with
+  * every view is rendered at each spp of --spp-list (default 64 to 2048)
+    with seeds 1..K (K = --seeds, default 4) by lightprobe and by Mitsuba with
     each sampler. Mitsuba rounds some counts (ldsampler to a power of 4,
     orthogonal to a prime squared, stratified to a square, multijitter to a
     product of near-equal factors): the spp it really used is recorded and
@@ -55,7 +60,10 @@ orthogonal) and the best one counts. In one run, interleaved as above:
     stratified and ldsampler gain less than a power law at high spp here);
   * Mitsuba time / lightprobe time per sampler, and the headline: the best
     (fastest) sampler's ratio, "equal-noise speed ratio (>1 = lightprobe
-    faster)".
+    faster)", among the samplers whose spp* lies inside their measured spp or
+    at most MAX_EXTRAPOLATION (1.2x) beyond (no headline when none does);
+  * the same image: both tools' time at the target spp (Mitsuba's
+    `independent` sampler), and how much noisier Mitsuba's image is.
 Writes a chart of noise vs render time (log-log; points measured, lines
 fitted, dashed where extrapolated) to --out (default out/bench) as
 equal_noise.png; the figures go under "equal_noise" in the JSON.
@@ -64,7 +72,7 @@ Usage: .venv/bin/python scripts/bench.py [--repeat 3] [--json OUT] [--scene S.ro
        [--spp N] [--threads N] [--no-envmap] [--envmap-rings 21]
        .venv/bin/python scripts/bench.py --equal-noise [--spp-list 64,128,256,512]
        [--samplers independent,stratified,...] [--target-spp 512] [--out out/bench]
-       [--repeat 3] [--json OUT] [--scene S.ron] [--threads N]
+       [--seeds 4] [--json OUT] [--scene S.ron] [--threads N]
 """
 
 from __future__ import annotations
@@ -138,6 +146,10 @@ def write_result(result: dict, path: Path | None) -> None:
 
 
 MITSUBA_SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler", "orthogonal")
+# The equal-noise headline uses only times read inside the measured spp, or at most this
+# factor beyond them.
+MAX_EXTRAPOLATION = 1.2
+BENCH_SCENE = ms.REPO / "scenes" / "tabletop" / "bench_views.ron"
 
 
 def int_list(text: str) -> list[int]:
@@ -231,6 +243,7 @@ def equal_noise_chart(path: Path, configs: dict, target: float, target_label: st
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
+    fig.savefig(path.with_suffix(".svg"))
     plt.close(fig)
 
 
@@ -246,7 +259,7 @@ def run_equal_noise(args, variant: str) -> int:
     w, h = st["width"], st["height"]
     spp_list = int_list(args.spp_list)
     samplers = [x.strip() for x in args.samplers.split(",") if x.strip()]
-    n_seeds = max(2, args.repeat)          # two renders at least: noise needs a pair
+    n_seeds = max(2, args.seeds)           # two renders at least: noise needs a pair
     seeds = list(range(1, n_seeds + 1))
     target_spp = args.target_spp or (512 if 512 in spp_list else max(spp_list))
     if target_spp not in spp_list:
@@ -374,7 +387,25 @@ def run_equal_noise(args, variant: str) -> int:
             ratios[name] = c["target"]["seconds"] / lp_t
             ratios_local[name] = c["target"]["seconds_local"] / lp["target"]["seconds_local"]
             c["target"]["ratio_local"] = ratios_local[name]
-    best = min(ratios, key=ratios.get) if ratios else None
+    # the headline: Mitsuba's fastest sampler among those whose time at the target was
+    # measured, not extrapolated more than MAX_EXTRAPOLATION beyond their spp
+    inside = {n: r for n, r in ratios.items()
+              if configs[n]["target"]["extrapolation_factor"] <= MAX_EXTRAPOLATION}
+    lp_inside = lp["target"]["extrapolation_factor"] <= MAX_EXTRAPOLATION
+    best = min(inside, key=inside.get) if inside and lp_inside else None
+    fastest_any = min(ratios, key=ratios.get) if ratios else None
+    # the same image: both tools at the target spp (Mitsuba's independent sampler, the only
+    # one that takes any spp as asked)
+    same = configs.get("Mitsuba independent", {})
+    same_image = None
+    if target_spp in same.get("spp", []):
+        t_mi = same["seconds"][same["spp"].index(target_spp)]
+        t_lp = lp["seconds"][spp_list.index(target_spp)]
+        same_image = {"spp": target_spp, "lightprobe_seconds": t_lp, "mitsuba_seconds": t_mi,
+                      "ratio_mitsuba_over_lightprobe": t_mi / t_lp,
+                      "noise_ratio_mitsuba_over_lightprobe":
+                          same["rel_mse"][same["spp"].index(target_spp)]
+                          / lp["rel_mse"][spp_list.index(target_spp)]}
     result = {
         "scene": str(args.scene), "triangles": desc["triangles"], "width": w, "height": h,
         "views": views, "max_bounces": st["max_bounces"], "cpus": os.cpu_count(),
@@ -396,9 +427,13 @@ def run_equal_noise(args, variant: str) -> int:
             "ratio_mitsuba_over_lightprobe": ratios,
             # the same from piecewise interpolation of the measured points
             "ratio_mitsuba_over_lightprobe_local": ratios_local,
+            "max_extrapolation": MAX_EXTRAPOLATION,
             "best_mitsuba_sampler": best,
-            # the headline: Mitsuba's best sampler vs lightprobe at equal noise
-            "equal_noise_speed_ratio": ratios.get(best),
+            # the headline: Mitsuba's best sampler (measured, not extrapolated) vs lightprobe
+            # at equal noise; None when no sampler's time at the target was measured
+            "equal_noise_speed_ratio": ratios.get(best) if best else None,
+            "fastest_sampler_including_extrapolated": fastest_any,
+            "same_image": same_image,
             "wall_seconds": time.perf_counter() - t_start,
         },
     }
@@ -433,9 +468,22 @@ def run_equal_noise(args, variant: str) -> int:
                  if t["extrapolated"] else ""))
     if best:
         print(f"\nequal-noise speed ratio (>1 = lightprobe faster): {ratios[best]:.2f} "
-              f"(Mitsuba's best sampler: {best.split(' ', 1)[1]}; by local interpolation "
-              f"{ratios_local[best]:.2f}; with `independent`: "
+              f"(Mitsuba's best sampler measured at the target: {best.split(' ', 1)[1]}; by "
+              f"local interpolation {ratios_local[best]:.2f}; with `independent`: "
               f"{ratios.get('Mitsuba independent', float('nan')):.2f})")
+    else:
+        print(f"\nno equal-noise headline: no configuration reached the target within "
+              f"{MAX_EXTRAPOLATION}x of its measured spp (extend --spp-list)")
+    if fastest_any and fastest_any != best:
+        print(f"  ({fastest_any} would be faster at {ratios[fastest_any]:.2f}, but its time "
+              f"is extrapolated x{configs[fastest_any]['target']['extrapolation_factor']:.2f} "
+              f"beyond its measured spp: not used)")
+    if same_image:
+        print(f"the same image ({target_spp} spp, Mitsuba `independent`): Mitsuba "
+              f"{same_image['mitsuba_seconds']:.2f} s / lightprobe "
+              f"{same_image['lightprobe_seconds']:.2f} s = "
+              f"{same_image['ratio_mitsuba_over_lightprobe']:.2f}x; its noise is "
+              f"{same_image['noise_ratio_mitsuba_over_lightprobe']:.2f}x lightprobe's")
     if load_before[0] > 0.5:
         print(f"  note: 1-min load average was {load_before[0]:.2f} on {os.cpu_count()} CPUs "
               f"before the run: other work may have slowed both tools")
@@ -453,7 +501,9 @@ def run_equal_noise(args, variant: str) -> int:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", type=Path, default=ms.DEFAULT_SCENE)
+    ap.add_argument("--scene", type=Path, default=BENCH_SCENE,
+                    help="default: the bundled scene with a third view that sees geometry in "
+                         "every pixel (scenes/tabletop/bench_views.ron)")
     ap.add_argument("--bin", type=Path, default=ms.DEFAULT_BIN, help="lightprobe binary")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--spp", type=int, default=None, help="default: the sidecar's")
@@ -465,8 +515,12 @@ def main() -> int:
     ap.add_argument("--envmap-rings", type=int, default=21)
     ap.add_argument("--equal-noise", action="store_true",
                     help="run the equal-noise benchmark instead (see the docstring)")
-    ap.add_argument("--spp-list", default="64,128,256,512",
-                    help="--equal-noise: spp to measure (comma-separated)")
+    ap.add_argument("--spp-list", default="64,128,256,512,1024,2048",
+                    help="--equal-noise: spp to measure (comma-separated); they must span the "
+                         "spp each tool needs for the target noise (a time more than "
+                         f"{MAX_EXTRAPOLATION}x beyond them is not used for the headline)")
+    ap.add_argument("--seeds", type=int, default=4,
+                    help="--equal-noise: renders per configuration (noise from their spread)")
     ap.add_argument("--samplers", default=",".join(MITSUBA_SAMPLERS),
                     help="--equal-noise: Mitsuba sampler types (comma-separated)")
     ap.add_argument("--target-spp", type=int, default=None,
@@ -514,6 +568,7 @@ def main() -> int:
           + ", ".join(f"{v} {s:.2f} s" for v, s in first.items()))
 
     lp_render, lp_wall, mi_render, lp_threads, lp_views = [], [], [], None, []
+    mi_views, coverage = [], {}
     env_lp_render, env_lp_wall, env_lp_views, env_mi_render = [], [], [], []
     env_info = None
     with tempfile.TemporaryDirectory(prefix="bench_") as tmp:
@@ -550,10 +605,13 @@ def main() -> int:
             lp_wall.append(res["wall"])
             lp_threads = res["json"].get("threads")
             lp_views.append({v["view"]: v["seconds"] for v in res["json"]["views"]})
-            t0 = time.perf_counter()
+            coverage = {v["view"]: v["coverage"] for v in res["json"]["views"]}
+            mi_views.append({})
             for v in views:
+                t0 = time.perf_counter()
                 S.render(v, seed=r + 1)
-            mi_render.append(time.perf_counter() - t0)
+                mi_views[-1][v] = time.perf_counter() - t0
+            mi_render.append(sum(mi_views[-1].values()))
             line = (f"  rep {r + 1}/{args.repeat}: lightprobe render {res['render']:.2f} s "
                     f"(process wall {res['wall']:.2f} s), Mitsuba render {mi_render[-1]:.2f} s")
             if args.envmap:
@@ -600,6 +658,7 @@ def main() -> int:
             "scene_build_seconds": build_s,
             "first_render_seconds": first_total, "first_render_view_seconds": first,
             "render_seconds": mi_render, "median_render_seconds": med(mi_render),
+            "view_seconds": mi_views,
             "samples_per_second": mi_sps, "samples_per_second_first": mi_sps_first,
         },
         # primary: render time vs warm render time; both exclude scene loading/BVH
@@ -628,7 +687,25 @@ def main() -> int:
         result["ratio_lightprobe_envmap_over_sphere"] = env_sps / lp_sps
         result["ratio_mitsuba_envmap_over_sphere"] = env_mi_sps / mi_sps
         result["ratio_lightprobe_over_mitsuba_envmap"] = env_sps / env_mi_sps
-    print(f"\nmedian of {args.repeat}:")
+    # per view: a pixel whose rays can meet no geometry ("blind": lightprobe's coverage
+    # leaves it out) costs lightprobe nothing and Mitsuba little, yet counts as samples
+    per_view = {}
+    for v in views:
+        t_lp, t_mi = med(d[v] for d in lp_views), med(d[v] for d in mi_views)
+        per_view[v] = {"blind_pixel_fraction": 1.0 - coverage[v],
+                       "lightprobe_seconds": t_lp, "mitsuba_seconds": t_mi,
+                       "lightprobe_samples_per_second": w * h * spp / t_lp,
+                       "mitsuba_samples_per_second": w * h * spp / t_mi,
+                       "ratio_lightprobe_over_mitsuba": t_mi / t_lp}
+    result["per_view"] = per_view
+    print(f"\nper view (median of {args.repeat}; blind pixels see no geometry):")
+    print(f"  {'view':12s} {'blind':>6s} {'lightprobe':>12s} {'Mitsuba':>12s} {'ratio':>6s}")
+    for v, p in per_view.items():
+        print(f"  {v:12s} {100 * p['blind_pixel_fraction']:5.0f}% "
+              f"{p['lightprobe_samples_per_second'] / 1e6:8.2f} M/s "
+              f"{p['mitsuba_samples_per_second'] / 1e6:8.2f} M/s "
+              f"{p['ratio_lightprobe_over_mitsuba']:6.2f}")
+    print(f"\nall views, median of {args.repeat}:")
     print(f"  lightprobe  {lp_sps / 1e6:8.2f} M samples/s  (render {med(lp_render):.2f} s; "
           f"whole process {lp_sps_wall / 1e6:.2f} M samples/s, {med(lp_wall):.2f} s; "
           f"{lp_threads} threads)")

@@ -1,113 +1,81 @@
 #!/usr/bin/env python3
-"""Time-to-error benchmark of envmap estimation: lightprobe vs Mitsuba 3, one run.
-
-(Also lightprobe's finite-distance sphere-light model, beside both: see
-"Sphere lights" below.)
+"""Envmap estimation, lightprobe against Mitsuba 3, compared like with like.
 
 Both tools estimate the environment lighting that explains the same reference
-images (default: the bundled tabletop, 2 views at 128x96, rendered once by
-lightprobe `render-reference` from the sidecar's sphere lights at the
-sidecar's settings: 512 spp, max_bounces 2, seed 1). Every error below is
+images (default: the bundled tabletop, 2 views at 128x96, lit by the sidecar's
+two sphere lights, 512 spp, max_bounces 2). The error of an estimate is
 relMAE = sum|x - r| / sum|r| over the references' geometry mask (alpha > 0),
-RGB, averaged over the views, of a FRESH full-quality re-render (sidecar spp,
-a seed used nowhere else) of the estimated lighting -- the metric lightprobe's
-report.json calls `rel_mae`.
+RGB, averaged over the views, of a fresh render of the estimated lighting.
 
-lightprobe: `estimate --reference REFDIR --rings 9` (the benchmark's setting),
-  timed from outside (process wall, max RSS by wait4) and from report.json
-  (timings.fit_seconds = transport + solve; total_seconds; memory.peak_bytes).
-  The same at --spp 64/128/256 (the transport's total spp budget, over its
-  SMC rounds; the re-render stays at the sidecar's spp) gives more (time,
-  error) points, and --rings 25 once gives
-  the peak memory. The whole process also renders a noise-floor pair and the
-  re-render for its own report: "process wall excl. evaluation" subtracts
-  timings.noise_floor_seconds + rerender_seconds, like Mitsuba's clock below
-  excludes its evaluations.
-Sphere lights (unless --spheres 0): `estimate --reference REFDIR --rings 9
-  --model spheres:K` (default K = 2, the bundled scene's number of true
-  lights), --lp-repeat times (median times), after the envmap runs. The model:
-  K sphere lights started from the best set of K candidate lights (the 9-ring
-  envmap estimate's bright cells and an even scan of directions), a distance
-  search along each, then Levenberg-Marquardt on centres and radii (radiances
-  solved exactly) and a direct search on each light's apparent size. Its error is report.json spheres.rel_mae (the
-  same metric: a fresh full-quality re-render of the fitted lights); its time,
-  the model's stand-alone cost, is timings.fit_seconds (the envmap fit it
-  starts from) + spheres.fit_seconds (distance search + LM), excluding the
-  noise floor and both re-renders (process wall, with and without them, is
-  recorded too). Also recorded per run: the envmap's relMAE and the noise
-  floor of the same process, renders, LM iterations, each fitted light's
-  status (identified / distance unidentified / merged / no contribution) and,
-  per true light, its recovery (centre error in m and as a fraction of its
-  distance, power ratio, radius vs the true one). Beside Mitsuba's envmap fit:
-  Mitsuba's best relMAE over its resolutions and the optimisation time at
-  which it first came within 2% (relative) of that best -- its plateau; a
-  checkpoint, so up to --mi-eval-every steps late, and if the best is the last
-  checkpoint Mitsuba was still improving and the plateau is only where this
-  run stopped (reported).
-Mitsuba 3 (llvm_ad_rgb): the same scene (scripts/mitsuba_scene.py: meshes,
-  materials, both cameras; no sphere lights) lit by an `envmap` emitter whose
-  W x H lat-long bitmap is optimised: a latent (H, W, 3) tensor, padded into
-  the emitter's `data` parameter (mi.traverse key `envmap.data`, shape
-  (H, W+2, 3) in Mitsuba 3.9: one wrap-around column each side, which the
-  emitter overwrites from the interior columns on update; padding by gather
-  keeps their gradient). Initialised to a constant that matches the
-  references' mean colour (a 32-spp render under a unit envmap, timed), Adam
-  (mi.ad.Adam, --mi-lr), loss = mean over views of a relMAE-normalised L2
-  (default) or L1 of the masked RGB pixels, `prb` integrator, max_depth =
-  max_bounces + 1, no Russian roulette, hide_emitters, --mi-spp per view and
-  step, decorrelated primal/adjoint seeds (seed_grad), parameter clamped to
-  >= 0 after every step. Every --mi-eval-every steps the current envmap is
-  rendered with the `path` integrator (the one scripts/check_mitsuba*.py
-  validate against lightprobe) at the references' spp with fresh seeds and
-  its relMAE recorded against the cumulative optimisation wall time (JIT
-  compilation included; scene building and the evaluations excluded).
-Cross-check (unless --no-crosscheck): lightprobe's envmap.exr (9 rings, 512
-  spp) rendered by Mitsuba and scored the same way must give lightprobe's own
-  rel_mae (its report is not trusted blindly). The same render, fresh seeds
-  per map, of every lightprobe envmap run the time-to-error uses (main and
-  --curve-spp) gives each point's rel_mae_by_mitsuba: Mitsuba's `independent`
-  sampler is noisier at equal spp than lightprobe's stratified one, so part
-  of lightprobe's lower own-render error is evaluation noise, not the map.
+The protocol, and what keeps it fair:
 
-Time-to-error: target = lightprobe's relMAE at 9 rings / 512 spp, or Mitsuba's
-best if it never gets there. Each tool's time = its first point at or below
-the target (lightprobe: smallest fit_seconds among its runs; Mitsuba: the
-first evaluation checkpoint, so up to --mi-eval-every steps late; the previous
-checkpoint is reported as the lower bound). Ratio = Mitsuba / lightprobe. Same
-evaluator (unless --no-crosscheck): time_to_error_same_evaluator, the same
-rules with lightprobe's errors taken from rel_mae_by_mitsuba (Mitsuba's curve
-is Mitsuba-rendered already), so Mitsuba renders both tools' maps. Goals from
-the project, each reported as met or not: lightprobe >= 20x faster at equal or
-lower error (by own re-renders and by the same evaluator), lightprobe under
-5 s wall clock, peak memory at 25 rings under 1 GiB; and the sphere model's for the
-sphere model: under 15 s (median envmap fit + sphere fit; its first version
-took 34 s).
+* References rendered by each tool in turn (--references lightprobe,mitsuba):
+  the whole comparison runs once per reference set, so neither tool is scored
+  only on images its own renderer made.
+* lightprobe: `estimate --reference REFS --rings R` for R in --rings-list
+  (its map sizes), at the sidecar's transport spp; at --rings (9, the default
+  map) also --curve-spp for its time/error curve, and --lp-repeat runs (median
+  times).
+* Mitsuba (llvm_ad_rgb): an `envmap` emitter's W x H lat-long bitmap, for each
+  size in --mi-res, optimised by Adam through the `prb` integrator (latent
+  tensor padded into `envmap.data`; init a constant matching the references'
+  mean colour, timed; relMAE-normalised L2 loss; clamp >= 0), run to
+  convergence: it stops when its best error has improved by less than
+  --mi-min-gain (relative) over the last --mi-patience steps, or at the
+  --mi-steps budget (then it is reported as not converged and no verdict can
+  be met). Its whole curve is kept: every --mi-eval-every steps the current
+  map is rendered with the `path` integrator at the sidecar's spp.
+* One evaluator for both maps, each tool in turn: every final map (each
+  lightprobe ring count; each Mitsuba size's best checkpoint) is rendered by
+  Mitsuba and by lightprobe at --score-spp with fresh seeds and scored against
+  the same references. lightprobe renders a Mitsuba map exactly as Mitsuba
+  interprets it (bilinear between texels at u = (j+0.5)/W, theta = i pi/(H-1)),
+  sampled on a fine lat-long grid and averaged into 128 rings (cells of 1.4 deg
+  against texels of 11 deg and more).
+* Time to equal error, the same evaluator for both curves: Mitsuba's
+  checkpoints (its renders at the sidecar's spp) against every lightprobe run's
+  map rendered by Mitsuba the same way. Two clocks, each excluding the same
+  things for both tools:
+    fit      lightprobe timings.fit_seconds (transport + solve, after scene
+             load and BVH build); Mitsuba's optimisation time (its init render
+             and every step, JIT included, after scene build). Both exclude
+             evaluation renders.
+    process  lightprobe's whole process wall minus its own evaluation renders
+             (noise floor, re-render); Mitsuba's import + variant set-up +
+             scene build + optimisation (the Python process's equivalent).
+  Mitsuba's time is its first checkpoint at or below the error, so up to
+  --mi-eval-every steps late; the previous checkpoint is kept as its bound.
+* The verdict "lightprobe >= 20x faster at equal or lower error" is met for a
+  lightprobe map only when every half holds: the speed ratio on the clock is
+  >= 20 (Mitsuba never reaching the error counts as infinitely slower); the
+  map's error is <= Mitsuba's best map's under both evaluators; and every
+  Mitsuba fit converged. It is given for the default map (--rings) and for
+  lightprobe's most accurate map, on both clocks, per reference set.
+  `--test-verdict` checks this logic on constructed cases (run by CI). In the
+  JSON a ratio of null means Mitsuba never reached the error.
+* Also: maps at comparable parameter counts (cells against texels), each
+  tool's best, the peak memory at 25 rings, and the sphere-light model
+  (--spheres K: `estimate --model spheres:K`, on lightprobe's references).
 
-Writes OUT/estimate_vs_mitsuba.png (relMAE vs time, log axes; the sphere
-model is one star: median model seconds, its relMAE) and
-OUT/bench_estimate.json (every number, the lightprobe build measured, and
-how many cores other processes used during each timed run: /proc/stat minus
-our own CPU time). On an idle 2-core machine the defaults took ~1.5 min
-before the sphere runs, with --mi-res 32x16,64x32 --lp-repeat 3 ~2.5 min;
-each sphere run adds roughly 15 s (an estimate: the model's ~11 s plus the
-process's noise floor and re-renders). A concurrent build skews
-timings: --wait-idle S waits up to S seconds before every timed run for
-other processes to use < 0.2 cores. lr 0.3 / L2 / 16 spp: lr 0.1 is slower,
-0.6 and 1.0 reach lightprobe's error in the same number of steps (measured);
-L1 ends slightly worse.
+Writes OUT/estimate_vs_mitsuba.{png,svg} (error against time on the fit
+clock, and error against parameter count under both evaluators) and
+OUT/bench_estimate.json (every number, the build measured, how many cores
+other processes used during each timed run). On an idle 2-core machine the
+defaults take about 30 minutes.
 
-Usage: .venv/bin/python scripts/bench_estimate.py [--out DIR] [--mi-res 32x16,64x32]
-       [--mi-steps 200] [--mi-spp 16] [--mi-lr 0.3] [--mi-loss l2] [--mi-eval-every 10]
-       [--curve-spp 64,128,256] [--lp-repeat 3] [--big-rings 25] [--spheres 2]
-       [--wait-idle 600]
-       [--quick]                          (smoke test, ~40 s + one sphere run)
+Usage: .venv/bin/python scripts/bench_estimate.py [--out DIR]
+       [--references lightprobe,mitsuba] [--rings-list 5,9,13,17,21,25,41]
+       [--mi-res 16x8,32x16,64x32] [--mi-steps 1500] [--mi-patience 200]
+       [--mi-min-gain 0.005] [--score-spp 2048] [--spheres 2] [--quick]
        --replot OUT/bench_estimate.json --out OUT   (redraw the chart only)
+       --test-verdict                               (check the verdict logic)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -241,50 +209,37 @@ def lp_estimate(bin_: Path, scene: Path, ref: Path, out: Path, rings: int,
 
 
 def run_lightprobe_suite(args, ref: Path, work: Path) -> dict:
-    res = {"load_before": load()}
-    main_runs = []
-    for k in range(args.lp_repeat):
-        r = lp_estimate(args.bin, args.scene, ref, work / f"lp_r{args.rings}_main{k}",
-                        args.rings, None)
-        main_runs.append(r)
-        log(f"  lightprobe rings {args.rings} spp {r['transport_spp']} (run {k + 1}/"
-            f"{args.lp_repeat}): relMAE {r['rel_mae']:.4f} fit {r['fit_seconds']:.2f} s, "
-            f"report total {r['total_seconds']:.2f} s, process wall "
+    """Every map size of --rings-list at the sidecar's spp (the main ring count --lp-repeat
+    times, median times), and the main ring count at each --curve-spp."""
+    res = {"load_before": load(), "maps": [], "curve": []}
+    for rings in args.rings_list:
+        runs = []
+        for k in range(args.lp_repeat if rings == args.rings else 1):
+            runs.append(lp_estimate(args.bin, args.scene, ref, work / f"lp_r{rings}_{k}", rings,
+                                    None, args.wait_idle))
+        r = dict(runs[0])
+        for key in ("fit_seconds", "total_seconds", "process_wall_seconds",
+                    "process_wall_excl_evaluation_seconds"):
+            r[key] = statistics.median(x[key] for x in runs)
+            r[key + "_runs"] = [x[key] for x in runs]
+        res["maps"].append(r)
+        log(f"  lightprobe {rings} rings ({r['cells']} cells), spp {r['transport_spp']}"
+            f"{f' ({len(runs)} runs, median)' if len(runs) > 1 else ''}: relMAE "
+            f"{r['rel_mae']:.4f}, fit {r['fit_seconds']:.2f} s, process wall "
             f"{r['process_wall_seconds']:.2f} s (excl. evaluation "
             f"{r['process_wall_excl_evaluation_seconds']:.2f} s), peak "
-            f"{r['peak_bytes'] / 2**20:.0f} MiB; other processes used "
-            f"{r['cpu']['other_cores']:.2f} cores meanwhile")
-    med = lambda key: statistics.median(r[key] for r in main_runs)  # noqa: E731
-    main = dict(main_runs[0])
-    for key in ("fit_seconds", "total_seconds", "process_wall_seconds",
-                "process_wall_excl_evaluation_seconds"):
-        main[key] = med(key)
-        main[key + "_runs"] = [r[key] for r in main_runs]
-    errs = {r["rel_mae"] for r in main_runs}
-    if len(errs) > 1:
-        log(f"  note: repeated runs gave different relMAE {sorted(errs)} (not deterministic)")
-    res["main"] = main
-    curve = []
+            f"{r['peak_bytes'] / 2**20:.0f} MiB; other processes {r['cpu']['other_cores']:.2f} "
+            "cores")
+    main = next(r for r in res["maps"] if r["rings"] == args.rings)
     for spp in args.curve_spp:
         if spp == main["transport_spp"]:
             continue
         r = lp_estimate(args.bin, args.scene, ref, work / f"lp_r{args.rings}_spp{spp}",
                         args.rings, spp, args.wait_idle)
-        curve.append(r)
-        log(f"  lightprobe rings {args.rings} spp {spp}: relMAE {r['rel_mae']:.4f} fit "
-            f"{r['fit_seconds']:.2f} s, process wall {r['process_wall_seconds']:.2f} s; other "
-            f"processes {r['cpu']['other_cores']:.2f} cores")
-    curve.append(main)
-    res["curve"] = sorted(curve, key=lambda r: r["transport_spp"])
-    if args.big_rings:
-        r = lp_estimate(args.bin, args.scene, ref, work / f"lp_r{args.big_rings}",
-                        args.big_rings, None, args.wait_idle)
-        res["big"] = r
-        log(f"  lightprobe rings {args.big_rings} ({r['cells']} cells): relMAE "
-            f"{r['rel_mae']:.4f} fit {r['fit_seconds']:.2f} s, process wall "
-            f"{r['process_wall_seconds']:.2f} s, memory.peak_bytes {r['peak_bytes']:,} "
-            f"({r['peak_bytes'] / GIB:.3f} GiB; process max RSS {r['max_rss_bytes']:,}); other "
-            f"processes {r['cpu']['other_cores']:.2f} cores")
+        res["curve"].append(r)
+        log(f"  lightprobe {args.rings} rings, spp {spp}: relMAE {r['rel_mae']:.4f}, fit "
+            f"{r['fit_seconds']:.2f} s; other processes {r['cpu']['other_cores']:.2f} cores")
+    res["curve"] = sorted(res["curve"] + [main], key=lambda r: r["transport_spp"])
     res["load_after"] = load()
     return res
 
@@ -373,7 +328,7 @@ def binary_provenance(path: Path) -> dict:
 
 
 # --------------------------------------------------------------------------
-# Mitsuba
+# references, Mitsuba's fit, the two evaluators
 # --------------------------------------------------------------------------
 
 def read_rgba(path: Path) -> np.ndarray:
@@ -383,13 +338,37 @@ def read_rgba(path: Path) -> np.ndarray:
     return a
 
 
+def write_exr(path: Path, a: np.ndarray) -> None:
+    import mitsuba as mi
+    fmt = mi.Bitmap.PixelFormat.RGBA if a.shape[2] == 4 else mi.Bitmap.PixelFormat.RGB
+    mi.Bitmap(np.ascontiguousarray(a, dtype=np.float32), fmt).write(str(path))
+
+
 def rel_mae(img: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
     return float(np.abs(img[mask][:, :3] - ref[mask][:, :3]).sum()
                  / np.abs(ref[mask][:, :3]).sum())
 
 
+def render_references(args, desc: dict, meshes, renderer: str, out: Path) -> dict:
+    """The sidecar's lights rendered by `renderer` at the sidecar's spp into out/<view>.exr."""
+    st = desc["settings"]
+    t0 = time.perf_counter()
+    if renderer == "lightprobe":
+        run_timed([args.bin, "render-reference", args.scene, "--out", out, "--quiet"])
+    else:
+        import mitsuba as mi
+        out.mkdir(parents=True, exist_ok=True)
+        S = ms.build_scene(args.scene, args.bin, desc=desc, meshes=meshes)
+        for i, c in enumerate(desc["cameras"]):
+            img = np.array(mi.render(S.scene, sensor=S.sensors[c["name"]], seed=500_000 + i),
+                           dtype=np.float32)
+            write_exr(out / f"{c['name']}.exr", img)
+    return {"renderer": renderer, "dir": str(out), "spp": st["spp"],
+            "seconds": time.perf_counter() - t0}
+
+
 class MitsubaFit:
-    """Envmap optimisation in Mitsuba; see the module docstring."""
+    """Envmap optimisation in Mitsuba, to convergence; see the module docstring."""
 
     def __init__(self, args, desc, meshes, refs: dict, width: int, height: int):
         import drjit as dr
@@ -399,20 +378,15 @@ class MitsubaFit:
         self.views = list(refs)
         self.masks = {v: refs[v][..., 3] > 0 for v in self.views}
         st = desc["settings"]
-        self.eval_spp = args.mi_eval_spp or st["spp"]
+        self.eval_spp = st["spp"]
         self.max_depth = st["max_bounces"] + 1
         t0 = time.perf_counter()
         self.S = ms.build_scene(args.scene, args.bin, desc=desc, meshes=meshes,
                                 envmap=np.ones((height, width, 3), np.float32),
                                 sphere_lights=False, spp=args.mi_spp)
         self.path = self.S.scene.integrator()          # validated against lightprobe
-        try:
-            self.prb = mi.load_dict({"type": args.mi_integrator, "max_depth": self.max_depth,
-                                     "rr_depth": self.max_depth + 100, "hide_emitters": True})
-            self.integrator_name = args.mi_integrator
-        except Exception as e:  # noqa: BLE001
-            log(f"  {args.mi_integrator} unavailable ({e}); using path")
-            self.prb, self.integrator_name = self.path, "path"
+        self.prb = mi.load_dict({"type": "prb", "max_depth": self.max_depth,
+                                 "rr_depth": self.max_depth + 100, "hide_emitters": True})
         self.params = mi.traverse(self.S.scene)
         self.key = "envmap.data"
         shape = tuple(self.params[self.key].shape)
@@ -423,16 +397,13 @@ class MitsubaFit:
                + np.arange(3)[None, None, :]).ravel().astype(np.uint32)
         self.pad_index = mi.UInt32(idx)
         self.build_seconds = time.perf_counter() - t0
-        # per view: reference, L1 weights (relMAE), L2 weights (relMSE-like)
-        self.w = {}
+        self.w = {}          # per view: reference, relMAE-normalised L2 weights
         for v in self.views:
             r = refs[v]
             m = np.repeat(self.masks[v][..., None], 4, -1)
             m[..., 3] = False
-            s1 = float(np.abs(r[m]).sum())
             mean = float(r[m].mean())
             self.w[v] = (mi.Float(r.ravel()),
-                         mi.Float((m / s1).astype(np.float32).ravel()),
                          mi.Float((m / (m.sum() * mean * mean)).astype(np.float32).ravel()))
 
     def pad(self, x):
@@ -460,34 +431,39 @@ class MitsubaFit:
     def run(self) -> dict:
         mi, dr, a = self.mi, self.dr, self.args
         t0 = time.perf_counter()
-        if a.mi_init == "match":
-            # constant matching the references' mean colour: one 32-spp render
-            # under a unit envmap (timed: it is part of Mitsuba's method)
-            ratios = []
-            for i, v in enumerate(self.views):
-                img = np.array(mi.render(self.S.scene, sensor=self.S.sensors[v],
-                                         integrator=self.path, spp=32, seed=999_000 + i))
-                m = self.masks[v]
-                ratios.append(self.refs[v][m][:, :3].mean(0)
-                              / np.maximum(img[m][:, :3].mean(0), 1e-8))
-            c = np.mean(ratios, 0).astype(np.float32)
-        else:
-            c = np.full(3, float(a.mi_init), np.float32)
+        # init: a constant matching the references' mean colour, from one 32-spp render
+        # under a unit envmap (timed: it is part of Mitsuba's method)
+        ratios = []
+        for i, v in enumerate(self.views):
+            img = np.array(mi.render(self.S.scene, sensor=self.S.sensors[v],
+                                     integrator=self.path, spp=32, seed=999_000 + i))
+            m = self.masks[v]
+            ratios.append(self.refs[v][m][:, :3].mean(0) / np.maximum(img[m][:, :3].mean(0), 1e-8))
+        c = np.mean(ratios, 0).astype(np.float32)
         opt = mi.ad.Adam(lr=a.mi_lr)
-        opt["x"] = mi.TensorXf(np.ascontiguousarray(
-            np.broadcast_to(c, (self.H, self.W, 3))))
+        opt["x"] = mi.TensorXf(np.ascontiguousarray(np.broadcast_to(c, (self.H, self.W, 3))))
         clock = time.perf_counter() - t0
-        curve = []
+        curve, best_map, stop = [], None, "budget"
 
-        def checkpoint(step: int, loss: float | None) -> None:
+        def checkpoint(step: int) -> None:
+            nonlocal best_map
             t = time.perf_counter()
             e = self.evaluate(opt["x"], len(curve))
-            curve.append({"step": step, "seconds": clock, "loss": loss,
+            if not curve or e["rel_mae"] < min(p["rel_mae"] for p in curve):
+                best_map = np.array(opt["x"], dtype=np.float32)
+            curve.append({"step": step, "seconds": clock,
                           "eval_seconds": time.perf_counter() - t, **e})
 
-        checkpoint(0, None)
+        def converged(step: int) -> bool:
+            """Best error gained < mi_min_gain (relative) over the last mi_patience steps."""
+            if step < a.mi_patience:
+                return False
+            before = min(p["rel_mae"] for p in curve if p["step"] <= step - a.mi_patience)
+            now = min(p["rel_mae"] for p in curve)
+            return before - now < a.mi_min_gain * before
+
+        checkpoint(0)
         step_seconds = []
-        loss_val = None
         for it in range(1, a.mi_steps + 1):
             t = time.perf_counter()
             self.set_envmap(opt["x"])
@@ -496,10 +472,9 @@ class MitsubaFit:
                 s = 4 * it + 2 * i
                 img = mi.render(self.S.scene, self.params, sensor=self.S.sensors[v],
                                 integrator=self.prb, spp=a.mi_spp, seed=s, seed_grad=s + 1)
-                ref, w1, w2 = self.w[v]
+                ref, w2 = self.w[v]
                 d = img.array - ref
-                term = dr.sum(w1 * dr.abs(d)) if a.mi_loss == "l1" else dr.sum(w2 * d * d)
-                loss = loss + term / len(self.views)
+                loss = loss + dr.sum(w2 * d * d) / len(self.views)
             dr.backward(loss)
             opt.step()
             opt["x"] = dr.maximum(opt["x"], 0.0)
@@ -509,74 +484,83 @@ class MitsubaFit:
             step_seconds.append(dt)
             clock += dt
             if it % a.mi_eval_every == 0 or it == a.mi_steps:
-                loss_val = float(np.array(loss).ravel()[0])
-                checkpoint(it, loss_val)
-                cp = curve[-1]
-                log(f"    step {it:4d}  opt time {clock:7.2f} s  relMAE {cp['rel_mae']:.4f}  "
-                    f"(loss {loss_val:.4g}, eval {cp['eval_seconds']:.1f} s, load {load()[0]})")
-        best = min(curve, key=lambda c: c["rel_mae"])
-        x = np.array(opt["x"])
+                checkpoint(it)
+                if it % (10 * a.mi_eval_every) == 0:
+                    log(f"    step {it:5d}  opt time {clock:7.1f} s  relMAE "
+                        f"{curve[-1]['rel_mae']:.4f}  best {min(p['rel_mae'] for p in curve):.4f}")
+                if converged(it):
+                    stop = "converged"
+                    break
+        best = min(curve, key=lambda p: p["rel_mae"])
         return {
-            "resolution": [self.W, self.H], "integrator": self.integrator_name,
-            "eval_integrator": "path", "max_depth": self.max_depth, "spp_per_step": a.mi_spp,
-            "eval_spp": self.eval_spp, "steps": a.mi_steps, "lr": a.mi_lr, "loss": a.mi_loss,
-            "init": a.mi_init, "init_constant": c.tolist(),
+            "resolution": [self.W, self.H], "parameters": 3 * self.W * self.H,
+            "integrator": "prb", "eval_integrator": "path", "max_depth": self.max_depth,
+            "spp_per_step": a.mi_spp, "eval_spp": self.eval_spp, "lr": a.mi_lr, "loss": "l2",
+            "init_constant": c.tolist(), "steps_budget": a.mi_steps,
+            "patience_steps": a.mi_patience, "min_gain": a.mi_min_gain,
+            "steps": curve[-1]["step"], "stopped": stop, "converged": stop == "converged",
             "scene_build_seconds": self.build_seconds,
             "first_step_seconds": step_seconds[0] if step_seconds else None,
             "median_step_seconds": statistics.median(step_seconds) if step_seconds else None,
             "optimisation_seconds": clock, "curve": curve,
             "best": {k: best[k] for k in ("step", "seconds", "rel_mae")},
             "final": {k: curve[-1][k] for k in ("step", "seconds", "rel_mae")},
-            "envmap_max": float(x.max()), "envmap_mean": float(x.mean()),
-            "threads": dr.thread_count(),
+            "best_map": best_map,
         }
 
 
-def crosscheck(args, desc, meshes, refs: dict, envmap_exr: Path, lp_rel_mae: float,
-               k: int = 0) -> dict:
-    """lightprobe's exported estimate rendered by Mitsuba, scored the same way;
-    k: which map (fresh seeds per map; k = 0 is the main run's)."""
+def mitsuba_map_on_fine_grid(x: np.ndarray, width: int = 1024) -> np.ndarray:
+    """Mitsuba's envmap as Mitsuba evaluates it -- bilinear between texels at
+    u = (j+0.5)/W (wrapping) and theta = i pi/(H-1) -- sampled at the texel positions
+    of a finer map in the same convention (rows width/2 + 1)."""
+    H, W, _ = x.shape
+    h2 = width // 2 + 1
+    r = np.arange(h2) / (h2 - 1) * (H - 1)
+    r0 = np.minimum(np.floor(r).astype(int), H - 2)
+    fr = (r - r0)[:, None, None]
+    c = (np.arange(width) + 0.5) / width * W - 0.5
+    c0 = np.floor(c).astype(int)
+    fc = (c - c0)[None, :, None]
+    c0, c1 = c0 % W, (c0 + 1) % W
+    rows = x[r0] * (1 - fr) + x[r0 + 1] * fr
+    return (rows[:, c0] * (1 - fc) + rows[:, c1] * fc).astype(np.float32)
+
+
+def score_by_mitsuba(args, desc, meshes, refs: dict, envmap, spp: int, seed0: int) -> dict:
+    """relMAE of Mitsuba's `path` render of a lat-long map (path or array, Mitsuba's
+    convention) against the references."""
     import mitsuba as mi
-    S = ms.build_scene(args.scene, args.bin, desc=desc, meshes=meshes, envmap=envmap_exr,
-                       sphere_lights=False)
-    per_view = {}
-    seed0 = 2_000_000 + len(refs) * k
+    S = ms.build_scene(args.scene, args.bin, desc=desc, meshes=meshes, envmap=envmap,
+                       sphere_lights=False, spp=spp)
+    views = {}
     for i, v in enumerate(refs):
-        img = np.array(mi.render(S.scene, sensor=S.sensors[v], seed=seed0 + i),
-                       dtype=np.float32)
-        per_view[v] = rel_mae(img, refs[v], refs[v][..., 3] > 0)
-    mean = float(np.mean(list(per_view.values())))
-    return {"envmap": str(envmap_exr), "spp": S.spp, "seed_first": seed0, "views": per_view,
-            "rel_mae": mean, "lightprobe_rel_mae": lp_rel_mae, "difference": mean - lp_rel_mae}
+        img = np.array(mi.render(S.scene, sensor=S.sensors[v], seed=seed0 + i), dtype=np.float32)
+        views[v] = rel_mae(img, refs[v], refs[v][..., 3] > 0)
+    return {"rel_mae": float(np.mean(list(views.values()))), "views": views, "spp": spp}
 
 
-def crosscheck_all(args, desc, meshes, refs: dict, lp: dict) -> dict:
-    """crosscheck() of every lightprobe envmap run the time-to-error uses (the
-    main run first, k = 0, then the --curve-spp runs); sets each run's
-    rel_mae_by_mitsuba. Returns the main run's cross-check with every point's
-    under "per_lightprobe_point"."""
-    main = lp["main"]
-    runs = [main] + [r for r in lp["curve"] if r is not main]
-    points = []
-    for k, r in enumerate(runs):
-        t0 = time.perf_counter()
-        c = crosscheck(args, desc, meshes, refs, Path(r["out"]) / "envmap.exr", r["rel_mae"], k)
-        c.update({"transport_spp": r["transport_spp"], "main": r is main,
-                  "seconds": time.perf_counter() - t0})
-        r["rel_mae_by_mitsuba"] = c["rel_mae"]
-        points.append(c)
-        log(f"cross-check: lightprobe's envmap.exr (spp {r['transport_spp']}"
-            f"{', main run' if r is main else ''}) rendered by Mitsuba ({c['spp']} spp): relMAE "
-            f"{c['rel_mae']:.4f} vs lightprobe's own {c['lightprobe_rel_mae']:.4f} (difference "
-            f"{c['difference']:+.4f}; {c['seconds']:.1f} s)")
-    out = dict(points[0])
-    out["per_lightprobe_point"] = sorted(points, key=lambda c: c["transport_spp"])
-    return out
+def score_by_lightprobe(args, refs: dict, envmap: Path, spp: int, seed: int, out: Path,
+                        latlong: bool) -> dict:
+    """relMAE of lightprobe's render of a ring envmap (envmap.ron) or of a lat-long EXR in
+    Mitsuba's convention (averaged into 128 rings) against the references."""
+    cmd = [args.bin, "render-reference", args.scene, "--envmap", envmap, "--no-sphere-lights",
+           "--spp", spp, "--seed", seed, "--out", out, "--quiet"]
+    if latlong:
+        cmd += ["--envmap-target", "mitsuba", "--envmap-rings", 128]
+    run_timed(cmd)
+    views = {v: rel_mae(read_rgba(out / f"{v}.exr"), refs[v], refs[v][..., 3] > 0)
+             for v in refs}
+    return {"rel_mae": float(np.mean(list(views.values()))), "views": views, "spp": spp}
 
 
 # --------------------------------------------------------------------------
-# time-to-error, chart
+# time to error and the verdict (pure: recomputed by --replot)
 # --------------------------------------------------------------------------
+
+SPEED_FACTOR = 20.0             # the goal: lightprobe >= 20x faster at equal or lower error
+MITSUBA_PLATEAU = 0.02          # "plateau": first checkpoint within 2% (relative) of the best
+EVALUATORS = ("mitsuba", "lightprobe")
+
 
 def first_at_or_below(points: list[tuple[float, float]], target: float):
     """(time, previous time) of the first (time, err) with err <= target, in time order."""
@@ -588,205 +572,274 @@ def first_at_or_below(points: list[tuple[float, float]], target: float):
     return None, None
 
 
-def time_to_error(lp: dict, mitsuba: list[dict], key: str = "rel_mae") -> dict | None:
-    """key: lightprobe's error per run -- "rel_mae" (its own re-render) or
-    "rel_mae_by_mitsuba" (Mitsuba's render of its map: the same evaluator as
-    Mitsuba's curve); None if a run lacks it. Pure: recomputed by --replot."""
-    if any(r.get(key) is None for r in lp["curve"] + [lp["main"]]):
-        return None
-    target_lp = lp["main"][key]
-    out = {"lightprobe_error": key, "lightprobe_target_rel_mae": target_lp,
-           "per_resolution": []}
-    for m in mitsuba:
-        mi_pts = [(c["seconds"], c["rel_mae"]) for c in m["curve"]]
-        mi_best = m["best"]["rel_mae"]
-        reached = mi_best <= target_lp
-        target = target_lp if reached else mi_best
-        t_mi, t_mi_prev = first_at_or_below(mi_pts, target)
-        lp_fit, _ = first_at_or_below([(r["fit_seconds"], r[key]) for r in lp["curve"]],
-                                      target)
-        ok = [r for r in lp["curve"] if r[key] <= target]
-        lp_run = min(ok, key=lambda r: r["fit_seconds"]) if ok else None
-        row = {"resolution": m["resolution"], "target_rel_mae": target,
-               "target_is": "lightprobe 9 rings / 512 spp" if reached else "Mitsuba's best",
-               "mitsuba_reaches_lightprobe_error": reached,
-               "mitsuba_seconds": t_mi, "mitsuba_seconds_previous_checkpoint": t_mi_prev,
-               "mitsuba_seconds_incl_scene_build": (t_mi + m["scene_build_seconds"])
-               if t_mi is not None else None}
-        if lp_run is not None:
-            row.update({
-                "lightprobe_transport_spp": lp_run["transport_spp"],
-                "lightprobe_fit_seconds": lp_fit,
-                "lightprobe_process_wall_seconds": lp_run["process_wall_seconds"],
-                "lightprobe_process_wall_excl_evaluation_seconds":
-                    lp_run["process_wall_excl_evaluation_seconds"],
-                "ratio_fit": t_mi / lp_fit if t_mi else None,
-                "ratio_process_wall": t_mi / lp_run["process_wall_seconds"] if t_mi else None,
-                "ratio_process_wall_excl_evaluation":
-                    t_mi / lp_run["process_wall_excl_evaluation_seconds"] if t_mi else None,
-            })
-        # every lightprobe point: how long Mitsuba needs for the same error
-        row["per_lightprobe_point"] = []
-        for r in sorted(lp["curve"], key=lambda r: r["transport_spp"]):
-            t, tp = first_at_or_below(mi_pts, r[key])
-            row["per_lightprobe_point"].append({
-                "transport_spp": r["transport_spp"], "rel_mae": r[key],
-                "lightprobe_fit_seconds": r["fit_seconds"], "mitsuba_seconds": t,
-                "mitsuba_seconds_previous_checkpoint": tp,
-                "ratio_fit": t / r["fit_seconds"] if t else None})
-        out["per_resolution"].append(row)
-    return out
+def verdict(ratio: float | None, lp_errors: dict, mi_best_errors: dict, converged: bool,
+            factor: float = SPEED_FACTOR) -> dict:
+    """The goal for one lightprobe map on one clock. ratio: Mitsuba's time over
+    lightprobe's to the map's error (math.inf when Mitsuba never reaches it, None when not
+    measured); lp_errors / mi_best_errors: evaluator -> relMAE of the map and of Mitsuba's
+    best map. Met only when the speed half, the error half under every evaluator, and
+    Mitsuba's convergence all hold."""
+    speed = ratio is not None and ratio >= factor
+    error = (bool(lp_errors) and set(lp_errors) == set(mi_best_errors)
+             and all(lp_errors[e] <= mi_best_errors[e] for e in lp_errors))
+    return {"speed_ratio": ratio, "speed_factor": factor, "speed_half": bool(speed),
+            "error_half": bool(error), "mitsuba_converged": bool(converged),
+            "met": bool(speed and error and converged)}
 
 
-MITSUBA_PLATEAU = 0.02          # "plateau": first checkpoint within 2% (relative) of the best
+def test_verdict() -> None:
+    """The cases a benchmark must not get wrong (run by CI: `--test-verdict`)."""
+    good, worse = {"mitsuba": 0.090, "lightprobe": 0.091}, {"mitsuba": 0.095, "lightprobe": 0.094}
+    cases = [
+        ((67.0, worse, good, True), False, "fast but less accurate under both evaluators"),
+        ((67.0, {"mitsuba": 0.096, "lightprobe": 0.090}, good, True), False,
+         "less accurate under one evaluator"),
+        ((10.0, good, worse, True), False, "more accurate but only 10x faster"),
+        ((None, good, worse, True), False, "speed not measured"),
+        ((67.0, good, worse, False), False, "Mitsuba stopped at its budget, still improving"),
+        ((67.0, good, {"mitsuba": 0.095}, True), False, "an evaluator missing for Mitsuba"),
+        ((67.0, {}, {}, True), False, "no errors at all"),
+        ((20.0, good, good, True), True, "exactly 20x at equal error"),
+        ((math.inf, good, worse, True), True, "Mitsuba never reaches the error"),
+    ]
+    for args, want, what in cases:
+        got = verdict(*args)
+        assert got["met"] is want, f"verdict wrong for {what}: {got}"
+        assert got["met"] == (got["speed_half"] and got["error_half"]
+                              and got["mitsuba_converged"]), got
+    print(f"verdict logic: all {len(cases)} cases right")
 
 
-def sphere_vs_mitsuba(sp: dict, mitsuba: list[dict]) -> dict | None:
-    """The sphere model beside Mitsuba's envmap fit: Mitsuba's best relMAE over
-    its resolutions, the first checkpoint (any resolution) within
-    MITSUBA_PLATEAU of it, and per resolution when (if ever) it reaches the
-    sphere model's error. Pure: recomputed by --replot."""
-    if not mitsuba:
-        return None
-    best_m = min(mitsuba, key=lambda m: m["best"]["rel_mae"])
-    best = best_m["best"]["rel_mae"]
-    near = best * (1 + MITSUBA_PLATEAU)
-    t, e, m0 = min(((c["seconds"], c["rel_mae"], m) for m in mitsuba for c in m["curve"]
-                    if c["rel_mae"] <= near), key=lambda x: x[0])
-    err, secs = sp["rel_mae"], sp["model_seconds"]
-    per_res = []
-    for m in mitsuba:
-        pts = [(c["seconds"], c["rel_mae"]) for c in m["curve"]]
-        tp, _ = first_at_or_below(pts, m["best"]["rel_mae"] * (1 + MITSUBA_PLATEAU))
-        ts, tsp = first_at_or_below(pts, err)
-        per_res.append({
-            "resolution": m["resolution"], "best_rel_mae": m["best"]["rel_mae"],
-            "best_seconds": m["best"]["seconds"], "plateau_seconds": tp,
-            "best_at_last_checkpoint": m["best"]["step"] == m["final"]["step"],
-            "seconds_to_sphere_error": ts, "seconds_to_sphere_error_previous_checkpoint": tsp})
-    return {
-        "plateau_tolerance_relative": MITSUBA_PLATEAU,
-        "sphere_rel_mae": err, "sphere_model_seconds": secs,
-        "mitsuba_best_rel_mae": best, "mitsuba_best_resolution": best_m["resolution"],
-        "mitsuba_best_seconds": best_m["best"]["seconds"],
-        # the best at the last checkpoint: Mitsuba was still improving when it stopped
-        "mitsuba_best_at_last_checkpoint": best_m["best"]["step"] == best_m["final"]["step"],
-        "mitsuba_plateau_seconds": t, "mitsuba_plateau_rel_mae": e,
-        "mitsuba_plateau_resolution": m0["resolution"],
-        "mitsuba_plateau_seconds_incl_scene_build": t + m0["scene_build_seconds"],
-        "sphere_below_mitsuba_best": err < best,
-        "error_ratio_mitsuba_best_over_sphere": best / err if err else None,
-        "time_ratio_mitsuba_plateau_over_sphere_model": t / secs if secs else None,
-        "per_resolution": per_res,
+def compare(lp: dict, fits: list[dict], mitsuba_import_seconds: float, main_rings: int) -> dict:
+    """Time to equal error on both clocks (Mitsuba's renders at the sidecar's spp judging
+    both curves), the verdicts, and the maps side by side."""
+    converged = all(f["converged"] for f in fits)
+    mi_best = {e: min(f["score"][e]["rel_mae"] for f in fits) for e in EVALUATORS}
+    clocks = {
+        "fit": (lambda r: r["fit_seconds"], lambda f, t: t),
+        "process": (lambda r: r["process_wall_excl_evaluation_seconds"],
+                    lambda f, t: mitsuba_import_seconds + f["scene_build_seconds"] + t),
     }
 
+    def to_error(r: dict) -> dict:
+        err = r["curve_eval"]["rel_mae"]
+        row = {"rings": r["rings"], "cells": r["cells"], "transport_spp": r["transport_spp"],
+               "rel_mae_by_mitsuba": err, "per_resolution": []}
+        for f in fits:
+            t, prev = first_at_or_below([(p["seconds"], p["rel_mae"]) for p in f["curve"]], err)
+            row["per_resolution"].append({"resolution": f["resolution"], "fit_seconds": t,
+                                          "fit_seconds_previous_checkpoint": prev})
+        for clock, (lp_t, mi_t) in clocks.items():
+            ts = [mi_t(f, q["fit_seconds"]) for f, q in zip(fits, row["per_resolution"])
+                  if q["fit_seconds"] is not None]
+            row[f"lightprobe_{clock}_seconds"] = lp_t(r)
+            row[f"mitsuba_{clock}_seconds"] = min(ts) if ts else None
+            row[f"ratio_{clock}"] = (min(ts) / lp_t(r)) if ts else math.inf
+        return row
 
-def chart(path: Path, lp: dict, mitsuba: list[dict], tte: dict, meta: dict,
-          spheres: dict | None = None) -> None:
+    points = [to_error(r) for r in lp["curve"]] + [to_error(r) for r in lp["maps"]
+                                                   if r not in lp["curve"]]
+    mean_score = lambda r: statistics.mean(r["score"][e]["rel_mae"] for e in EVALUATORS)  # noqa: E731
+    default = next(r for r in lp["maps"] if r["rings"] == main_rings)
+    best = min(lp["maps"], key=mean_score)
+    verdicts = {}
+    for name, r in (("default_map", default), ("most_accurate_map", best)):
+        row = to_error(r)
+        errs = {e: r["score"][e]["rel_mae"] for e in EVALUATORS}
+        verdicts[name] = {"rings": r["rings"], "cells": r["cells"], "rel_mae": errs,
+                          "mitsuba_best_rel_mae": mi_best,
+                          **{clock: verdict(row[f"ratio_{clock}"], errs, mi_best, converged)
+                             for clock in clocks}}
+    sizes = []
+    for f in fits:
+        near = min(lp["maps"], key=lambda r: abs(math.log(3 * r["cells"] / f["parameters"])))
+        sizes.append({
+            "mitsuba_resolution": f["resolution"], "mitsuba_parameters": f["parameters"],
+            "mitsuba_rel_mae": {e: f["score"][e]["rel_mae"] for e in EVALUATORS},
+            "mitsuba_best_fit_seconds": f["best"]["seconds"], "mitsuba_converged": f["converged"],
+            "lightprobe_rings": near["rings"], "lightprobe_parameters": 3 * near["cells"],
+            "lightprobe_rel_mae": {e: near["score"][e]["rel_mae"] for e in EVALUATORS},
+            "lightprobe_fit_seconds": near["fit_seconds"],
+            "more_accurate": {e: "lightprobe" if near["score"][e]["rel_mae"]
+                              <= f["score"][e]["rel_mae"] else "mitsuba" for e in EVALUATORS},
+        })
+    return {"clocks": {"fit": "lightprobe timings.fit_seconds; Mitsuba optimisation incl. "
+                              "init render and JIT, excl. scene build and evaluations",
+                       "process": "lightprobe process wall excl. its evaluation renders; "
+                                  "Mitsuba import + variant + scene build + optimisation"},
+            "mitsuba_converged": converged, "mitsuba_best_rel_mae": mi_best,
+            "time_to_error": points, "verdicts": verdicts, "comparable_sizes": sizes}
+
+
+def sphere_vs_mitsuba(sp: dict, fits: list[dict]) -> dict | None:
+    """The sphere model beside Mitsuba's envmap fits: Mitsuba's best checkpoint, when it
+    first came within MITSUBA_PLATEAU of it, and when (if ever) it reached the sphere
+    model's error."""
+    if not fits:
+        return None
+    best_f = min(fits, key=lambda f: f["best"]["rel_mae"])
+    best = best_f["best"]["rel_mae"]
+    t, e, f0 = min(((p["seconds"], p["rel_mae"], f) for f in fits for p in f["curve"]
+                    if p["rel_mae"] <= best * (1 + MITSUBA_PLATEAU)), key=lambda x: x[0])
+    reach = {}
+    for f in fits:
+        ts, _ = first_at_or_below([(p["seconds"], p["rel_mae"]) for p in f["curve"]],
+                                  sp["rel_mae"])
+        reach["x".join(map(str, f["resolution"]))] = ts
+    return {"sphere_rel_mae": sp["rel_mae"], "sphere_model_seconds": sp["model_seconds"],
+            "mitsuba_best_rel_mae": best, "mitsuba_best_resolution": best_f["resolution"],
+            "mitsuba_plateau_seconds": t, "mitsuba_plateau_rel_mae": e,
+            "mitsuba_plateau_resolution": f0["resolution"],
+            "mitsuba_seconds_to_sphere_error": reach,
+            "error_ratio_mitsuba_best_over_sphere": best / sp["rel_mae"]}
+
+
+# --------------------------------------------------------------------------
+# chart
+# --------------------------------------------------------------------------
+
+def log_axis(axis, percent: bool) -> None:
+    """Log axis labelled at 1, 2 and 5 of each decade (plain or in percent), every label
+    distinct; unlabelled minor ticks between."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+    axis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(
+        (lambda v, _: f"{100 * v:.3g}%") if percent else (lambda v, _: f"{v:g}")))
+    axis.set_minor_locator(LogLocator(base=10, subs=(1.5, 3.0, 4.0, 6.0, 7.0, 8.0, 9.0)))
+    axis.set_minor_formatter(NullFormatter())
+
+
+def chart(stem: Path, sets: list[dict], meta: dict) -> list[Path]:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(10, 8.5 if spheres else 8.2), dpi=120)
-    colours = ["tab:blue", "tab:purple", "tab:cyan"]
-    for m, col in zip(mitsuba, colours):
-        pts = [(c["seconds"], c["rel_mae"]) for c in m["curve"]]
-        w, h = m["resolution"]
-        b = m["best"]
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], "-o", color=col, ms=3, lw=1.6,
-                label=f"Mitsuba 3 Adam, {w}x{h} envmap ({m['integrator']}, {m['spp_per_step']} "
-                      f"spp/step, lr {m['lr']}, {m['loss'].upper()}); step 0 = init; best "
-                      f"{b['rel_mae']:.4f} (step {b['step']}, {b['seconds']:.1f} s)")
-    cur = sorted(lp["curve"], key=lambda r: r["transport_spp"])
-    ax.plot([r["fit_seconds"] for r in cur], [r["rel_mae"] for r in cur], "s-", color="tab:red",
-            ms=7, lw=1.2, label=f"lightprobe estimate, {lp['main']['rings']} rings: fit time "
-                                 f"(transport + solve); labels = transport spp")
-    for r in cur:
-        ax.annotate(f"{r['transport_spp']}", (r["fit_seconds"], r["rel_mae"]),
-                    textcoords="offset points", xytext=(6, 4), fontsize=8, color="tab:red")
-    mn = lp["main"]
-    ax.plot([mn["process_wall_seconds"]], [mn["rel_mae"]], "s", mfc="none", mec="tab:red", ms=8,
-            label="lightprobe 512 spp: whole process wall (incl. its own noise-floor and "
-                  "re-render)")
-    ax.plot([mn["process_wall_excl_evaluation_seconds"]], [mn["rel_mae"]], "D", mfc="none",
-            mec="darkred", ms=7, label="lightprobe 512 spp: process wall excl. evaluation")
-    if lp.get("big"):
-        b = lp["big"]
-        ax.plot([b["fit_seconds"]], [b["rel_mae"]], "^", color="darkorange", ms=8,
-                label=f"lightprobe {b['rings']} rings, 512 spp (fit time; peak "
-                      f"{b['peak_bytes'] / 2**20:.0f} MiB)")
-    if spheres:
-        sp = spheres
-        ax.plot([sp["model_seconds"]], [sp["rel_mae"]], "*", color="tab:green", ms=15,
-                mec="darkgreen",
-                label=f"lightprobe --model {sp['model']} (sphere lights, finite distance): "
-                      f"envmap fit {sp['envmap_fit_seconds']:.1f} s + sphere fit "
-                      f"{sp['sphere_fit_seconds']:.1f} s (median of {sp['repeats']}); "
-                      f"envmap in the same run {sp['envmap_rel_mae']:.4f}")
-        ax.annotate(f"{sp['model']}: {sp['rel_mae']:.4f} in {sp['model_seconds']:.1f} s",
-                    (sp["model_seconds"], sp["rel_mae"]), textcoords="offset points",
-                    xytext=(-10, 7), ha="right", fontsize=8, color="darkgreen")
-    ax.axhline(mn["noise_floor_rel_mae"], color="gray", ls="--", lw=1.2,
-               label=f"noise floor (two 512-spp renders of the true lights) "
-                     f"{mn['noise_floor_rel_mae']:.4f}")
-    ax.axhline(mn["rel_mae"], color="tab:red", ls=":", lw=1.0,
-               label=f"target: lightprobe 9 rings / 512 spp relMAE {mn['rel_mae']:.4f}")
-    for row, col in zip(tte["per_resolution"], colours):
-        if row.get("mitsuba_seconds"):
-            ax.axvline(row["mitsuba_seconds"], color=col, ls=":", lw=1)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    from matplotlib.ticker import FormatStrFormatter
-    ax.yaxis.set_major_formatter(FormatStrFormatter("%.2f"))
-    ax.yaxis.set_minor_formatter(FormatStrFormatter("%.2f"))
-    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
-    ax.set_xlabel("wall time, seconds (log); Mitsuba: cumulative optimisation time incl. JIT, "
-                  "excl. scene build and evaluations")
-    ax.set_ylabel("relMAE (log) of a fresh 512-spp re-render vs the references, mean of views")
-    ys = [r["rel_mae"] for r in cur] + [c["rel_mae"] for m in mitsuba for c in m["curve"]]
-    lo = min([mn["noise_floor_rel_mae"]] + ([spheres["rel_mae"]] if spheres else []))
-    ax.set_ylim(lo * 0.85, max(ys) * 1.12)
-    ax.grid(True, which="both", alpha=0.3)
-    lines = []
-    for row in tte["per_resolution"]:
-        w, h = row["resolution"]
-        if row.get("ratio_fit"):
-            lines.append(f"Mitsuba {w}x{h} -> relMAE {row['target_rel_mae']:.4f} "
-                         f"({row['target_is']}): Mitsuba {row['mitsuba_seconds']:.1f} s "
-                         f"(dotted line), lightprobe fit {row['lightprobe_fit_seconds']:.2f} s: "
-                         f"{row['ratio_fit']:.1f}x (vs lightprobe process wall "
-                         f"{row['ratio_process_wall']:.1f}x)")
-    vs = (spheres or {}).get("vs_mitsuba")
-    if vs:
-        lines.append(f"sphere model ({spheres['model']}): relMAE {vs['sphere_rel_mae']:.4f} in "
-                     f"{vs['sphere_model_seconds']:.1f} s vs Mitsuba's best "
-                     f"{vs['mitsuba_best_rel_mae']:.4f} after {vs['mitsuba_plateau_seconds']:.1f} s "
-                     f"(first within {100 * vs['plateau_tolerance_relative']:.0f}% of it"
-                     + ("; still improving at its last step)"
-                        if vs["mitsuba_best_at_last_checkpoint"] else ")"))
-    lines.append("goal: lightprobe >= 20x faster than Mitsuba at equal or lower error, < 5 s wall"
-                 + ("; sphere model < 15 s" if spheres else ""))
-    lines.append(f"load average during runs: {meta['load_summary']} on {meta['cpus']} CPUs")
-    ax.text(0.01, 0.10, "\n".join(lines), transform=ax.transAxes, fontsize=8, va="bottom",
-            bbox=dict(boxstyle="round", fc="white", alpha=0.9))
-    ax.set_title(f"{'Envmap and sphere-light' if spheres else 'Envmap'} estimation, time to "
-                 f"error: {meta['scene_name']} "
-                 f"({meta['width']}x{meta['height']}, {len(meta['views'])} views, "
-                 f"max_bounces {meta['max_bounces']})", fontsize=11)
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.11), ncol=1,
-              frameon=False)
+    cmap = plt.get_cmap("viridis")
+    fig, axes = plt.subplots(len(sets), 2, figsize=(13, 5.2 * len(sets)), squeeze=False)
+    for (ax_t, ax_p), s in zip(axes, sets):
+        fits, lp, cmp_ = s["mitsuba"], s["lightprobe"], s["comparison"]
+        cols = [cmap(0.15 + 0.6 * k / max(1, len(fits) - 1)) for k in range(len(fits))]
+        for f, col in zip(fits, cols):
+            w, h = f["resolution"]
+            ax_t.plot([p["seconds"] for p in f["curve"]], [p["rel_mae"] for p in f["curve"]],
+                      "-", color=col, lw=1.5,
+                      label=f"Mitsuba {w}×{h} ({f['steps']} steps, "
+                            f"{'converged' if f['converged'] else 'budget'})")
+        cur = lp["curve"]
+        ax_t.plot([r["fit_seconds"] for r in cur], [r["curve_eval"]["rel_mae"] for r in cur],
+                  "s-", color="tab:red", ms=5, lw=1.2,
+                  label=f"lightprobe {meta['rings']} rings, transport spp "
+                        + "/".join(str(r["transport_spp"]) for r in cur))
+        ax_t.plot([r["fit_seconds"] for r in lp["maps"]],
+                  [r["curve_eval"]["rel_mae"] for r in lp["maps"]], "o", color="darkred", ms=5,
+                  label="lightprobe maps of " + "/".join(str(r["rings"]) for r in lp["maps"])
+                        + " rings")
+        ax_t.set_xscale("log")
+        ax_t.set_yscale("log")
+        log_axis(ax_t.yaxis, True)
+        log_axis(ax_t.xaxis, False)
+        ax_t.set_xlabel("seconds on the fit clock (log)")
+        ax_t.set_ylabel("relMAE, Mitsuba's render at the sidecar's spp")
+        ax_t.set_title(f"references by {s['reference']['renderer']}: error against time",
+                       fontsize=10)
+        ax_t.grid(True, which="both", alpha=0.3)
+        ax_t.legend(fontsize=7.5, loc="upper right")
+        for marker, e in (("o", "mitsuba"), ("^", "lightprobe")):
+            ax_p.plot([3 * r["cells"] for r in lp["maps"]],
+                      [r["score"][e]["rel_mae"] for r in lp["maps"]], marker + "-",
+                      color="tab:red", ms=5, lw=1, mfc="tab:red" if e == "mitsuba" else "white",
+                      label=f"lightprobe rings, scored by {e}")
+            ax_p.plot([f["parameters"] for f in fits], [f["score"][e]["rel_mae"] for f in fits],
+                      marker + "--", color=cols[len(cols) // 2], ms=6, lw=1,
+                      mfc=cols[len(cols) // 2] if e == "mitsuba" else "white",
+                      label=f"Mitsuba lat-long, scored by {e}")
+        ax_p.set_xscale("log")
+        ax_p.set_yscale("log")
+        log_axis(ax_p.yaxis, True)
+        log_axis(ax_p.xaxis, False)
+        ax_p.set_xlabel("parameters (3 × cells or texels, log)")
+        ax_p.set_ylabel(f"relMAE at {s['score_spp']} spp")
+        said = lambda v: f"{v['rings']} rings {'met' if v['fit']['met'] else 'not met'}"  # noqa: E731
+        verdicts = cmp_["verdicts"]
+        ax_p.set_title("final maps by size; the 20× goal (fit clock): "
+                       + ", ".join(dict.fromkeys(said(verdicts[k]) for k in
+                                                 ("default_map", "most_accurate_map"))),
+                       fontsize=10)
+        ax_p.grid(True, which="both", alpha=0.3)
+        ax_p.legend(fontsize=7.5, loc="upper right")
+    fig.suptitle(f"Envmap estimation, lightprobe and Mitsuba 3: {meta['scene_name']} "
+                 f"({meta['width']}×{meta['height']}, {len(meta['views'])} views, "
+                 f"max_bounces {meta['max_bounces']}, {meta['cpus']} CPUs)", fontsize=11)
     fig.tight_layout()
-    fig.savefig(path)
+    paths = [stem.with_suffix(".png"), stem.with_suffix(".svg")]
+    for p in paths:
+        fig.savefig(p, dpi=120)
     plt.close(fig)
+    return paths
 
 
 # --------------------------------------------------------------------------
 
+def finite(x):
+    """x for JSON: an infinite ratio (Mitsuba never reached the error) becomes null."""
+    if isinstance(x, float) and math.isinf(x):
+        return None
+    if isinstance(x, dict):
+        return {k: finite(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [finite(v) for v in x]
+    return x
+
+
 def parse_res(s: str) -> list[tuple[int, int]]:
-    out = []
-    for part in s.split(","):
-        w, h = part.lower().split("x")
-        out.append((int(w), int(h)))
-    return out
+    return [tuple(int(x) for x in part.lower().split("x")) for part in s.split(",") if part]
+
+
+def ints(s: str) -> list[int]:
+    return [int(x) for x in s.split(",") if x.strip()]
+
+
+def summary(sets: list[dict], sp: dict | None, goals: dict) -> None:
+    log("\n=== summary ===")
+    for s in sets:
+        c = s["comparison"]
+        log(f"references by {s['reference']['renderer']}:")
+        for r in s["lightprobe"]["maps"]:
+            log(f"  lightprobe {r['rings']:2d} rings ({3 * r['cells']:5d} parameters): fit "
+                f"{r['fit_seconds']:6.2f} s; relMAE by Mitsuba {r['score']['mitsuba']['rel_mae']:.4f}"
+                f", by lightprobe {r['score']['lightprobe']['rel_mae']:.4f}")
+        for f in s["mitsuba"]:
+            w, h = f["resolution"]
+            log(f"  Mitsuba {w}x{h} ({f['parameters']:5d} parameters): {f['steps']} steps, "
+                f"{f['stopped']}; best checkpoint {f['best']['rel_mae']:.4f} at "
+                f"{f['best']['seconds']:.1f} s; relMAE by Mitsuba "
+                f"{f['score']['mitsuba']['rel_mae']:.4f}, by lightprobe "
+                f"{f['score']['lightprobe']['rel_mae']:.4f}")
+        for name, v in c["verdicts"].items():
+            for clock in ("fit", "process"):
+                g = v[clock]
+                ratio = g["speed_ratio"]
+                log(f"  {name} ({v['rings']} rings), {clock} clock: "
+                    f"{'MET' if g['met'] else 'NOT MET'} -- speed "
+                    f"{'never reached by Mitsuba' if ratio == math.inf else f'{ratio:.1f}x'}"
+                    f" ({'ok' if g['speed_half'] else 'short'}), error "
+                    f"{'<=' if g['error_half'] else '>'} Mitsuba's best under both evaluators"
+                    f" ({v['rel_mae']['mitsuba']:.4f}/{v['rel_mae']['lightprobe']:.4f} vs "
+                    f"{v['mitsuba_best_rel_mae']['mitsuba']:.4f}/"
+                    f"{v['mitsuba_best_rel_mae']['lightprobe']:.4f}), Mitsuba "
+                    f"{'converged' if g['mitsuba_converged'] else 'NOT converged'}")
+        for z in c["comparable_sizes"]:
+            w, h = z["mitsuba_resolution"]
+            log(f"  comparable sizes: Mitsuba {w}x{h} ({z['mitsuba_parameters']}) vs "
+                f"{z['lightprobe_rings']} rings ({z['lightprobe_parameters']}): more accurate "
+                f"by Mitsuba's evaluator {z['more_accurate']['mitsuba']}, by lightprobe's "
+                f"{z['more_accurate']['lightprobe']}")
+    if sp:
+        vs = sp["vs_mitsuba"]
+        log(f"sphere model ({sp['model']}): relMAE {sp['rel_mae']:.4f} in "
+            f"{sp['model_seconds']:.1f} s; Mitsuba's best checkpoint "
+            f"{vs['mitsuba_best_rel_mae']:.4f} (plateau at {vs['mitsuba_plateau_seconds']:.1f} s)")
+    for k, g in goals.items():
+        log(f"GOAL {k}: {'MET' if g['met'] else 'NOT MET'}")
 
 
 def main() -> int:
@@ -796,306 +849,168 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=ms.REPO / "out" / "bench_estimate",
                     help="chart + JSON go here (default <repo>/out/bench_estimate, git-ignored)")
     ap.add_argument("--workdir", type=Path, default=None,
-                    help="references and lightprobe outputs (default: a new temp dir)")
-    ap.add_argument("--rings", type=int, default=9)
-    ap.add_argument("--curve-spp", default="64,128,256",
-                    help="extra lightprobe transport spp for the curve (the sidecar's is "
-                         "always run)")
-    ap.add_argument("--lp-repeat", type=int, default=1,
-                    help="repetitions of the main lightprobe run (median times)")
-    ap.add_argument("--big-rings", type=int, default=25, help="0 = skip the memory run")
+                    help="references and both tools' outputs (default: a new temp dir)")
+    ap.add_argument("--references", default="lightprobe,mitsuba",
+                    help="who renders the references; the comparison runs once per renderer")
+    ap.add_argument("--rings", type=int, default=9, help="lightprobe's default map")
+    ap.add_argument("--rings-list", type=ints, default=[5, 9, 13, 17, 21, 25, 41],
+                    help="lightprobe's map sizes (21 and 41 rings have about as many "
+                         "parameters as 32x16 and 64x32 texels)")
+    ap.add_argument("--curve-spp", type=ints, default=[64, 128, 256],
+                    help="more transport spp at --rings for lightprobe's time/error curve")
+    ap.add_argument("--lp-repeat", type=int, default=3,
+                    help="runs of the default map (median times)")
     ap.add_argument("--spheres", type=int, default=2, metavar="K",
-                    help="also run `estimate --model spheres:K` (--lp-repeat times, median "
-                         "times) for the sphere-light model; 0 = skip")
-    ap.add_argument("--mi-res", default="32x16", help="Mitsuba envmap WxH list, e.g. 32x16,64x32")
-    ap.add_argument("--mi-steps", type=int, default=200)
+                    help="also `estimate --model spheres:K` on lightprobe's references; 0 = skip")
+    ap.add_argument("--mi-res", type=parse_res, default=parse_res("16x8,32x16,64x32"))
+    ap.add_argument("--mi-steps", type=int, default=1500, help="Mitsuba's step budget")
+    ap.add_argument("--mi-patience", type=int, default=200,
+                    help="converged: best error gained < --mi-min-gain over this many steps")
+    ap.add_argument("--mi-min-gain", type=float, default=0.005)
     ap.add_argument("--mi-spp", type=int, default=16, help="spp per view and step")
     ap.add_argument("--mi-lr", type=float, default=0.3)
-    ap.add_argument("--mi-loss", choices=("l1", "l2"), default="l2")
-    ap.add_argument("--mi-init", default="match", help="'match' or a constant, e.g. 0.5")
     ap.add_argument("--mi-eval-every", type=int, default=10)
-    ap.add_argument("--mi-eval-spp", type=int, default=None, help="default: the sidecar's")
-    ap.add_argument("--mi-integrator", default="prb")
-    ap.add_argument("--no-crosscheck", dest="crosscheck", action="store_false")
+    ap.add_argument("--score-spp", type=int, default=2048,
+                    help="spp of both evaluators' renders of the final maps")
     ap.add_argument("--wait-idle", type=float, default=0.0, metavar="SECONDS",
-                    help="before each timed run (every lightprobe process, each Mitsuba "
-                         "optimisation) wait up to this long for other processes to use < 0.2 "
-                         "cores (a concurrent build skews timings); what they used during each "
-                         "run is recorded either way")
+                    help="before each timed run wait up to this long for other processes to "
+                         "use < 0.2 cores; what they used is recorded either way")
     ap.add_argument("--replot", type=Path, default=None,
-                    help="only redraw the chart from a bench_estimate.json (into --out)")
+                    help="only recompute the comparison and redraw the chart from a "
+                         "bench_estimate.json (into --out)")
+    ap.add_argument("--test-verdict", action="store_true", help="check the verdict logic")
     ap.add_argument("--quick", action="store_true",
-                    help="smoke test: 30 Mitsuba steps, no curve/big runs, one run each "
-                         "of the main lightprobe and the sphere model")
+                    help="smoke test: lightprobe's references, 9 rings, Mitsuba 16x8 for at "
+                         "most 60 steps, 128-spp scores, no sphere model")
     args = ap.parse_args()
+    if args.test_verdict:
+        test_verdict()
+        return 0
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = args.out / "estimate_vs_mitsuba"
     if args.replot:
         j = json.loads(args.replot.read_text())
-        args.out.mkdir(parents=True, exist_ok=True)
-        png = args.out / "estimate_vs_mitsuba.png"
-        j["time_to_error"] = time_to_error(j["lightprobe"], j["mitsuba"])   # pure: recomputed
-        j["time_to_error_same_evaluator"] = time_to_error(j["lightprobe"], j["mitsuba"],
-                                                          "rel_mae_by_mitsuba")
-        sp = j.get("spheres")                     # absent in files from before --spheres
-        if sp:
-            sp["vs_mitsuba"] = sphere_vs_mitsuba(sp, j["mitsuba"])
-        chart(png, j["lightprobe"], j["mitsuba"], j["time_to_error"], j["meta"], sp)
-        (args.out / "bench_estimate.json").write_text(json.dumps(j, indent=2, default=float) + "\n")
-        log(f"wrote {png} and {args.out / 'bench_estimate.json'}")
+        for s in j["sets"]:
+            s["comparison"] = compare(s["lightprobe"], s["mitsuba"],
+                                      j["mitsuba_import_seconds"], j["meta"]["rings"])
+        chart(stem, j["sets"], j["meta"])
+        (args.out / "bench_estimate.json").write_text(
+            json.dumps(finite(j), indent=1, allow_nan=False) + "\n")
+        log(f"redrew {stem}.png/.svg from {args.replot}")
         return 0
     if args.quick:
-        args.mi_steps, args.curve_spp, args.big_rings, args.lp_repeat = 30, "", 0, 1
-    args.curve_spp = [int(s) for s in args.curve_spp.split(",") if s.strip()]
+        args.references, args.rings_list, args.curve_spp, args.lp_repeat = "lightprobe", [9], [], 1
+        args.mi_res, args.mi_steps, args.mi_patience = [(16, 8)], 60, 30
+        args.score_spp, args.spheres = 128, 0
     t_start = time.time()
     work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_estimate_"))
     work.mkdir(parents=True, exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    loads = [load()]
-    log(f"workdir {work}; out {args.out}; {os.cpu_count()} CPUs; load average {loads[0]}")
+    log(f"workdir {work}; out {args.out}; {os.cpu_count()} CPUs; load average {load()}")
 
+    t0 = time.perf_counter()
     variant = ms.set_variant(require_llvm=True)
     import drjit as dr
     import mitsuba as mi
+    import_seconds = time.perf_counter() - t0
     desc = ms.described_scene(args.scene, args.bin)
     st = desc["settings"]
     views = [c["name"] for c in desc["cameras"]]
-    binary = binary_provenance(args.bin)
-    log(f"lightprobe binary {binary['path']} built {binary['mtime']} sha256 "
-        f"{binary['sha256'][:12]}; repo HEAD {binary['git_head']}")
-
-    # 1. references, once
-    ref = work / "reference"
-    rr = run_timed([args.bin, "render-reference", args.scene, "--out", ref, "--quiet", "--json"])
-    ref_json = json.loads(rr["stdout"])
-    refs = {v: read_rgba(ref / f"{v}.exr") for v in views}
-    log(f"references: {views} {st['width']}x{st['height']} {ref_json['settings']['spp']} spp "
-        f"seed {ref_json['settings']['seed']} max_bounces {st['max_bounces']} "
-        f"({rr['wall_seconds']:.1f} s) -> {ref}")
-
-    # 2. lightprobe
-    idle = {}
-    log(f"lightprobe estimate (load {load()}):")
-    lp = run_lightprobe_suite(args, ref, work)
-    loads += [lp["load_before"], lp["load_after"]]
-    sp = None
-    if args.spheres:
-        log(f"lightprobe estimate --model spheres:{args.spheres} (load {load()}):")
-        sp = run_sphere_suite(args, ref, work)
-        loads += [sp["load_before"], sp["load_after"]]
-    binary_after = binary_provenance(args.bin)
-
-    # 3. Mitsuba
     meshes = ms.load_meshes(ms.sidecar_gltf(args.scene))
-    mitsuba = []
-    for (w, h) in parse_res(args.mi_res):
-        log(f"Mitsuba {mi.__version__} {variant}: {w}x{h} envmap, {args.mi_integrator}, "
-            f"{args.mi_steps} steps x {args.mi_spp} spp/view, Adam lr {args.mi_lr}, "
-            f"{args.mi_loss.upper()} loss, init {args.mi_init} (load {load()}):")
-        l0 = load()
-        fit = MitsubaFit(args, desc, meshes, refs, w, h)
-        if args.wait_idle:
-            idle[f"mitsuba_{w}x{h}"] = wi = wait_idle(args.wait_idle)
-            log(f"  waited {wi['waited_seconds']:.0f} s for an idle machine: other processes "
-                f"at {wi['other_cores_last_window']:.2f} cores")
-        with CpuMonitor() as cm:
-            r = fit.run()
-        r["cpu"] = cm.result
-        r["load_before"], r["load_after"] = l0, load()
-        loads += [l0, r["load_after"]]
-        mitsuba.append(r)
-        log(f"  -> best relMAE {r['best']['rel_mae']:.4f} at step {r['best']['step']} "
-            f"({r['best']['seconds']:.1f} s), final {r['final']['rel_mae']:.4f}; scene build "
-            f"{r['scene_build_seconds']:.1f} s, first step {r['first_step_seconds']:.2f} s, "
-            f"median step {r['median_step_seconds']:.3f} s; other processes used "
-            f"{r['cpu']['other_cores']:.2f} cores meanwhile")
-    mi_rss = __import__("resource").getrusage(__import__("resource").RUSAGE_SELF).ru_maxrss * 1024
+    binary = binary_provenance(args.bin)
+    log(f"lightprobe {binary['path']} (sha256 {binary['sha256'][:12]}, HEAD "
+        f"{binary['git_head']}); Mitsuba {mi.__version__} {variant}, import "
+        f"{import_seconds:.1f} s")
 
-    cc = None
-    if args.crosscheck:      # every lightprobe envmap run of the time-to-error
-        cc = crosscheck_all(args, desc, meshes, refs, lp)
+    sets, sp = [], None
+    for renderer in args.references.split(","):
+        sub = work / f"refs_by_{renderer}"
+        ref = render_references(args, desc, meshes, renderer, sub / "reference")
+        refs = {v: read_rgba(Path(ref["dir"]) / f"{v}.exr") for v in views}
+        log(f"\nreferences by {renderer}: {views}, {st['spp']} spp ({ref['seconds']:.1f} s)")
+        lp = run_lightprobe_suite(args, Path(ref["dir"]), sub)
+        if renderer == "lightprobe" and args.spheres:
+            sp = run_sphere_suite(args, Path(ref["dir"]), sub)
+        fits = []
+        for (w, h) in args.mi_res:
+            log(f"  Mitsuba {w}x{h}: Adam lr {args.mi_lr}, {args.mi_spp} spp/view/step, until "
+                f"converged (< {100 * args.mi_min_gain:g}% over {args.mi_patience} steps) or "
+                f"{args.mi_steps} steps")
+            fit = MitsubaFit(args, desc, meshes, refs, w, h)
+            if args.wait_idle:
+                wait_idle(args.wait_idle)
+            with CpuMonitor() as cm:
+                f = fit.run()
+            f["cpu"] = cm.result
+            fits.append(f)
+            log(f"  -> {f['stopped']} at step {f['steps']}: best {f['best']['rel_mae']:.4f} at "
+                f"step {f['best']['step']} ({f['best']['seconds']:.1f} s); other processes "
+                f"{cm.result['other_cores']:.2f} cores")
+        # the evaluators: curves at the sidecar's spp by Mitsuba; final maps by both
+        k = 0
+        for r in lp["curve"] + [r for r in lp["maps"] if r not in lp["curve"]]:
+            k += 1
+            r["curve_eval"] = score_by_mitsuba(args, desc, meshes, refs,
+                                               Path(r["out"]) / "envmap.exr", st["spp"],
+                                               2_000_000 + 10 * k)
+        for r in lp["maps"]:
+            k += 1
+            r["score"] = {
+                "mitsuba": score_by_mitsuba(args, desc, meshes, refs,
+                                            Path(r["out"]) / "envmap.exr", args.score_spp,
+                                            3_000_000 + 10 * k),
+                "lightprobe": score_by_lightprobe(args, refs, Path(r["out"]) / "envmap.ron",
+                                                  args.score_spp, 10_000 + k,
+                                                  sub / f"score_lp_{r['rings']}", False)}
+        for f in fits:
+            k += 1
+            w, h = f["resolution"]
+            best = f.pop("best_map")
+            raw, fine = sub / f"mitsuba_{w}x{h}.exr", sub / f"mitsuba_{w}x{h}_fine.exr"
+            write_exr(raw, best)
+            write_exr(fine, mitsuba_map_on_fine_grid(best))
+            f["map"] = str(raw)
+            f["score"] = {
+                "mitsuba": score_by_mitsuba(args, desc, meshes, refs, best, args.score_spp,
+                                            3_000_000 + 10 * k),
+                "lightprobe": score_by_lightprobe(args, refs, fine, args.score_spp, 10_000 + k,
+                                                  sub / f"score_mi_{w}x{h}", True)}
+        sets.append({"reference": ref, "score_spp": args.score_spp, "lightprobe": lp,
+                     "mitsuba": fits,
+                     "comparison": compare(lp, fits, import_seconds, args.rings)})
 
-    # 4. time-to-error and goals
-    tte = time_to_error(lp, mitsuba)
-    tte_same = time_to_error(lp, mitsuba, "rel_mae_by_mitsuba") if cc else None
-    mn = lp["main"]
-
-    def speed_goal(t: dict, key: str) -> dict:
-        head = t["per_resolution"][0]
-        return {
-            "lightprobe_error": key, "lightprobe_rel_mae": mn[key],
-            "ratio_fit": head.get("ratio_fit"),
-            "ratio_process_wall": head.get("ratio_process_wall"),
-            "lightprobe_error_le_mitsuba_best": mn[key] <= min(m["best"]["rel_mae"]
-                                                               for m in mitsuba),
-            "met": bool(head.get("ratio_fit") and head["ratio_fit"] >= 20),
-            "met_by_process_wall": bool(head.get("ratio_process_wall")
-                                        and head["ratio_process_wall"] >= 20),
-        }
-
-    goals = {
-        "speed_20x_at_equal_or_lower_error": {
-            **speed_goal(tte, "rel_mae"),
-            "same_evaluator": speed_goal(tte_same, "rel_mae_by_mitsuba") if tte_same else None,
-        },
-        "under_5s_wall": {"process_wall_seconds": mn["process_wall_seconds"],
-                          "process_wall_excl_evaluation_seconds":
-                              mn["process_wall_excl_evaluation_seconds"],
-                          "fit_seconds": mn["fit_seconds"],
-                          "met_by_process_wall": mn["process_wall_seconds"] < 5,
-                          "met_excl_evaluation": mn["process_wall_excl_evaluation_seconds"] < 5},
-    }
-    if sp:
-        sp["vs_mitsuba"] = sphere_vs_mitsuba(sp, mitsuba)
-        goals["spheres_under_15s"] = {"model": sp["model"], "model_seconds": sp["model_seconds"],
-                                      "rel_mae": sp["rel_mae"], "met": sp["goal_under_15_s_met"]}
-    if lp.get("big"):
-        b = lp["big"]
+    goals = {}
+    for s in sets:
+        v = s["comparison"]["verdicts"]["default_map"]
+        goals[f"speed_20x_at_equal_or_lower_error_refs_by_{s['reference']['renderer']}"] = {
+            "rings": v["rings"], **v["fit"], "process_clock": v["process"]}
+    big = [r for r in sets[0]["lightprobe"]["maps"] if r["rings"] == 25]
+    if big:
+        b = big[0]
         goals["peak_memory_25_rings_under_1GiB"] = {
-            "rings": b["rings"], "peak_bytes": b["peak_bytes"], "max_rss_bytes": b["max_rss_bytes"],
+            "peak_bytes": b["peak_bytes"], "max_rss_bytes": b["max_rss_bytes"],
             "met": max(b["peak_bytes"], b["max_rss_bytes"]) < GIB}
-    flat = [x for l3 in loads for x in l3[:1]]
+    if sp:
+        sp["vs_mitsuba"] = sphere_vs_mitsuba(sp, sets[0]["mitsuba"])
+        goals["spheres_under_15s"] = {"model_seconds": sp["model_seconds"],
+                                      "met": sp["goal_under_15_s_met"]}
     meta = {"scene_name": Path(args.scene).stem, "width": st["width"], "height": st["height"],
             "views": views, "max_bounces": st["max_bounces"], "cpus": os.cpu_count(),
-            "load_summary": f"1-min {min(flat):.2f}-{max(flat):.2f}; other processes used "
-                            f"{mn['cpu']['other_cores']:.2f} cores during lightprobe's main run, "
-                            + ", ".join(f"{m['cpu']['other_cores']:.2f}" for m in mitsuba)
-                            + " during Mitsuba's"
-                            + ("; " + ", ".join(f"{r['cpu']['other_cores']:.2f}"
-                                                for r in sp["runs"])
-                               + " during the sphere runs" if sp else "")}
-    png = args.out / "estimate_vs_mitsuba.png"
-    chart(png, lp, mitsuba, tte, meta, sp)
-
+            "rings": args.rings}
+    paths = chart(stem, sets, meta)
     result = {
-        "scene": str(args.scene), "views": views, "settings": st, "cpus": os.cpu_count(),
-        "loadavg_samples": loads, "wait_idle": idle, "lightprobe_binary": binary,
-        "lightprobe_binary_after_lightprobe_runs": binary_after, "reference": {"dir": str(ref), "seconds": rr["wall_seconds"]},
-        "lightprobe": lp, "spheres": sp, "mitsuba": mitsuba, "mitsuba_version": mi.__version__,
-        "mitsuba_variant": variant, "mitsuba_threads": dr.thread_count(),
-        "mitsuba_python_max_rss_bytes": mi_rss, "crosscheck": cc, "time_to_error": tte,
-        "time_to_error_same_evaluator": tte_same, "goals": goals, "meta": meta, "chart": str(png), "seconds": time.time() - t_start,
+        "protocol": __doc__, "scene": str(args.scene), "settings": st, "meta": meta,
+        "lightprobe_binary": binary, "lightprobe_binary_after": binary_provenance(args.bin),
+        "mitsuba_version": mi.__version__, "mitsuba_variant": variant,
+        "mitsuba_threads": dr.thread_count(), "mitsuba_import_seconds": import_seconds,
+        "sets": sets, "spheres": sp, "goals": goals,
+        "charts": [str(p) for p in paths], "seconds": time.time() - t_start,
         "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
     }
     jpath = args.out / "bench_estimate.json"
-    jpath.write_text(json.dumps(result, indent=2, default=float) + "\n")
-
-    # 5. summary
-    log("\n=== summary ===")
-    log(f"lightprobe {args.rings} rings ({mn['cells']} cells), solver {mn['solver']}, rounds "
-        f"{mn['rounds']}, {mn['threads']} threads:")
-    if binary_after["sha256"] != binary["sha256"]:
-        log(f"  WARNING: the lightprobe binary was rebuilt during the lightprobe runs "
-            f"({binary_after['mtime']}): they may not all be of the same build")
-    for r in lp["curve"]:
-        by_mi = r.get("rel_mae_by_mitsuba")
-        log(f"  spp {r['transport_spp']:4d}: relMAE {r['rel_mae']:.4f}"
-            + (f" (by Mitsuba {by_mi:.4f})" if by_mi is not None else "")
-            + f"  fit {r['fit_seconds']:.2f} s"
-            f"  report total {r['total_seconds']:.2f} s  process wall "
-            f"{r['process_wall_seconds']:.2f} s (excl. evaluation "
-            f"{r['process_wall_excl_evaluation_seconds']:.2f} s)")
-    log(f"  noise floor relMAE {mn['noise_floor_rel_mae']:.4f}")
-    if lp.get("big"):
-        b = lp["big"]
-        log(f"  {b['rings']} rings: relMAE {b['rel_mae']:.4f}, fit {b['fit_seconds']:.2f} s, peak "
-            f"memory {b['peak_bytes'] / 2**20:.0f} MiB (max RSS {b['max_rss_bytes'] / 2**20:.0f} MiB)")
-    for m in mitsuba:
-        w, h = m["resolution"]
-        pts = ", ".join(f"{c['seconds']:.1f}s:{c['rel_mae']:.4f}" for c in m["curve"])
-        log(f"Mitsuba {w}x{h}: best {m['best']['rel_mae']:.4f} (step {m['best']['step']}, "
-            f"{m['best']['seconds']:.1f} s), final {m['final']['rel_mae']:.4f}; curve {pts}")
-    def log_tte(t: dict, label: str = "") -> None:
-        for row, m in zip(t["per_resolution"], mitsuba):
-            w, h = row["resolution"]
-            if row.get("mitsuba_seconds") and row.get("lightprobe_fit_seconds"):
-                log(f"{label}time to relMAE {row['target_rel_mae']:.4f} ({row['target_is']}), "
-                    f"Mitsuba {w}x{h}: Mitsuba {row['mitsuba_seconds']:.1f} s (previous "
-                    f"checkpoint {row['mitsuba_seconds_previous_checkpoint']:.1f} s; "
-                    f"+{m['scene_build_seconds']:.1f} s scene build), lightprobe fit "
-                    f"{row['lightprobe_fit_seconds']:.2f} s (spp "
-                    f"{row['lightprobe_transport_spp']}) / process wall "
-                    f"{row['lightprobe_process_wall_seconds']:.2f} s -> ratio "
-                    f"{row['ratio_fit']:.1f}x (fit), {row['ratio_process_wall']:.1f}x (process "
-                    f"wall), {row['ratio_process_wall_excl_evaluation']:.1f}x (wall excl. "
-                    f"evaluation)")
-            elif not row.get("mitsuba_seconds"):
-                log(f"{label}time to relMAE {row['target_rel_mae']:.4f} ({row['target_is']}), "
-                    f"Mitsuba {w}x{h}: Mitsuba never reaches it")
-        for row in t["per_resolution"]:
-            w, h = row["resolution"]
-            pts = [f"{q['rel_mae']:.4f}: lightprobe {q['lightprobe_fit_seconds']:.2f} s (spp "
-                   f"{q['transport_spp']}) vs Mitsuba {q['mitsuba_seconds']:.1f} s = "
-                   f"{q['ratio_fit']:.1f}x" if q["mitsuba_seconds"] else
-                   f"{q['rel_mae']:.4f}: Mitsuba {w}x{h} never reaches it"
-                   for q in row["per_lightprobe_point"]]
-            log(f"{label}Mitsuba {w}x{h} time to each lightprobe point's error: "
-                + "; ".join(pts))
-
-    log_tte(tte)
-    if tte_same:
-        log_tte(tte_same, "same evaluator (Mitsuba renders both maps): ")
-    else:
-        log("same evaluator (Mitsuba renders both maps): not run (--no-crosscheck)")
-    if sp:
-        vs = sp["vs_mitsuba"]
-        log(f"sphere model ({sp['model']}): relMAE {100 * sp['rel_mae']:.2f}% (noise floor "
-            f"{100 * sp['noise_floor_rel_mae']:.2f}%, envmap {100 * sp['envmap_rel_mae']:.2f}%) in "
-            f"{sp['model_seconds']:.1f} s (envmap init {sp['envmap_fit_seconds']:.1f} s + spheres "
-            f"{sp['sphere_fit_seconds']:.1f} s; median of {sp['repeats']}); Mitsuba best "
-            f"{100 * vs['mitsuba_best_rel_mae']:.2f}% after {vs['mitsuba_plateau_seconds']:.1f} s "
-            f"to plateau; goal < 15 s: {'met' if sp['goal_under_15_s_met'] else 'NOT met'}")
-        log(f"  process wall {sp['process_wall_seconds']:.1f} s (excl. evaluation "
-            f"{sp['process_wall_excl_evaluation_seconds']:.1f} s), {sp['renders']} renders, "
-            f"{sp['iterations']} iterations; fitted lights: "
-            + ", ".join(str(fl.get("status")) for fl in sp["lights"] or []))
-        num = lambda v, f: "?" if v is None else format(v, f)  # noqa: E731
-        for i, rc in enumerate(sp["recovery"] or []):
-            if rc.get("centre_error_m") is None:
-                log(f"  true light {i}: not recovered (the model has fewer lights)")
-                continue
-            frac = rc.get("centre_error_fraction_of_distance")
-            log(f"  true light {i} ({rc['true_distance_m']:.2f} m from the scene centre): centre "
-                f"off {rc['centre_error_m']:.3f} m "
-                f"({num(frac and 100 * frac, '.1f')}%"
-                f" of its distance), radius {num(rc.get('radius'), '.3f')} (true "
-                f"{rc['true_radius']:.3f}), power x{num(rc.get('power_ratio'), '.3f')}")
-        log(f"  Mitsuba's best {vs['mitsuba_best_rel_mae']:.4f} ({vs['mitsuba_best_resolution'][0]}x"
-            f"{vs['mitsuba_best_resolution'][1]}, {vs['mitsuba_best_seconds']:.1f} s); first within "
-            f"{100 * vs['plateau_tolerance_relative']:.0f}% of it at {vs['mitsuba_plateau_seconds']:.1f} s "
-            f"({vs['mitsuba_plateau_rel_mae']:.4f}, {vs['mitsuba_plateau_resolution'][0]}x"
-            f"{vs['mitsuba_plateau_resolution'][1]})"
-            + ("; its best is its last checkpoint: still improving, the plateau is where it "
-               "stopped" if vs["mitsuba_best_at_last_checkpoint"] else "")
-            + "; Mitsuba to the sphere model's error: "
-            + ", ".join(f"{r['resolution'][0]}x{r['resolution'][1]} "
-                        + (f"{r['seconds_to_sphere_error']:.1f} s" if r["seconds_to_sphere_error"]
-                           is not None else "never")
-                        for r in vs["per_resolution"]))
-    def verdict(g: dict) -> str:
-        return (f"{'MET' if g['met'] else 'NOT MET'} (fit ratio "
-                f"{g['ratio_fit'] and round(g['ratio_fit'], 1)}, process-wall ratio "
-                f"{g['ratio_process_wall'] and round(g['ratio_process_wall'], 1)}; lightprobe "
-                f"error {g['lightprobe_rel_mae']:.4f} "
-                f"{'<=' if g['lightprobe_error_le_mitsuba_best'] else '>'} Mitsuba's best)")
-
-    g = goals["speed_20x_at_equal_or_lower_error"]
-    log(f"GOAL >= 20x faster at equal or lower error: by own re-renders {verdict(g)}; "
-        f"same evaluator (Mitsuba renders both maps) "
-        + (verdict(g["same_evaluator"]) if g["same_evaluator"] else "not run (--no-crosscheck)"))
-    g = goals["under_5s_wall"]
-    log(f"GOAL under 5 s wall: process wall {g['process_wall_seconds']:.2f} s -> "
-        f"{'MET' if g['met_by_process_wall'] else 'NOT MET'}; excluding its evaluation renders "
-        f"{g['process_wall_excl_evaluation_seconds']:.2f} s -> "
-        f"{'MET' if g['met_excl_evaluation'] else 'NOT MET'}; fit {g['fit_seconds']:.2f} s")
-    if "spheres_under_15s" in goals:
-        g = goals["spheres_under_15s"]
-        log(f"GOAL sphere model ({g['model']}) under 15 s: envmap fit + sphere fit "
-            f"{g['model_seconds']:.2f} s -> {'MET' if g['met'] else 'NOT MET'}")
-    if "peak_memory_25_rings_under_1GiB" in goals:
-        g = goals["peak_memory_25_rings_under_1GiB"]
-        log(f"GOAL peak memory at {g['rings']} rings < 1 GiB: {g['peak_bytes'] / 2**20:.0f} MiB "
-            f"(max RSS {g['max_rss_bytes'] / 2**20:.0f} MiB) -> {'MET' if g['met'] else 'NOT MET'}")
-    log(f"load average samples (1-min): {flat} on {os.cpu_count()} CPUs; {meta['load_summary']}")
-    log(f"wrote {png} and {jpath} ({time.time() - t_start:.0f} s)")
+    jpath.write_text(json.dumps(finite(result), indent=1, default=float, allow_nan=False)
+                     + "\n")
+    summary(sets, sp, goals)
+    log(f"wrote {', '.join(map(str, paths))} and {jpath} ({time.time() - t_start:.0f} s)")
     return 0
 
 

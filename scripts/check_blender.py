@@ -711,6 +711,9 @@ def main() -> int:
         desc = scene_truth.described(args.scene, binary, log=log)
     except scene_truth.TruthError as e:
         raise lc.CheckError(str(e)) from e
+    if desc["vertex_colors"]:
+        raise lc.CheckError(f"{args.scene}: vertex colours (COLOR_0) are not built into the "
+                            "Blender scene by this check")
     st = desc["settings"]
     spp = args.spp or st["spp"]
     seed1 = st["seed"]

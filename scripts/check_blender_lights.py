@@ -170,8 +170,8 @@ def main() -> int:
         desc = scene_truth.described(glb, binary, HEIGHT, log=log)
     except scene_truth.TruthError as e:
         raise lc.CheckError(str(e)) from e
-    st = info["settings"]
-    views = [c["name"] for c in info["cameras"]]
+    st = desc["settings"]             # the render settings and views of the scene's reading
+    views = [c["name"] for c in desc["cameras"]]
     read_ok = (st["width"], st["height"]) == (HEIGHT * 4 // 3, HEIGHT) and \
         len(info["lights"]) == len(LIGHTS)
     for got, (n, pos, c, cd) in zip(info["lights"], LIGHTS):

@@ -280,7 +280,10 @@ def sphere_exports(args, work: Path, mi, exr) -> list[str]:
          "--model", "spheres:2", "--quiet", "-o", est], "lightprobe estimate --model spheres:2")
     spheres = est / "spheres"
     import scene_truth
-    desc = scene_truth.described(spheres / "scene.glb", args.lightprobe, 96, log=log)
+    try:
+        desc = scene_truth.described(spheres / "scene.glb", args.lightprobe, 96, log=log)
+    except scene_truth.TruthError as e:
+        raise SystemExit(f"FAIL: {e}") from e
     views = [c["name"] for c in desc["cameras"]]
     spp = desc["settings"]["spp"]
     lp = {v: [] for v in views}

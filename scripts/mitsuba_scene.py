@@ -334,6 +334,11 @@ def light_dicts(lights: list[dict], perturb: str | None = None) -> dict:
                         [-math.sin(a), 0, math.cos(a)]])
     for i, L in enumerate(lights):
         c = rot @ np.asarray(L["center"], dtype=np.float64)
+        if L["radius"] == 0:        # a point light of radiant intensity W/sr
+            out[f"light_{i}"] = {"type": "point", "position": [float(x) for x in c],
+                                 "intensity": {"type": "rgb",
+                                               "value": [float(x) for x in L["intensity"]]}}
+            continue
         out[f"light_{i}"] = {
             "type": "sphere", "center": [float(x) for x in c], "radius": float(L["radius"]),
             "emitter": {"type": "area",
@@ -460,6 +465,9 @@ def build_scene(sidecar: Path = DEFAULT_SCENE, lightprobe_bin: Path = DEFAULT_BI
     if perturb is not None and perturb not in PERTURBATIONS:
         raise ValueError(f"unknown perturbation {perturb!r}")
     desc = desc or described_scene(sidecar, lightprobe_bin)
+    if desc.get("vertex_colors"):
+        raise NotImplementedError(f"{sidecar}: vertex colours (COLOR_0) are not built into "
+                                  "the Mitsuba scene")
     settings = desc["settings"]
     spp = int(spp or settings["spp"])
     max_depth = int(max_depth or settings["max_bounces"] + 1)

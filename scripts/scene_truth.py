@@ -17,15 +17,20 @@ with lightprobe's loader:
 `described(scene, binary)` returns the scene read here, in the shape of
 `lightprobe info`'s JSON (cameras, lights, materials, settings), after checking
 that lightprobe loaded the same thing; and it proves that comparison can fail:
-every mutation in `MUTATIONS` of what lightprobe reported (a wrong albedo, a
-moved or brighter light, a turned camera, ...) must be caught, or the check
-fails. The checks then build their renders from this reading, not from `info`.
+every mutation from `mutations()` of what lightprobe reported (a wrong albedo,
+a moved or brighter light, a turned camera, ...) must be caught, or the check
+fails. Tolerances are a few f32 ulp of the values compared; the mutations are
+sized far beyond them at any scale. The checks then build their renders from
+this reading, not from `info`.
 
 Scope (anything else raises NotImplementedError, naming it): sidecar fields
 gltf, views, cameras (LookAt and Matrix poses), image, albedo (Constant and Map
-overrides), lights (Sphere, Point), envmap, render; glTF perspective cameras,
-point lights, baseColorFactor/baseColorTexture (texCoord 0). `python
-scripts/scene_truth.py [SCENE] [--height H]` prints the reading as JSON.
+overrides), lights (Sphere, Point), envmap, render; glTF perspective cameras
+(orthographic ones are skipped, as lightprobe skips them; mirrored or sheared
+ones are refused, as lightprobe refuses them), point lights, baseColorFactor
+and 8-bit baseColorTexture (texCoord 0), whether any vertex colour (COLOR_0)
+differs from white. `python scripts/scene_truth.py [SCENE] [--height H]`
+prints the reading as JSON; `--check LIGHTPROBE SCENE...` compares.
 """
 
 from __future__ import annotations
@@ -70,6 +75,56 @@ class Named:
         return f"Named({self.name!r}, {self.value!r})"
 
 
+ESCAPES = {"n": "\n", "t": "\t", "r": "\r", "0": "\0", "\\": "\\", '"': '"', "'": "'"}
+
+
+def _string(text: str, i: int, where: str) -> tuple[str, int]:
+    """A RON string starting at text[i] (`"..."` with escapes, or `r#"..."#`): (value, end)."""
+    if text[i] == "r":
+        j = i + 1
+        while text[j] == "#":
+            j += 1
+        hashes = j - i - 1
+        close = '"' + "#" * hashes
+        k = text.find(close, j + 1)
+        if text[j] != '"' or k < 0:
+            raise TruthError(f"{where}: bad raw string at offset {i}")
+        return text[j + 1:k], k + len(close)
+    j, out = i + 1, []
+    while j < len(text) and text[j] != '"':
+        if text[j] != "\\":
+            out.append(text[j])
+            j += 1
+            continue
+        e = text[j + 1: j + 2]
+        if e in ESCAPES:
+            out.append(ESCAPES[e])
+            j += 2
+        elif e == "x":
+            out.append(chr(int(text[j + 2:j + 4], 16)))
+            j += 4
+        elif e == "u" and text[j + 2:j + 3] == "{":
+            k = text.index("}", j)
+            out.append(chr(int(text[j + 3:k], 16)))
+            j = k + 1
+        else:
+            raise TruthError(f"{where}: unknown escape \\{e} at offset {j}")
+    if j >= len(text):
+        raise TruthError(f"{where}: unclosed string")
+    return "".join(out), j + 1
+
+
+def _number(word: str):
+    try:
+        return int(word.replace("_", ""), 0)          # 12, 0x10, 0b101, 1_000
+    except ValueError:
+        pass
+    try:
+        return float(word.replace("_", ""))           # 1.5, 1e3, inf, NaN
+    except ValueError:
+        return None
+
+
 def _tokens(text: str, where: str):
     i, n = 0, len(text)
     while i < n:
@@ -79,44 +134,43 @@ def _tokens(text: str, where: str):
         elif text.startswith("//", i):
             j = text.find("\n", i)
             i = n if j < 0 else j
-        elif text.startswith("/*", i):
-            j = text.find("*/", i + 2)
-            if j < 0:
-                raise TruthError(f"{where}: unclosed /* comment")
-            i = j + 2
+        elif text.startswith("/*", i):               # RON's block comments nest
+            depth, i = 1, i + 2
+            while depth:
+                if i >= n:
+                    raise TruthError(f"{where}: unclosed /* comment")
+                if text.startswith("/*", i):
+                    depth, i = depth + 1, i + 2
+                elif text.startswith("*/", i):
+                    depth, i = depth - 1, i + 2
+                else:
+                    i += 1
         elif text.startswith("#![", i):          # extensions: #![enable(implicit_some)]
             j = text.find("]", i)
             i = n if j < 0 else j + 1
         elif c in "()[]{}:,":
             yield c
             i += 1
-        elif c == '"':
-            j, out = i + 1, []
-            while j < n and text[j] != '"':
-                if text[j] == "\\":
-                    j += 1
-                    out.append({"n": "\n", "t": "\t"}.get(text[j], text[j]))
-                else:
-                    out.append(text[j])
-                j += 1
-            if j >= n:
-                raise TruthError(f"{where}: unclosed string")
-            yield ("str", "".join(out))
-            i = j + 1
+        elif c == '"' or (c == "r" and text[i + 1:i + 2] in ('"', "#")):
+            value, i = _string(text, i, where)
+            yield ("str", value)
         else:
             j = i
             while j < n and (text[j].isalnum() or text[j] in "_.+-"):
+                if text[j] in "+-" and j > i and text[j - 1] not in "eE":
+                    break
                 j += 1
             if j == i:
                 raise TruthError(f"{where}: unexpected {c!r} at offset {i}")
             word = text[i:j]
-            try:
-                yield ("num", int(word))
-            except ValueError:
-                try:
-                    yield ("num", float(word))
-                except ValueError:
-                    yield ("ident", word)
+            numeric = word[0].isdigit() or word[0] in "+-." or word in ("inf", "NaN")
+            num = _number(word) if numeric else None
+            if num is not None:
+                yield ("num", num)
+            elif numeric:
+                raise TruthError(f"{where}: bad number {word!r} at offset {i}")
+            else:
+                yield ("ident", word)
             i = j
 
 
@@ -238,13 +292,44 @@ def _image_bytes(gj: dict, binchunk, base: Path, image: dict) -> bytes:
     return (base / uri).read_bytes()
 
 
+COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,
+              5126: np.float32}
+WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+
+def read_accessor(gj: dict, binchunk, base: Path, index: int) -> np.ndarray:
+    """An accessor's values as floats (normalized integers scaled to [0, 1] or [-1, 1])."""
+    a = gj["accessors"][index]
+    if "sparse" in a or "bufferView" not in a:
+        raise NotImplementedError("a sparse or buffer-less accessor")
+    bv = gj["bufferViews"][a["bufferView"]]
+    buf = _buffer_bytes(gj, binchunk, base, bv["buffer"])
+    dt = np.dtype(COMPONENTS[a["componentType"]]).newbyteorder("<")
+    k = WIDTH[a["type"]]
+    stride = bv.get("byteStride") or dt.itemsize * k
+    start = bv.get("byteOffset", 0) + a.get("byteOffset", 0)
+    if a["count"] and start + (a["count"] - 1) * stride + k * dt.itemsize > len(buf):
+        raise TruthError(f"accessor {index} runs past the end of its buffer")
+    rows = np.lib.stride_tricks.as_strided(
+        np.frombuffer(buf, np.uint8, offset=start), (a["count"], k * dt.itemsize),
+        (stride, 1)) if a["count"] else np.zeros((0, k * dt.itemsize), np.uint8)
+    x = np.ascontiguousarray(rows).view(dt).reshape(a["count"], k).astype(np.float64)
+    if a.get("normalized") and dt.kind in "iu":
+        x = x / np.iinfo(dt).max
+    return x
+
+
 def srgb_to_linear(s: np.ndarray) -> np.ndarray:
     return np.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055) ** 2.4)
 
 
 def texture_summary(png: bytes) -> dict:
-    """Width, height and mean linear RGB of an sRGB-encoded image."""
+    """Width, height and mean linear RGB of an 8-bit sRGB-encoded image."""
     from PIL import Image
+    if png[:8] == b"\x89PNG\r\n\x1a\n" and png[24] == 16:
+        # Pillow keeps only 8 bits of a 16-bit RGB PNG, and lightprobe reduces it to 8
+        # bits its own way: they would agree or differ by rounding, not by loading.
+        raise NotImplementedError("a 16-bit PNG texture")
     img = Image.open(io.BytesIO(png)).convert("RGB")
     lin = srgb_to_linear(np.asarray(img, dtype=np.float64) / 255.0)
     return {"width": img.width, "height": img.height,
@@ -286,6 +371,10 @@ def world_nodes(gj: dict):
 def camera_from_matrix(name: str, m: np.ndarray, yfov: float, size) -> dict:
     """A camera at a camera-to-world placement: glTF's camera looks down -Z with +Y up."""
     axes = [m[:3, k] / np.linalg.norm(m[:3, k]) for k in range(3)]
+    frame = np.stack(axes, axis=1)
+    if np.linalg.det(frame) < 0 or np.abs(frame.T @ frame - np.eye(3)).max() > 1e-4:
+        # a mirrored or sheared camera has no right/up/forward frame to compare
+        raise NotImplementedError(f"camera {name!r}: a mirrored or sheared placement")
     return {"name": name, "origin": m[:3, 3].tolist(), "right": axes[0].tolist(),
             "up": axes[1].tolist(), "forward": (-axes[2]).tolist(), "yfov": float(yfov),
             "width": size[0], "height": size[1]}
@@ -358,11 +447,18 @@ def read_scene(scene: Path, height: int | None = None) -> dict:
             m["albedo_factor"] = [1.0, 1.0, 1.0]
             m["texture"] = texture_summary((scene.parent / src.value).read_bytes())
 
-    # cameras and glTF lights, walking the node tree
-    cameras, gltf_lights = [], []
+    # cameras, glTF lights and vertex colours, walking the node tree
+    cameras, gltf_lights, coloured = [], [], False
+    overridden = set(side.get("albedo") or {})
     punctual = gj.get("extensions", {}).get("KHR_lights_punctual", {}).get("lights", [])
     for i, world in world_nodes(gj):
         node = gj["nodes"][i]
+        for prim in gj["meshes"][node["mesh"]]["primitives"] if "mesh" in node else []:
+            mat = prim.get("material")
+            name = "" if mat is None else gj["materials"][mat].get("name", f"material{mat}")
+            if "COLOR_0" in prim["attributes"] and name not in overridden:
+                c = read_accessor(gj, binchunk, base, prim["attributes"]["COLOR_0"])
+                coloured |= bool((c[:, :3] != 1.0).any())
         if "camera" in node:
             cam = gj["cameras"][node["camera"]]
             if cam.get("type") == "perspective":
@@ -434,22 +530,35 @@ def read_scene(scene: Path, height: int | None = None) -> dict:
                 "max_bounces": int(render["max_bounces"]), "seed": int(render["seed"]),
                 "rings": int(_struct(side.get("envmap") or {}).get("rings", DEFAULT_RINGS))}
     return {"scene": str(scene), "gltf": str(gltf_path), "cameras": cameras, "lights": lights,
-            "materials": materials, "settings": settings}
+            "materials": materials, "vertex_colors": coloured, "settings": settings}
 
 
 # ----------------------------------------------------------------------------- comparison
 
-# Tolerances: lightprobe holds f32, so its values agree with these f64 readings to ~1e-7
-# relative; a real loader bug is orders of magnitude larger (the mutations below are
-# 1 mm, 0.1 deg, 1 %).
-ABS = 2e-5
-REL = 2e-6
-TEXTURE_MEAN = 2e-4
+# lightprobe holds f32: its values agree with these f64 readings to a few units in the last
+# place (ulp) of the values involved. Tolerance: ULPS ulp of the larger magnitude, plus a
+# floor for values that are zero up to rounding (a unit vector's component). The mutations
+# below are sized far beyond it at any scale.
+ULPS = 16
+FLOOR = 1e-6
+TEXTURE_MEAN = 2e-4     # a texture's mean over many texels: f32 sums in a different order
 
 
-def _close(a, b, rel: float = REL, abs_: float = ABS) -> bool:
+def tolerance(a, b) -> np.ndarray:
+    m = np.maximum(np.abs(np.asarray(a, np.float64)), np.abs(np.asarray(b, np.float64)))
+    return ULPS * np.spacing(m.astype(np.float32)).astype(np.float64) + FLOOR * (m < 1.0)
+
+
+def _close(a, b) -> bool:
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    return a.shape == b.shape and bool(np.all(np.abs(a - b) <= abs_ + rel * np.abs(b)))
+    return a.shape == b.shape and bool(np.all(np.abs(a - b) <= tolerance(a, b)))
+
+
+def _close_relative(a, b, rel: float = ULPS * 2.0 ** -23) -> bool:
+    """For radiometric values, which have no natural absolute scale."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return a.shape == b.shape and bool(np.all(np.abs(a - b) <= rel * np.maximum(
+        np.abs(a), np.abs(b))))
 
 
 def mismatches(truth: dict, info: dict) -> list[str]:
@@ -469,8 +578,9 @@ def mismatches(truth: dict, info: dict) -> list[str]:
     if len(truth["lights"]) != len(info["lights"]):
         out.append(f"{len(info['lights'])} lights, read here {len(truth['lights'])}")
     for i, (t, l) in enumerate(zip(truth["lights"], info["lights"])):
-        for k in ("center", "radius", "radiance", "intensity"):
-            if (k in t) != (k in l) or (k in t and not _close(l[k], t[k])):
+        for k, same in (("center", _close), ("radius", _close_relative),
+                        ("radiance", _close_relative), ("intensity", _close_relative)):
+            if (k in t) != (k in l) or (k in t and not same(l[k], t[k])):
                 out.append(f"light {i}: {k} {l.get(k)}, read here {t.get(k)}")
     tm = [m["name"] for m in truth["materials"]]
     lm = [m["name"] for m in info["materials"]]
@@ -485,9 +595,11 @@ def mismatches(truth: dict, info: dict) -> list[str]:
                        f"{'texture' in t}")
         elif "texture" in t:
             tt, lt = t["texture"], l["texture"]
-            if (tt["width"], tt["height"]) != (lt["width"], lt["height"]) or not _close(
-                    lt["mean_linear"], tt["mean_linear"], 0.0, TEXTURE_MEAN):
+            if (tt["width"], tt["height"]) != (lt["width"], lt["height"]) or not np.all(
+                    np.abs(np.subtract(lt["mean_linear"], tt["mean_linear"])) <= TEXTURE_MEAN):
                 out.append(f"material {t['name']!r}: texture {lt}, read here {tt}")
+    if truth["vertex_colors"] != info["vertex_colors"]:
+        out.append(f"vertex colours {info['vertex_colors']}, read here {truth['vertex_colors']}")
     for k, v in truth["settings"].items():
         if info["settings"].get(k) != v:
             out.append(f"settings.{k} {info['settings'].get(k)}, read here {v}")
@@ -501,63 +613,86 @@ def _turn(v, degrees: float) -> list:
     return [math.cos(a) * x + math.sin(a) * z, y, -math.sin(a) * x + math.cos(a) * z]
 
 
-def mutations(info: dict):
-    """(what, info with one deliberate loader bug): each must be caught by `mismatches`."""
+def _moved(p: list, axis: int) -> list:
+    """p moved 1 mm along an axis, or 1000 ulp where 1 mm is below f32 precision."""
+    q = list(p)
+    q[axis] += max(1e-3, 1000 * float(np.spacing(np.float32(abs(q[axis])))))
+    return q
+
+
+def _brighter(rgb: list) -> list:
+    """rgb with its largest channel 1% higher (a zero channel could not show it)."""
+    q = list(rgb)
+    k = int(np.argmax(q))
+    q[k] = q[k] * 1.01 if q[k] > 0 else 1e-3
+    return q
+
+
+def mutations(info: dict) -> tuple[list, list[str]]:
+    """([(what, info with one deliberate loader bug)], kinds that do not apply to this scene):
+    each bug must be caught by `mismatches`."""
+    out, absent = [], []
+
     def mutated(what, edit):
         m = copy.deepcopy(info)
         edit(m)
-        return what, m
+        out.append((what, m))
 
-    out = []
     if info["cameras"]:
         def turn(m):
             c = m["cameras"][0]
             for k in ("right", "up", "forward"):
                 c[k] = _turn(c[k], 0.1)
-        out.append(mutated("first camera moved 1 mm along x",
-                           lambda m: m["cameras"][0]["origin"].__setitem__(
-                               0, m["cameras"][0]["origin"][0] + 1e-3)))
-        out.append(mutated("first camera turned 0.1 deg about +Y", turn))
-        out.append(mutated("first camera's yfov 0.1 deg wider",
-                           lambda m: m["cameras"][0].__setitem__(
-                               "yfov", m["cameras"][0]["yfov"] + math.radians(0.1))))
-        out.append(mutated("views in reverse order" if len(info["cameras"]) > 1
-                           else "first view renamed",
-                           lambda m: m.__setitem__("cameras", m["cameras"][::-1])
-                           if len(m["cameras"]) > 1
-                           else m["cameras"][0].__setitem__("name", "renamed")))
-    for i, L in enumerate(info["lights"][:1]):
+        mutated("first camera moved 1 mm", lambda m: m["cameras"][0].__setitem__(
+            "origin", _moved(m["cameras"][0]["origin"], 0)))
+        mutated("first camera turned 0.1 deg about +Y", turn)
+        mutated("first camera's yfov 0.1 deg wider", lambda m: m["cameras"][0].__setitem__(
+            "yfov", m["cameras"][0]["yfov"] + math.radians(0.1)))
+        mutated("first image one pixel wider", lambda m: m["cameras"][0].__setitem__(
+            "width", m["cameras"][0]["width"] + 1))
+        if len(info["cameras"]) > 1:
+            mutated("views in reverse order", lambda m: m.__setitem__(
+                "cameras", m["cameras"][::-1]))
+    else:
+        absent.append("cameras")
+    if info["lights"]:
+        L = info["lights"][0]
         key = "radiance" if "radiance" in L else "intensity"
-        out.append(mutated("first light moved 1 mm along y",
-                           lambda m: m["lights"][0]["center"].__setitem__(
-                               1, m["lights"][0]["center"][1] + 1e-3)))
-        out.append(mutated(f"first light's {key} 1% higher in red",
-                           lambda m, key=key: m["lights"][0][key].__setitem__(
-                               0, m["lights"][0][key][0] * 1.01)))
+        mutated("first light moved 1 mm", lambda m: m["lights"][0].__setitem__(
+            "center", _moved(m["lights"][0]["center"], 1)))
+        mutated(f"first light's {key} 1% higher", lambda m: m["lights"][0].__setitem__(
+            key, _brighter(m["lights"][0][key])))
         if L.get("radius", 0) > 0:
-            out.append(mutated("first light's radius 1% larger",
-                               lambda m: m["lights"][0].__setitem__(
-                                   "radius", m["lights"][0]["radius"] * 1.01)))
+            mutated("first light's radius 1% larger", lambda m: m["lights"][0].__setitem__(
+                "radius", m["lights"][0]["radius"] * 1.01))
+        mutated("a light lost", lambda m: m["lights"].pop())
+    else:
+        absent.append("lights")
     consts = [k for k, m in enumerate(info["materials"]) if "albedo" in m and m["name"]]
     if consts:
         k = consts[0]
-        out.append(mutated(f"material {info['materials'][k]['name']!r}: albedo 1% higher in green",
-                           lambda m: m["materials"][k]["albedo"].__setitem__(
-                               1, m["materials"][k]["albedo"][1] * 1.01 + 1e-3)))
+        mutated(f"material {info['materials'][k]['name']!r}: albedo 1% off",
+                lambda m: m["materials"][k].__setitem__(
+                    "albedo", [min(x * 1.01 + 1e-3, 1.0) if x < 0.5 else x * 0.99
+                               for x in m["materials"][k]["albedo"]]))
+    else:
+        absent.append("constant albedos")
     texs = [k for k, m in enumerate(info["materials"]) if "texture" in m]
     if texs:
         k = texs[0]
-        out.append(mutated(f"material {info['materials'][k]['name']!r}: texture decoded "
-                           "without sRGB (mean as if gamma 1)",
-                           lambda m: m["materials"][k]["texture"].__setitem__(
-                               "mean_linear", [x ** (1 / 2.2)
-                                               for x in m["materials"][k]["texture"]["mean_linear"]])))
-    out.append(mutated("spp one higher",
-                       lambda m: m["settings"].__setitem__("spp", m["settings"]["spp"] + 1)))
-    out.append(mutated("max_bounces one higher",
-                       lambda m: m["settings"].__setitem__("max_bounces",
-                                                           m["settings"]["max_bounces"] + 1)))
-    return out
+        mutated(f"material {info['materials'][k]['name']!r}: texture mean 1% off",
+                lambda m: m["materials"][k]["texture"].__setitem__(
+                    "mean_linear", [x * 1.01 + 1e-3
+                                    for x in m["materials"][k]["texture"]["mean_linear"]]))
+    else:
+        absent.append("textures")
+    mutated("vertex colours dropped or invented", lambda m: m.__setitem__(
+        "vertex_colors", not m["vertex_colors"]))
+    mutated("spp one higher", lambda m: m["settings"].__setitem__(
+        "spp", m["settings"]["spp"] + 1))
+    mutated("max_bounces one higher", lambda m: m["settings"].__setitem__(
+        "max_bounces", m["settings"]["max_bounces"] + 1))
+    return out, absent
 
 
 def lightprobe_info(binary: Path, scene: Path, height: int | None = None) -> dict:
@@ -568,26 +703,35 @@ def lightprobe_info(binary: Path, scene: Path, height: int | None = None) -> dic
     return json.loads(r.stdout)
 
 
+def _count(items: list, noun: str) -> str:
+    return f"{len(items)} {noun}{'' if len(items) == 1 else 's'}"
+
+
 def described(scene: Path, binary: Path, height: int | None = None, log=print) -> dict:
     """The scene as read here, after checking lightprobe loaded the same (`info`) and that
     the check catches every mutation of what lightprobe reports. Raises TruthError when
     either fails."""
-    truth = read_scene(scene, height)
+    try:
+        truth = read_scene(scene, height)
+    except (KeyError, IndexError, TypeError, ValueError) as e:
+        raise TruthError(f"{scene}: not readable here ({type(e).__name__}: {e})") from e
     info = lightprobe_info(binary, scene, height)
     bad = mismatches(truth, info)
     if bad:
         raise TruthError(f"lightprobe loaded {scene} differently from this check's own "
                          "reading of the files:\n  " + "\n  ".join(bad))
-    missed = [what for what, m in mutations(info) if not mismatches(truth, m)]
-    muts = len(mutations(info))
+    bugs, absent = mutations(info)
+    missed = [what for what, m in bugs if not mismatches(truth, m)]
+    muts = len(bugs)
     if missed:
         raise TruthError("the comparison with lightprobe's `info` missed deliberate bugs: "
                          + "; ".join(missed))
     at = f" at a height of {height} pixels" if height else ""
     log(f"scene {scene}{at}: lightprobe's info agrees with the check's own reading "
-        f"({len(truth['cameras'])} cameras, {len(truth['lights'])} lights, "
-        f"{len(truth['materials'])} materials, settings); all {muts} deliberate bugs "
-        "in the info are caught")
+        f"({_count(truth['cameras'], 'camera')}, {_count(truth['lights'], 'light')}, "
+        f"{_count(truth['materials'], 'material')}, settings); all {muts} deliberate bugs "
+        "in the info are caught"
+        + (f" (none apply to its {', '.join(absent)}: it has none)" if absent else ""))
     truth["triangles"] = info["triangles"]   # for logs only; check_trimesh compares it
     return truth
 
@@ -627,6 +771,33 @@ Scene(
     return p
 
 
+WRONG_LOADER = """#!{python}
+# lightprobe with a loader bug: its `info` reports the first constant albedo 5% too bright.
+import json, subprocess, sys
+r = subprocess.run([{binary!r}] + sys.argv[1:], capture_output=True, text=True)
+if r.returncode or sys.argv[1:2] != ["info"]:
+    sys.stdout.write(r.stdout); sys.stderr.write(r.stderr); sys.exit(r.returncode)
+info = json.loads(r.stdout)
+m = next(m for m in info["materials"] if "albedo" in m and m["name"])
+m["albedo"] = [x * 1.05 for x in m["albedo"]]
+print(json.dumps(info))
+"""
+
+
+def wrong_loader_is_caught(scene: Path, binary: Path, folder: Path) -> None:
+    """End to end: a lightprobe whose `info` carries a loader bug must fail the check."""
+    fake = folder / "lightprobe-with-a-bug"
+    fake.write_text(WRONG_LOADER.format(python=sys.executable, binary=str(Path(binary).resolve())))
+    fake.chmod(0o755)
+    try:
+        described(scene, fake, log=lambda s: None)
+    except TruthError as e:
+        print(f"a lightprobe whose info has an albedo 5% off fails the check, as it must: "
+              f"{str(e).splitlines()[1].strip()}", file=sys.stderr)
+        return
+    raise TruthError("a lightprobe reporting a wrong albedo passed the check")
+
+
 def main() -> None:
     import argparse
     import tempfile
@@ -651,6 +822,7 @@ def main() -> None:
             for scene in scenes:
                 for height in ([a.height] if a.height else [None, 48]):
                     described(scene, a.check, height)
+            wrong_loader_is_caught(scenes[0], a.check, Path(tmp))
     except (TruthError, NotImplementedError, OSError) as e:
         sys.exit(f"error: {e}")
 

@@ -1231,7 +1231,8 @@ fn estimate_runs_end_to_end_and_reports() {
     let rel = report["rel_mae"].as_f64().unwrap();
     let floor = report["noise_floor_rel_mae"].as_f64().unwrap();
     assert!(
-        rel.is_finite() && rel > 0.0 && rel < 1.0 && floor > 0.0,
+        // 16 spp, 5 rings: measured 0.40 (floor 0.13); 1.5× that fails a regression.
+        rel.is_finite() && rel > floor && rel < 0.6 && floor > 0.0,
         "{rel} {floor}"
     );
     assert!(

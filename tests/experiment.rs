@@ -161,7 +161,11 @@ fn tiny_sweep_resumes_shards_agrees_with_estimate_and_reports() {
     for r in &full {
         assert_eq!(r.status, Status::Ok, "{r:?}");
         let e = r.rel_mae.unwrap();
-        assert!(e.is_finite() && e > 0.0 && e < 2.0, "{e}");
+        // 16 spp, 3 and 5 rings: measured 0.21–0.30, floors 0.09–0.10.
+        assert!(
+            e.is_finite() && e > r.noise_floor_rel_mae.unwrap() && e < 0.45,
+            "{e}"
+        );
         assert_eq!(r.views.len(), 2);
         assert!(r.noise_floor_rel_mae.unwrap() > 0.0);
         assert!(r.timings.fit_seconds > 0.0 && r.iterations > 0);

@@ -282,7 +282,8 @@ fn estimate_takes_a_gltf_and_sizes_its_views_from_the_references() {
     ok(&o);
     let report: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(report["views"].as_array().unwrap().len(), 2);
-    assert!(report["rel_mae"].as_f64().unwrap() < 1.0, "{report}");
+    // 16 spp, 3 rings: measured 0.25 (floor 0.056).
+    assert!(report["rel_mae"].as_f64().unwrap() < 0.4, "{report}");
     assert_eq!(report["ignored"][0]["what"], "material \"cube\"");
     let envmap = std::fs::read_to_string(out.join("envmap.ron")).unwrap();
     assert!(envmap.contains("rings: 3"), "{envmap}");

@@ -242,6 +242,15 @@ fn cases() -> Vec<Case> {
             expect: "degenerate transform",
         },
         Case {
+            name: "a glTF camera node mirrored by its scale",
+            files: vec![
+                ("cam.gltf", triangle_gltf(", \"scale\": [-1, 1, 1]", "").into_bytes()),
+                on("cam.gltf"),
+            ],
+            args: render_s.clone(),
+            expect: "is mirrored by its node transforms",
+        },
+        Case {
             name: "a sparse accessor substituting past its end",
             files: vec![
                 (
@@ -773,8 +782,9 @@ fn the_transport_memory_does_not_grow_with_the_pixels() {
             serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
         let peak = report["memory"]["peak_bytes"].as_u64().unwrap();
         assert!(peak < 300 << 20, "{w}×{h}: peak {peak} bytes");
+        // 8 spp: measured 0.27 at 160×120 and 0.22 at 640×480.
         assert!(
-            report["rel_mae"].as_f64().unwrap() < 0.5,
+            report["rel_mae"].as_f64().unwrap() < 0.4,
             "{w}×{h}: {report}"
         );
         bytes.push(report["memory"]["transport_bytes"].as_u64().unwrap());

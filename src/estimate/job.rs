@@ -593,6 +593,9 @@ pub struct Timings {
     pub oracle_seconds: f64,
     /// The sphere models' fits (every candidate count, and the refit of the chosen one).
     pub sphere_fit_seconds: f64,
+    /// Diagnosing a misfit of the envmap to given references (the bounce probe: a re-fit
+    /// with one more bounce); 0 when nothing was diagnosed.
+    pub diagnosis_seconds: f64,
     /// The job's wall time; `estimate` writes its whole command's (loading, references and
     /// the output files included).
     pub total_seconds: f64,
@@ -972,6 +975,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
 
     // References lightprobe rendered share the model's bounces, albedo and geometry: only
     // the light model can be wrong there, so there is nothing to probe.
+    let mut diagnosis_seconds = 0.0;
     if let Some(t) = fit_test
         .as_mut()
         .filter(|t| t.misfit && t.model == "envmap" && s.diagnose && !seen.rendered)
@@ -985,7 +989,9 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             .map(|((r, x), m)| ResidualNoise::of(r, x, m, None))
             .collect();
         if let Some(before) = ResidualNoise::pooled(&neighbours).test() {
+            let t0 = Instant::now();
             bounce_probe(job, rings, t, before.excess_per_pixel);
+            diagnosis_seconds = t0.elapsed().as_secs_f64();
         }
     }
 
@@ -1054,6 +1060,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             rerender_seconds: envmap.rerender_seconds,
             oracle_seconds: envmap.oracle_seconds,
             sphere_fit_seconds,
+            diagnosis_seconds,
             total_seconds: seen.seconds + t_all.elapsed().as_secs_f64(),
         },
         rings_selection: selection,

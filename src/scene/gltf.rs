@@ -334,13 +334,31 @@ fn build(path: &Path, (doc, buffers, images): Imported, size: ViewSize) -> Resul
             }
             // A camera's frame must be a rotation after removing scale: a zero or non-finite
             // scale leaves no direction to look in (a NaN camera renders black).
-            let det = glam::Mat3::from_mat4(world).determinant();
+            let frame = glam::Mat3::from_mat4(world);
+            let det = frame.determinant();
             if !(det.is_finite() && det.abs() > 1e-12) {
                 return Err(Error::file(
                     path,
                     format!(
                         "camera node {} has a degenerate transform (its world matrix scales by {det}: a scale of 0?)",
                         node_name(&node)
+                    ),
+                ));
+            }
+            // A mirrored or sheared frame has no right, up and forward to render with: taking
+            // its rotation part would silently turn or unmirror the view.
+            let axes = [frame.x_axis, frame.y_axis, frame.z_axis].map(Vec3::normalize);
+            let skew = [(0, 1), (0, 2), (1, 2)]
+                .map(|(i, j)| axes[i].dot(axes[j]).abs())
+                .into_iter()
+                .fold(0.0f32, f32::max);
+            if det < 0.0 || skew > 1e-4 {
+                return Err(Error::file(
+                    path,
+                    format!(
+                        "camera node {} is {} by its node transforms; a camera must be placed by a rotation, a translation and a scale along its own axes",
+                        node_name(&node),
+                        if det < 0.0 { "mirrored" } else { "sheared" }
                     ),
                 ));
             }

@@ -75,9 +75,14 @@ impl Texture {
         top * (1.0 - fy) + bottom * fy
     }
 
-    /// The mean texel (what a uniform lookup averages to).
+    /// The mean texel (what a uniform lookup averages to), summed in f64: an f32 sum of a
+    /// 2048² map is off by 0.3%.
     pub fn mean(&self) -> Vec3 {
-        self.texels.iter().copied().sum::<Vec3>() / self.texels.len().max(1) as f32
+        let sum = self
+            .texels
+            .iter()
+            .fold(glam::DVec3::ZERO, |s, t| s + t.as_dvec3());
+        (sum / self.texels.len().max(1) as f64).as_vec3()
     }
 }
 
@@ -861,6 +866,21 @@ mod tests {
         assert_eq!(srgb_to_linear(0.0), 0.0);
         assert!((srgb_to_linear(1.0) - 1.0).abs() < 1e-6);
         assert!((srgb_to_linear(0.5) - 0.214_041).abs() < 1e-5);
+    }
+
+    #[test]
+    fn the_mean_of_a_large_texture_is_exact() {
+        // 2048² texels: an f32 running sum drifts by about 0.3% here.
+        let t = Texture {
+            width: 2048,
+            height: 2048,
+            texels: vec![Vec3::new(0.1, 0.3, 0.7); 2048 * 2048],
+        };
+        let m = t.mean();
+        assert!(
+            (m - Vec3::new(0.1, 0.3, 0.7)).abs().max_element() < 1e-6,
+            "{m}"
+        );
     }
 
     #[test]
