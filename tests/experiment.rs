@@ -283,6 +283,39 @@ fn tiny_sweep_resumes_shards_agrees_with_estimate_and_reports() {
     let m = r3.iter().sum::<f64>() / r3.len() as f64;
     assert!((cells[0]["rel_mae_mean"].as_f64().unwrap() - m).abs() < 1e-12);
     assert!(cells.iter().any(|c| c["on_pareto_front"] == true));
+    pareto_fronts_are_monotone(cells);
+}
+
+/// Per albedo error, the front's settings sorted by fit time get strictly more accurate, and
+/// every setting off it has one on it at least as fast and as accurate.
+fn pareto_fronts_are_monotone(cells: &[serde_json::Value]) {
+    let key = |c: &serde_json::Value| c["series"]["albedo_error_percent"].as_u64().unwrap();
+    let te = |c: &serde_json::Value| {
+        (
+            c["fit_seconds_mean"].as_f64().unwrap(),
+            c["rel_mae_mean"].as_f64().unwrap(),
+        )
+    };
+    for albedo in cells.iter().map(key) {
+        let group: Vec<_> = cells.iter().filter(|c| key(c) == albedo).collect();
+        let mut front: Vec<(f64, f64)> = group
+            .iter()
+            .filter(|c| c["on_pareto_front"] == true)
+            .map(|c| te(c))
+            .collect();
+        front.sort_by(|a, b| a.0.total_cmp(&b.0));
+        assert!(
+            front.windows(2).all(|w| w[1].1 < w[0].1),
+            "albedo {albedo}: {front:?}"
+        );
+        for c in group.iter().filter(|c| c["on_pareto_front"] == false) {
+            let (t, e) = te(c);
+            assert!(
+                front.iter().any(|&(ft, fe)| ft <= t && fe <= e),
+                "albedo {albedo}: ({t}, {e}) is off the front {front:?} yet dominated by none"
+            );
+        }
+    }
 }
 
 #[test]

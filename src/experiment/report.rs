@@ -577,15 +577,37 @@ fn chart_speed_vs_accuracy(dir: &Path, cells: &[Cell], series: &[SeriesKey]) -> 
             .label_style(("sans-serif", 15))
             .draw()
             .map_err(plot_err(&path))?;
-        let mut front: Vec<&Cell> = cells.iter().filter(|c| c.on_pareto_front).collect();
-        front.sort_by(|a, b| a.fit_seconds_mean.total_cmp(&b.fit_seconds_mean));
-        ch.draw_series(LineSeries::new(
-            front.iter().map(|c| (lt(c), 100.0 * c.rel_mae_mean)),
-            BLACK.stroke_width(1),
-        ))
-        .map_err(plot_err(&path))?
-        .label("Pareto front")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
+        // One front per albedo error: settings fitting different albedos are not rivals, and
+        // one line through all of them would zig-zag.
+        let mut albedos: Vec<u32> = cells
+            .iter()
+            .map(|c| c.series.albedo_error_percent)
+            .collect();
+        albedos.sort_unstable();
+        albedos.dedup();
+        for (k, albedo) in albedos.iter().enumerate() {
+            let mut front: Vec<&Cell> = cells
+                .iter()
+                .filter(|c| c.on_pareto_front && c.series.albedo_error_percent == *albedo)
+                .collect();
+            front.sort_by(|a, b| a.fit_seconds_mean.total_cmp(&b.fit_seconds_mean));
+            let line = ch
+                .draw_series(LineSeries::new(
+                    front.iter().map(|c| (lt(c), 100.0 * c.rel_mae_mean)),
+                    BLACK.stroke_width(1),
+                ))
+                .map_err(plot_err(&path))?;
+            if k == 0 {
+                line.label(if albedos.len() > 1 {
+                    "Pareto front (one per albedo error)"
+                } else {
+                    "Pareto front"
+                })
+                .legend(|(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1))
+                });
+            }
+        }
         for (i, s) in series.iter().enumerate() {
             let col = colour(i);
             let pts: Vec<&Cell> = cells.iter().filter(|c| c.series == *s).collect();
