@@ -405,7 +405,15 @@ def run_equal_noise(args, variant: str) -> int:
                       "ratio_mitsuba_over_lightprobe": t_mi / t_lp,
                       "noise_ratio_mitsuba_over_lightprobe":
                           same["rel_mse"][same["spp"].index(target_spp)]
-                          / lp["rel_mse"][spp_list.index(target_spp)]}
+                          / lp["rel_mse"][spp_list.index(target_spp)],
+                      # every sampler at the spp it measured nearest the target
+                      "noise_ratio_per_sampler": {
+                          n: c["rel_mse"][k] / lp["rel_mse"][spp_list.index(target_spp)]
+                          for n, c in configs.items() if n != "lightprobe" and c["spp"]
+                          for k in [int(np.argmin([abs(x - target_spp) for x in c["spp"]]))]},
+                      "noise_ratio_per_sampler_spp": {
+                          n: c["spp"][int(np.argmin([abs(x - target_spp) for x in c["spp"]]))]
+                          for n, c in configs.items() if n != "lightprobe" and c["spp"]}}
     result = {
         "scene": str(args.scene), "triangles": desc["triangles"], "width": w, "height": h,
         "views": views, "max_bounces": st["max_bounces"], "cpus": os.cpu_count(),
@@ -483,7 +491,11 @@ def run_equal_noise(args, variant: str) -> int:
               f"{same_image['mitsuba_seconds']:.2f} s / lightprobe "
               f"{same_image['lightprobe_seconds']:.2f} s = "
               f"{same_image['ratio_mitsuba_over_lightprobe']:.2f}x; its noise is "
-              f"{same_image['noise_ratio_mitsuba_over_lightprobe']:.2f}x lightprobe's")
+              f"{same_image['noise_ratio_mitsuba_over_lightprobe']:.2f}x lightprobe's; "
+              "near that spp, every sampler's noise over lightprobe's: "
+              + ", ".join(f"{n.split(' ', 1)[1]} {r:.2f}x "
+                          f"({same_image['noise_ratio_per_sampler_spp'][n]} spp)"
+                          for n, r in same_image["noise_ratio_per_sampler"].items()))
     if load_before[0] > 0.5:
         print(f"  note: 1-min load average was {load_before[0]:.2f} on {os.cpu_count()} CPUs "
               f"before the run: other work may have slowed both tools")

@@ -20,8 +20,9 @@ The protocol, and what keeps it fair:
   size in --mi-res, optimised by Adam through the `prb` integrator (latent
   tensor padded into `envmap.data`; init a constant matching the references'
   mean colour, timed; relMAE-normalised L2 loss; clamp >= 0), run to
-  convergence: it stops when its best error has improved by less than
-  --mi-min-gain (relative) over the last --mi-patience steps, or at the
+  convergence: it stops when the mean error of its checkpoints over the last
+  --mi-patience steps is less than --mi-min-gain (relative) below that of the
+  --mi-patience steps before (each fit with its own evaluation seeds), or at the
   --mi-steps budget (then it is reported as not converged and no verdict can
   be met). Its whole curve is kept: every --mi-eval-every steps the current
   map is rendered with the `path` integrator at the sidecar's spp.
@@ -31,7 +32,7 @@ The protocol, and what keeps it fair:
   the same references. lightprobe renders a Mitsuba map exactly as Mitsuba
   interprets it (bilinear between texels at u = (j+0.5)/W, theta = i pi/(H-1)),
   sampled on a fine lat-long grid and averaged into 128 rings (cells of 1.4 deg
-  against texels of 11 deg and more).
+  against texels of 5.6 deg and more).
 * Time to equal error, the same evaluator for both curves: Mitsuba's
   checkpoints (its renders at the sidecar's spp) against every lightprobe run's
   map rendered by Mitsuba the same way. Two clocks, each excluding the same
@@ -41,8 +42,10 @@ The protocol, and what keeps it fair:
              and every step, JIT included, after scene build). Both exclude
              evaluation renders.
     process  lightprobe's whole process wall minus its own evaluation renders
-             (noise floor, re-render); Mitsuba's import + variant set-up +
-             scene build + optimisation (the Python process's equivalent).
+             (noise floor, re-render), misfit diagnosis and oracle; Mitsuba's
+             import + variant set-up + scene build and loss set-up +
+             optimisation (the Python process's equivalent; its glTF parsing,
+             done by this script, is left out).
   Mitsuba's time is its first checkpoint at or below the error, so up to
   --mi-eval-every steps late; the previous checkpoint is kept as its bound.
 * The verdict "lightprobe >= 20x faster at equal or lower error" is met for a
@@ -50,7 +53,9 @@ The protocol, and what keeps it fair:
   >= 20 (Mitsuba never reaching the error counts as infinitely slower); the
   map's error is <= Mitsuba's best map's under both evaluators; and every
   Mitsuba fit converged. It is given for the default map (--rings) and for
-  lightprobe's most accurate map, on both clocks, per reference set.
+  lightprobe's most accurate map by its own report, on both clocks, per
+  reference set. When Mitsuba never reaches the error, ratio_*_at_least
+  gives its longest converged run over lightprobe's time.
   `--test-verdict` checks this logic on constructed cases (run by CI). In the
   JSON a ratio of null means Mitsuba never reached the error.
 * Also: maps at comparable parameter counts (cells against texels), each
@@ -370,11 +375,12 @@ def render_references(args, desc: dict, meshes, renderer: str, out: Path) -> dic
 class MitsubaFit:
     """Envmap optimisation in Mitsuba, to convergence; see the module docstring."""
 
-    def __init__(self, args, desc, meshes, refs: dict, width: int, height: int):
+    def __init__(self, args, desc, meshes, refs: dict, width: int, height: int, index: int):
         import drjit as dr
         import mitsuba as mi
         self.dr, self.mi = dr, mi
         self.args, self.refs, self.W, self.H = args, refs, width, height
+        self.seed0 = 1_000_000 + 100_000 * index      # evaluation seeds of this fit alone
         self.views = list(refs)
         self.masks = {v: refs[v][..., 3] > 0 for v in self.views}
         st = desc["settings"]
@@ -396,7 +402,6 @@ class MitsubaFit:
         idx = (np.arange(height)[:, None, None] * width * 3 + cols[None, :, None] * 3
                + np.arange(3)[None, None, :]).ravel().astype(np.uint32)
         self.pad_index = mi.UInt32(idx)
-        self.build_seconds = time.perf_counter() - t0
         self.w = {}          # per view: reference, relMAE-normalised L2 weights
         for v in self.views:
             r = refs[v]
@@ -405,6 +410,12 @@ class MitsubaFit:
             mean = float(r[m].mean())
             self.w[v] = (mi.Float(r.ravel()),
                          mi.Float((m / (m.sum() * mean * mean)).astype(np.float32).ravel()))
+        self.build_seconds = time.perf_counter() - t0
+        # the emitter must keep the padded bitmap as given (its wrap columns included)
+        probe = mi.TensorXf(np.random.default_rng(0).random((height, width, 3), np.float32))
+        self.set_envmap(probe)
+        if not np.allclose(np.array(self.params[self.key]), np.array(self.pad(probe))):
+            raise SystemExit(f"{self.key} changed on update: the padding assumed here is wrong")
 
     def pad(self, x):
         mi, dr = self.mi, self.dr
@@ -424,7 +435,7 @@ class MitsubaFit:
             for i, v in enumerate(self.views):
                 img = np.array(mi.render(self.S.scene, sensor=self.S.sensors[v],
                                          integrator=self.path, spp=self.eval_spp,
-                                         seed=1_000_000 + 2 * k + i), dtype=np.float32)
+                                         seed=self.seed0 + 2 * k + i), dtype=np.float32)
                 per_view[v] = rel_mae(img, self.refs[v], self.masks[v])
         return {"rel_mae": float(np.mean(list(per_view.values()))), "views": per_view}
 
@@ -455,12 +466,16 @@ class MitsubaFit:
                           "eval_seconds": time.perf_counter() - t, **e})
 
         def converged(step: int) -> bool:
-            """Best error gained < mi_min_gain (relative) over the last mi_patience steps."""
-            if step < a.mi_patience:
+            """The mean error of the checkpoints in the last mi_patience steps is less than
+            mi_min_gain (relative) below that of the mi_patience steps before (means: one
+            checkpoint's evaluation noise is about the size of the gain)."""
+            if step < 2 * a.mi_patience:
                 return False
-            before = min(p["rel_mae"] for p in curve if p["step"] <= step - a.mi_patience)
-            now = min(p["rel_mae"] for p in curve)
-            return before - now < a.mi_min_gain * before
+            now = [p["rel_mae"] for p in curve if p["step"] > step - a.mi_patience]
+            before = [p["rel_mae"] for p in curve
+                      if step - 2 * a.mi_patience < p["step"] <= step - a.mi_patience]
+            return statistics.mean(before) - statistics.mean(now) < (
+                a.mi_min_gain * statistics.mean(before))
 
         checkpoint(0)
         step_seconds = []
@@ -580,7 +595,7 @@ def verdict(ratio: float | None, lp_errors: dict, mi_best_errors: dict, converge
     best map. Met only when the speed half, the error half under every evaluator, and
     Mitsuba's convergence all hold."""
     speed = ratio is not None and ratio >= factor
-    error = (bool(lp_errors) and set(lp_errors) == set(mi_best_errors)
+    error = (set(lp_errors) == set(mi_best_errors) == set(EVALUATORS)
              and all(lp_errors[e] <= mi_best_errors[e] for e in lp_errors))
     return {"speed_ratio": ratio, "speed_factor": factor, "speed_half": bool(speed),
             "error_half": bool(error), "mitsuba_converged": bool(converged),
@@ -599,6 +614,8 @@ def test_verdict() -> None:
         ((67.0, good, worse, False), False, "Mitsuba stopped at its budget, still improving"),
         ((67.0, good, {"mitsuba": 0.095}, True), False, "an evaluator missing for Mitsuba"),
         ((67.0, {}, {}, True), False, "no errors at all"),
+        ((67.0, {"mitsuba": 0.09}, {"mitsuba": 0.095}, True), False,
+         "one evaluator only, for both tools"),
         ((20.0, good, good, True), True, "exactly 20x at equal error"),
         ((math.inf, good, worse, True), True, "Mitsuba never reaches the error"),
     ]
@@ -617,7 +634,9 @@ def compare(lp: dict, fits: list[dict], mitsuba_import_seconds: float, main_ring
     mi_best = {e: min(f["score"][e]["rel_mae"] for f in fits) for e in EVALUATORS}
     clocks = {
         "fit": (lambda r: r["fit_seconds"], lambda f, t: t),
-        "process": (lambda r: r["process_wall_excl_evaluation_seconds"],
+        "process": (lambda r: r["process_wall_excl_evaluation_seconds"]
+                    - r["timings"].get("diagnosis_seconds", 0.0)
+                    - r["timings"].get("oracle_seconds", 0.0),
                     lambda f, t: mitsuba_import_seconds + f["scene_build_seconds"] + t),
     }
 
@@ -635,19 +654,23 @@ def compare(lp: dict, fits: list[dict], mitsuba_import_seconds: float, main_ring
             row[f"lightprobe_{clock}_seconds"] = lp_t(r)
             row[f"mitsuba_{clock}_seconds"] = min(ts) if ts else None
             row[f"ratio_{clock}"] = (min(ts) / lp_t(r)) if ts else math.inf
+            # never reached: at least the longest converged run over lightprobe's time
+            row[f"ratio_{clock}_at_least"] = (min(ts) if ts else max(
+                mi_t(f, f["optimisation_seconds"]) for f in fits)) / lp_t(r)
         return row
 
     points = [to_error(r) for r in lp["curve"]] + [to_error(r) for r in lp["maps"]
                                                    if r not in lp["curve"]]
-    mean_score = lambda r: statistics.mean(r["score"][e]["rel_mae"] for e in EVALUATORS)  # noqa: E731
     default = next(r for r in lp["maps"] if r["rings"] == main_rings)
-    best = min(lp["maps"], key=mean_score)
+    # picked on lightprobe's own report, not on the scores it is then judged by
+    best = min(lp["maps"], key=lambda r: r["rel_mae"])
     verdicts = {}
     for name, r in (("default_map", default), ("most_accurate_map", best)):
         row = to_error(r)
         errs = {e: r["score"][e]["rel_mae"] for e in EVALUATORS}
         verdicts[name] = {"rings": r["rings"], "cells": r["cells"], "rel_mae": errs,
                           "mitsuba_best_rel_mae": mi_best,
+                          "ratio_at_least": {c: row[f"ratio_{c}_at_least"] for c in clocks},
                           **{clock: verdict(row[f"ratio_{clock}"], errs, mi_best, converged)
                              for clock in clocks}}
     sizes = []
@@ -665,8 +688,12 @@ def compare(lp: dict, fits: list[dict], mitsuba_import_seconds: float, main_ring
         })
     return {"clocks": {"fit": "lightprobe timings.fit_seconds; Mitsuba optimisation incl. "
                               "init render and JIT, excl. scene build and evaluations",
-                       "process": "lightprobe process wall excl. its evaluation renders; "
-                                  "Mitsuba import + variant + scene build + optimisation"},
+                       "process": "lightprobe process wall excl. its evaluation renders, "
+                                  "misfit diagnosis and oracle (incl. process start, scene "
+                                  "load, BVH, reading references, writing outputs); Mitsuba "
+                                  "import + variant + scene build and loss set-up + "
+                                  "optimisation (excl. Python start and the glTF parsing "
+                                  "this script does for it)"},
             "mitsuba_converged": converged, "mitsuba_best_rel_mae": mi_best,
             "time_to_error": points, "verdicts": verdicts, "comparable_sizes": sizes}
 
@@ -818,9 +845,11 @@ def summary(sets: list[dict], sp: dict | None, goals: dict) -> None:
             for clock in ("fit", "process"):
                 g = v[clock]
                 ratio = g["speed_ratio"]
+                said = (f"never reached by Mitsuba (its longest run is "
+                        f"{v['ratio_at_least'][clock]:.1f}x)" if ratio == math.inf
+                        else f"{ratio:.1f}x")
                 log(f"  {name} ({v['rings']} rings), {clock} clock: "
-                    f"{'MET' if g['met'] else 'NOT MET'} -- speed "
-                    f"{'never reached by Mitsuba' if ratio == math.inf else f'{ratio:.1f}x'}"
+                    f"{'MET' if g['met'] else 'NOT MET'} -- speed {said}"
                     f" ({'ok' if g['speed_half'] else 'short'}), error "
                     f"{'<=' if g['error_half'] else '>'} Mitsuba's best under both evaluators"
                     f" ({v['rel_mae']['mitsuba']:.4f}/{v['rel_mae']['lightprobe']:.4f} vs "
@@ -935,7 +964,7 @@ def main() -> int:
             log(f"  Mitsuba {w}x{h}: Adam lr {args.mi_lr}, {args.mi_spp} spp/view/step, until "
                 f"converged (< {100 * args.mi_min_gain:g}% over {args.mi_patience} steps) or "
                 f"{args.mi_steps} steps")
-            fit = MitsubaFit(args, desc, meshes, refs, w, h)
+            fit = MitsubaFit(args, desc, meshes, refs, w, h, len(fits))
             if args.wait_idle:
                 wait_idle(args.wait_idle)
             with CpuMonitor() as cm:
@@ -980,9 +1009,14 @@ def main() -> int:
 
     goals = {}
     for s in sets:
-        v = s["comparison"]["verdicts"]["default_map"]
-        goals[f"speed_20x_at_equal_or_lower_error_refs_by_{s['reference']['renderer']}"] = {
-            "rings": v["rings"], **v["fit"], "process_clock": v["process"]}
+        for name, v in s["comparison"]["verdicts"].items():
+            goals[f"speed_20x_at_equal_or_lower_error_{name}_refs_by_"
+                  f"{s['reference']['renderer']}"] = {
+                "rings": v["rings"], **v["fit"], "process_clock": v["process"]}
+    for k, g in goals.items():       # never "met" with a half false, on either clock
+        for v in (g, g["process_clock"]):
+            assert v["met"] == (v["speed_half"] and v["error_half"]
+                                and v["mitsuba_converged"]), (k, v)
     big = [r for r in sets[0]["lightprobe"]["maps"] if r["rings"] == 25]
     if big:
         b = big[0]
