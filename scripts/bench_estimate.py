@@ -416,6 +416,8 @@ class MitsubaFit:
         self.set_envmap(probe)
         if not np.allclose(np.array(self.params[self.key]), np.array(self.pad(probe))):
             raise SystemExit(f"{self.key} changed on update: the padding assumed here is wrong")
+        # back to the unit map the initial constant is measured under
+        self.set_envmap(mi.TensorXf(np.ones((height, width, 3), np.float32)))
 
     def pad(self, x):
         mi, dr = self.mi, self.dr
