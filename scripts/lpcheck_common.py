@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import subprocess
 import sys
 import time
@@ -71,15 +70,12 @@ def lightprobe_info(binary: Path, scene: Path) -> dict:
 
 
 def gltf_path_from_sidecar(scene: Path) -> Path:
-    """The `gltf: "..."` field of the RON sidecar, resolved relative to the sidecar."""
-    text = scene.read_text()
-    text = re.sub(r"/\*.*?\*/", "", text, flags=re.S)          # block comments
-    text = re.sub(r"(?m)^\s*//.*$", "", text)                   # whole-line comments
-    m = re.search(r'\bgltf\s*:\s*"([^"]+)"', text)
-    if not m:
-        raise CheckError(f'no `gltf: "..."` field found in {scene}')
-    p = Path(m.group(1))
-    return p if p.is_absolute() else (scene.parent / p)
+    """The glTF file a RON sidecar names, resolved relative to the sidecar."""
+    import scene_truth
+    try:
+        return scene_truth.sidecar_gltf(scene)
+    except (scene_truth.TruthError, OSError) as e:
+        raise CheckError(str(e)) from e
 
 
 _MI = None

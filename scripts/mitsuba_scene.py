@@ -53,12 +53,9 @@ Renderer model reproduced here (see lightprobe's docs):
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import re
 import shutil
-import struct
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -177,27 +174,12 @@ def run_lightprobe(cmd: list[str], retries: int = 20) -> str:
     raise FileNotFoundError(f"{cmd[0]} not found (build it with cargo build --release)")
 
 
-def sidecar_gltf(sidecar: Path) -> Path:
-    """The glTF file a RON sidecar names (gltf: "file.glb"), resolved next to it."""
-    text = Path(sidecar).read_text()
-    m = re.search(r'\bgltf\s*:\s*"([^"]+)"', text)
-    if not m:
-        raise ValueError(f"{sidecar}: no gltf: \"...\" field")
-    p = Path(m.group(1))
-    return p if p.is_absolute() else Path(sidecar).resolve().parent / p
+# The scene's files are read one way for every check (scripts/scene_truth.py).
+from scene_truth import read_gltf, sidecar_gltf, srgb_to_linear  # noqa: E402,F401
 
 
 def read_gltf_json(path: Path) -> dict:
-    data = Path(path).read_bytes()
-    if data[:4] == b"glTF":
-        jlen, jtype = struct.unpack_from("<I4s", data, 12)
-        assert jtype == b"JSON"
-        return json.loads(data[20:20 + jlen])
-    return json.loads(data)
-
-
-def srgb_to_linear(s: np.ndarray) -> np.ndarray:
-    return np.where(s <= 0.04045, s / 12.92, ((s + 0.055) / 1.055) ** 2.4)
+    return read_gltf(path)[0]
 
 
 @dataclass

@@ -399,6 +399,19 @@ def _struct(v):
     return v.value if isinstance(v, Named) else v
 
 
+def read_sidecar(scene: Path) -> dict:
+    """A RON sidecar's fields."""
+    side = _struct(parse_ron(Path(scene).read_text(), str(scene)))
+    if not isinstance(side, dict) or "gltf" not in side:
+        raise TruthError(f"{scene}: not a sidecar with a gltf field")
+    return side
+
+
+def sidecar_gltf(scene: Path) -> Path:
+    """The glTF file a sidecar names, resolved next to it."""
+    return Path(scene).resolve().parent / read_sidecar(scene)["gltf"]
+
+
 def read_scene(scene: Path, height: int | None = None) -> dict:
     """The scene at `scene` (a RON sidecar, or a .gltf/.glb by itself) as this module reads
     it, in the shape of `lightprobe info`: cameras, lights, materials, settings."""
@@ -406,9 +419,7 @@ def read_scene(scene: Path, height: int | None = None) -> dict:
     if scene.suffix.lower() in (".gltf", ".glb"):
         side, gltf_path = {}, scene
     else:
-        side = _struct(parse_ron(scene.read_text(), str(scene)))
-        if not isinstance(side, dict) or "gltf" not in side:
-            raise TruthError(f"{scene}: not a sidecar with a gltf field")
+        side = read_sidecar(scene)
         known = {"gltf", "views", "cameras", "image", "albedo", "lights", "envmap", "render"}
         if set(side) - known:
             raise NotImplementedError(f"{scene}: fields {sorted(set(side) - known)}")
