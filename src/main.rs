@@ -55,9 +55,9 @@ enum Command {
     /// Run estimates over scenarios × samples × rings × solvers (the paper's experiment),
     /// appending one JSON line per trial to OUT/trials*.jsonl; resumable and shardable.
     Sweep(cli::experiment::SweepArgs),
-    /// Charts (PNG) and a markdown summary of a sweep's trials, all shards merged:
-    /// error against rings (the paper's Fig. 4), speed against accuracy with the Pareto
-    /// front, error against light distance.
+    /// Charts (PNG and SVG), a results page (index.html) and a markdown summary of a sweep's
+    /// trials, all shards merged: error against rings (the paper's Fig. 4), speed against
+    /// accuracy with the Pareto front, error against light distance.
     Report {
         /// The sweep's output folder.
         dir: PathBuf,

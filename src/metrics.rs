@@ -7,13 +7,10 @@
 //! writes, as each image's alpha, the fraction of camera samples that hit geometry, and a pixel
 //! counts when the reference's alpha is > 0. A reference without alpha masks nothing.
 
-use std::path::Path;
-
-use glam::Vec3;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::imageio::{Image, write_rgb8_png};
+use crate::imageio::Image;
 
 /// Error figures of an image against a reference.
 #[derive(Debug, Clone, Copy, Serialize, PartialEq, schemars::JsonSchema)]
@@ -105,154 +102,6 @@ pub fn compare(image: &Image, reference: &Image, mask: &[bool]) -> Result<Metric
     })
 }
 
-/// Per-pixel mean absolute error over the channels (0 outside the mask).
-pub fn error_map(image: &Image, reference: &Image, mask: &[bool]) -> Vec<f32> {
-    image
-        .rgb
-        .iter()
-        .zip(&reference.rgb)
-        .zip(mask)
-        .map(|((x, r), &m)| {
-            if m {
-                (*x - *r).abs().element_sum() / 3.0
-            } else {
-                0.0
-            }
-        })
-        .collect()
-}
-
-/// Writes the error heat map as a PNG: the per-pixel mean absolute error mapped through a
-/// perceptual colour map from 0 to `scale` (default: the 99th percentile of the error), with a
-/// colour bar labelled in the image's units. Masked-out pixels are grey. Returns the scale.
-pub fn write_heatmap(
-    path: &Path,
-    image: &Image,
-    reference: &Image,
-    mask: &[bool],
-    scale: Option<f32>,
-) -> Result<f32> {
-    let err = error_map(image, reference, mask);
-    let scale = scale.unwrap_or_else(|| {
-        let mut v: Vec<f32> = err
-            .iter()
-            .zip(mask)
-            .filter(|(_, m)| **m)
-            .map(|(e, _)| *e)
-            .collect();
-        if v.is_empty() {
-            return 1.0;
-        }
-        let k = ((v.len() - 1) as f32 * 0.99) as usize;
-        let (_, p, _) = v.select_nth_unstable_by(k, f32::total_cmp);
-        if *p > 0.0 { *p } else { 1.0 }
-    });
-    let (w, h) = (image.width as usize, image.height as usize);
-    let zoom = (512 / w.max(1)).clamp(1, 8);
-    let (iw, ih) = (w * zoom, h * zoom);
-    let bar_w = 90;
-    let (cw, ch) = (iw + bar_w, ih.max(120));
-    let mut canvas = vec![[255u8; 3]; cw * ch];
-    for y in 0..ih {
-        for x in 0..iw {
-            let i = (y / zoom) * w + x / zoom;
-            canvas[y * cw + x] = if mask[i] {
-                colormap(err[i] / scale)
-            } else {
-                [96, 96, 96]
-            };
-        }
-    }
-    // Colour bar: top = scale, bottom = 0.
-    let (bx, by0, by1) = (iw + 10, 12, ch - 12);
-    for y in by0..by1 {
-        let c = colormap(1.0 - (y - by0) as f32 / (by1 - by0 - 1) as f32);
-        for x in bx..bx + 16 {
-            canvas[y * cw + x] = c;
-        }
-    }
-    draw_text(&mut canvas, cw, bx + 20, by0 - 2, &fmt_label(scale));
-    draw_text(
-        &mut canvas,
-        cw,
-        bx + 20,
-        (by0 + by1) / 2 - 5,
-        &fmt_label(scale / 2.0),
-    );
-    draw_text(&mut canvas, cw, bx + 20, by1 - 10, "0");
-    let bytes = canvas.into_iter().flatten().collect();
-    write_rgb8_png(path, cw as u32, ch as u32, bytes)?;
-    Ok(scale)
-}
-
-fn fmt_label(v: f32) -> String {
-    if (0.01..1000.0).contains(&v) {
-        format!("{v:.3}")
-    } else {
-        format!("{v:.1e}")
-    }
-}
-
-/// A perceptual dark-to-bright colour map (inferno-like control points), t in [0, 1].
-pub fn colormap(t: f32) -> [u8; 3] {
-    const STOPS: [Vec3; 7] = [
-        Vec3::new(0.0, 0.0, 0.016),
-        Vec3::new(0.16, 0.04, 0.34),
-        Vec3::new(0.40, 0.08, 0.43),
-        Vec3::new(0.64, 0.17, 0.36),
-        Vec3::new(0.87, 0.32, 0.20),
-        Vec3::new(0.98, 0.58, 0.04),
-        Vec3::new(0.99, 1.0, 0.64),
-    ];
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        1.0
-    } * (STOPS.len() - 1) as f32;
-    let i = (t as usize).min(STOPS.len() - 2);
-    let c = STOPS[i].lerp(STOPS[i + 1], t - i as f32);
-    (c * 255.0 + 0.5).to_array().map(|v| v as u8)
-}
-
-/// 3×5 glyphs (rows top to bottom, 3 bits each, MSB left) for the labels' characters.
-fn glyph(c: char) -> [u8; 5] {
-    match c {
-        '0' => [7, 5, 5, 5, 7],
-        '1' => [2, 6, 2, 2, 7],
-        '2' => [7, 1, 7, 4, 7],
-        '3' => [7, 1, 7, 1, 7],
-        '4' => [5, 5, 7, 1, 1],
-        '5' => [7, 4, 7, 1, 7],
-        '6' => [7, 4, 7, 5, 7],
-        '7' => [7, 1, 2, 2, 2],
-        '8' => [7, 5, 7, 5, 7],
-        '9' => [7, 5, 7, 1, 7],
-        '.' => [0, 0, 0, 0, 2],
-        '-' => [0, 0, 7, 0, 0],
-        '+' => [0, 2, 7, 2, 0],
-        'e' => [0, 7, 7, 4, 7],
-        _ => [0; 5],
-    }
-}
-
-/// Draws black text at (x, y), each glyph pixel 2×2.
-fn draw_text(canvas: &mut [[u8; 3]], width: usize, x: usize, y: usize, text: &str) {
-    for (k, c) in text.chars().enumerate() {
-        for (row, bits) in glyph(c).iter().enumerate() {
-            for col in 0..3 {
-                if bits & (4 >> col) != 0 {
-                    for (dy, dx) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
-                        let (px, py) = (x + k * 8 + col * 2 + dx, y + row * 2 + dy);
-                        if let Some(p) = canvas.get_mut(py * width + px).filter(|_| px < width) {
-                            *p = [0, 0, 0];
-                        }
-                    }
-                }
-            }
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -261,7 +110,7 @@ mod tests {
         Image {
             width: values.len() as u32,
             height: 1,
-            rgb: values.iter().map(|&v| Vec3::splat(v)).collect(),
+            rgb: values.iter().map(|&v| glam::Vec3::splat(v)).collect(),
             alpha,
         }
     }
@@ -300,16 +149,5 @@ mod tests {
     fn size_mismatch_is_an_error() {
         let e = compare(&img(&[1.0], None), &img(&[1.0, 2.0], None), &[true, true]).unwrap_err();
         assert!(e.to_string().contains("differ in size"));
-    }
-
-    #[test]
-    fn colormap_is_monotone_in_brightness() {
-        let lum = |c: [u8; 3]| 0.2126 * c[0] as f32 + 0.7152 * c[1] as f32 + 0.0722 * c[2] as f32;
-        let mut last = -1.0;
-        for i in 0..=100 {
-            let l = lum(colormap(i as f32 / 100.0));
-            assert!(l >= last - 0.5, "{i}");
-            last = l;
-        }
     }
 }

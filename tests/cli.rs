@@ -239,8 +239,9 @@ fn compare_reports_metrics_and_heatmap() {
         m["masked_out"].as_u64().unwrap() > 0,
         "the background is masked"
     );
-    // The heat map's contents: 8× zoom of the 32×24 image beside a 90-pixel colour bar; each
-    // pixel the colour map at its mean absolute error over the scale, grey where masked out.
+    // The heat map's contents: the 32×24 image zoomed 8× at the layout's corner, each pixel
+    // the diverging colour map at its signed error (channel mean, over the reference's mean
+    // radiance) over the scale, grey where masked out.
     let (png, _) = lightprobe::imageio::read_photo(
         &heat,
         lightprobe::imageio::Decoding {
@@ -249,23 +250,36 @@ fn compare_reports_metrics_and_heatmap() {
         },
     )
     .unwrap();
-    assert_eq!((png.width, png.height), (32 * 8 + 90, 24 * 8));
+    let layout = lightprobe::output::figure::HeatMapLayout::of(32);
+    assert_eq!(layout.zoom, 8);
+    assert!(png.width >= layout.left + 32 * 8 && png.height >= layout.top + 24 * 8);
     let scale = m["heatmap"]["scale"].as_f64().unwrap() as f32;
     let (x, r) = (
         lightprobe::imageio::read_exr(&fb).unwrap(),
         lightprobe::imageio::read_exr(&fa).unwrap(),
     );
+    let alpha = r.alpha.as_ref().unwrap();
+    let (sum, n) = (0..r.rgb.len())
+        .filter(|&i| alpha[i] > 0.0)
+        .fold((0.0f64, 0), |(s, n), i| {
+            (s + r.rgb[i].element_sum() as f64 / 3.0, n + 1)
+        });
+    let mean = (sum / n as f64) as f32;
     let byte = |v: f32| (v * 255.0).round() as i32;
     let mut worst = 0;
     for py in 0..24usize {
         for px in 0..32usize {
             let i = py * 32 + px;
-            let shown = png.rgb[(py * 8 + 4) * png.width as usize + px * 8 + 4];
-            let want = if r.alpha.as_ref().unwrap()[i] > 0.0 {
-                let err = (x.rgb[i] - r.rgb[i]).abs().element_sum() / 3.0;
-                lightprobe::metrics::colormap(err / scale).map(|c| c as i32)
+            let (sx, sy) = (
+                layout.left as usize + px * 8 + 4,
+                layout.top as usize + py * 8 + 4,
+            );
+            let shown = png.rgb[sy * png.width as usize + sx];
+            let want = if alpha[i] > 0.0 {
+                let err = (x.rgb[i] - r.rgb[i]).element_sum() / 3.0 / mean;
+                lightprobe::output::figure::diverging(err / scale).map(|c| c as i32)
             } else {
-                [96, 96, 96]
+                lightprobe::output::figure::MASKED.map(|c| c as i32)
             };
             for c in 0..3 {
                 worst = worst.max((byte(shown[c]) - want[c]).abs());
@@ -1252,6 +1266,7 @@ fn estimate_runs_end_to_end_and_reports() {
     ] {
         assert!(out.join(f).exists(), "{f}");
     }
+    check_results_page(&out);
     let env = lightprobe::envmap::Envmap::load(&out.join("envmap.ron")).unwrap();
     assert_eq!(env.grid.rings(), 5);
     // Fitting the written references again (--reference) gives the same envmap: same seeds.
@@ -1297,6 +1312,49 @@ fn estimate_runs_end_to_end_and_reports() {
             .radiance(),
         env.radiance()
     );
+}
+
+/// The results page of the estimate in `out`: every image it shows is a file there, and every
+/// number it tags holds report.json's value at its path (what a browser shows is checked by
+/// `scripts/check_page.py`).
+fn check_results_page(out: &Path) {
+    let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let attr = |tag: &str, name: &str| -> Option<String> {
+        let i = tag.find(&format!("{name}=\""))? + name.len() + 2;
+        Some(tag[i..i + tag[i..].find('"')?].to_string())
+    };
+    let mut images = 0;
+    for tag in html.split("<img ").skip(1) {
+        let src = attr(tag, "src").unwrap();
+        assert!(
+            out.join(&src).is_file(),
+            "the page shows {src}, which is not there"
+        );
+        images += 1;
+    }
+    // Per view: reference, estimate, error; and the envmap.
+    assert!(images == 2 * 3 + 1, "{images} images");
+    let mut numbers = 0;
+    for tag in html.split("<td class=\"num\" ").skip(1) {
+        let path = attr(tag, "data-json").unwrap();
+        let value: serde_json::Value =
+            serde_json::from_str(&attr(tag, "data-value").unwrap().replace("&quot;", "\""))
+                .unwrap();
+        let want = path
+            .split('.')
+            .fold(&report, |v, k| match k.parse::<usize>() {
+                Ok(i) => &v[i],
+                Err(_) => &v[k],
+            });
+        assert_eq!(&value, want, "{path}");
+        numbers += 1;
+    }
+    assert!(numbers >= 8, "{numbers} numbers");
+    for must in ["rel_mae", "noise_floor_rel_mae", "views.1.estimate.rel_mae"] {
+        assert!(html.contains(&format!("data-json=\"{must}\"")), "{must}");
+    }
 }
 
 #[test]

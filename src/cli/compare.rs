@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use serde_json::json;
 
 use super::outln;
+use lightprobe::output::figure;
 use lightprobe::{imageio, metrics};
 
 #[derive(clap::Args)]
@@ -13,10 +14,12 @@ pub struct Args {
     image: PathBuf,
     /// The reference (EXR); its alpha, if any, masks out background pixels.
     reference: PathBuf,
-    /// Write a per-pixel error heat map (PNG) with a colour bar.
+    /// Write a heat map (PNG) of the signed error per pixel, (image − reference) over the
+    /// reference's mean radiance, blue below zero and red above, with a colour bar in percent.
     #[arg(long)]
     heatmap: Option<PathBuf>,
-    /// Top of the heat map's colour scale (default: 99th percentile of the error).
+    /// The heat map's colour scale runs from −SCALE to +SCALE, a fraction of the reference's
+    /// mean radiance (default: the 99th percentile of the error's magnitude).
     #[arg(long)]
     scale: Option<f32>,
     /// Compare every pixel, ignoring the reference's alpha mask.
@@ -74,9 +77,22 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     let m = metrics::compare(&image, &reference, &mask)?;
     let scale = match &a.heatmap {
-        Some(p) => Some(metrics::write_heatmap(
-            p, &image, &reference, &mask, a.scale,
-        )?),
+        Some(p) => {
+            let err = figure::signed_error(&image, &reference, &mask);
+            let scale = a
+                .scale
+                .unwrap_or_else(|| figure::shared_scale(std::slice::from_ref(&err)));
+            let title = format!(
+                "{} − {}",
+                a.image.file_name().unwrap_or_default().to_string_lossy(),
+                a.reference
+                    .file_name()
+                    .unwrap_or_default()
+                    .to_string_lossy()
+            );
+            figure::write_error_map(p, &title, (image.width, image.height), &err, scale)?;
+            Some(scale)
+        }
         None => None,
     };
     if a.json {
@@ -84,7 +100,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         v["image"] = json!(a.image);
         v["reference"] = json!(a.reference);
         if let (Some(p), Some(s)) = (&a.heatmap, scale) {
-            v["heatmap"] = json!({ "path": p, "scale": s });
+            v["heatmap"] = json!({
+                "path": p,
+                "scale": s,
+                "units": "fraction of the reference's mean radiance (signed, −scale to +scale)",
+            });
         }
         outln!("{}", serde_json::to_string_pretty(&v)?)?;
     } else {
@@ -99,7 +119,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             m.masked_out
         )?;
         if let (Some(p), Some(s)) = (&a.heatmap, scale) {
-            outln!("heatmap {} (scale 0..{s:.4})", p.display())?;
+            outln!(
+                "heatmap {} (signed error, ±{:.2}% of the reference's mean)",
+                p.display(),
+                100.0 * s
+            )?;
         }
     }
     Ok(())

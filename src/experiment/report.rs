@@ -17,9 +17,10 @@ use serde::Serialize;
 use super::sweep::{Status, TrialRecord, read_records};
 use crate::error::{Error, Result};
 use crate::estimate::Solver;
-
-const FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
-const SIZE: (u32, u32) = (900, 600);
+use crate::output::figure::{self, Chart, Drawn};
+use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 /// A series of the charts: one solver at one transport spp and albedo error.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
@@ -264,64 +265,64 @@ fn mean_std(v: &[f64]) -> (f64, f64) {
     (m, var.sqrt())
 }
 
-fn plot_err<E: std::fmt::Debug>(what: &Path) -> impl FnOnce(E) -> Error + '_ {
-    move |e| Error::file(what, format!("cannot draw the chart: {e:?}"))
+/// Colour of series `s` among `series`: its samples per pixel and albedo error ranked along
+/// viridis (the solver is told by the marker, not the colour).
+fn series_colour(series: &[SeriesKey], s: &SeriesKey) -> RGBColor {
+    let mut keys: Vec<(u32, u32)> = series
+        .iter()
+        .map(|k| (k.spp, k.albedo_error_percent))
+        .collect();
+    keys.sort_unstable();
+    keys.dedup();
+    let i = keys
+        .iter()
+        .position(|k| *k == (s.spp, s.albedo_error_percent))
+        .unwrap_or(0);
+    figure::series_colour(i, keys.len())
 }
 
-/// Colour of series `i`.
-fn colour(i: usize) -> RGBColor {
-    const C: [RGBColor; 6] = [
-        RGBColor(31, 119, 180),
-        RGBColor(214, 39, 40),
-        RGBColor(44, 160, 44),
-        RGBColor(148, 103, 189),
-        RGBColor(255, 127, 14),
-        RGBColor(23, 190, 207),
-    ];
-    C[i % C.len()]
+/// Ticks, labels and grid lines of an x axis that holds log10 of its values (from `lo` to
+/// `hi`), at 1-2-5 steps ([`figure::log_ticks`]): plotters' own log axis labels nothing over
+/// less than a decade, and repeats labels over a few.
+fn log_x_axis<DB>(
+    root: &DrawingArea<DB, Shift>,
+    ch: &mut ChartContext<'_, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    (lo, hi): (f64, f64),
+    y_max: f64,
+) -> Drawn
+where
+    DB: DrawingBackend,
+    DB::ErrorType: 'static,
+{
+    let (_, ys) = ch.plotting_area().get_pixel_range();
+    for t in figure::log_ticks(lo, hi) {
+        let x = t.log10();
+        ch.draw_series([PathElement::new([(x, 0.0), (x, y_max)], BLACK.mix(0.15))])?;
+        let (px, _) = ch.backend_coord(&(x, 0.0));
+        root.draw(&PathElement::new([(px, ys.end), (px, ys.end + 5)], BLACK))?;
+        root.draw(&Text::new(
+            figure::tick_label(t),
+            (px, ys.end + 8),
+            figure::text(15).pos(Pos::new(HPos::Center, VPos::Top)),
+        ))?;
+    }
+    Ok(())
 }
 
 /// Draws a chart's legend, the same way on every chart.
-fn legend<'a, DB, CT>(
-    ch: &mut ChartContext<'a, DB, CT>,
-    position: SeriesLabelPosition,
-    path: &Path,
-) -> Result<()>
+fn legend<'a, DB, CT>(ch: &mut ChartContext<'a, DB, CT>, position: SeriesLabelPosition) -> Drawn
 where
     DB: DrawingBackend + 'a,
+    DB::ErrorType: 'static,
     CT: plotters::coord::CoordTranslate,
 {
     ch.configure_series_labels()
         .position(position)
-        .label_font(("sans-serif", 15))
+        .label_font(figure::text(15))
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
-        .draw()
-        .map_err(plot_err(path))
-}
-
-/// Draws with `draw` into an RGB buffer and writes it as PNG, atomically.
-fn chart(
-    path: &Path,
-    draw: impl FnOnce(&DrawingArea<BitMapBackend, plotters::coord::Shift>) -> Result<()>,
-) -> Result<()> {
-    static REGISTERED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    let ok = *REGISTERED.get_or_init(|| {
-        plotters::style::register_font("sans-serif", FontStyle::Normal, FONT).is_ok()
-    });
-    if !ok {
-        return Err(Error::Invalid(
-            "the bundled chart font does not load".into(),
-        ));
-    }
-    let mut buf = vec![255u8; (SIZE.0 * SIZE.1 * 3) as usize];
-    {
-        let root = BitMapBackend::with_buffer(&mut buf, SIZE).into_drawing_area();
-        root.fill(&WHITE).map_err(plot_err(path))?;
-        draw(&root)?;
-        root.present().map_err(plot_err(path))?;
-    }
-    crate::imageio::write_rgb8_png(path, SIZE.0, SIZE.1, buf)
+        .draw()?;
+    Ok(())
 }
 
 /// Reads the trials in `dir` and writes the charts, report.md and summary.json there.
@@ -372,14 +373,41 @@ pub fn report(dir: &Path) -> Result<Summary> {
     };
     let best = best_per_scenario(&ok, series.first());
     let auto = auto_against_best(&ok);
-    let mut charts = vec![
-        chart_error_vs_rings(dir, &cells, &series)?,
-        chart_speed_vs_accuracy(dir, &cells, &series)?,
-        chart_error_vs_distance(dir, &best, &sphere_trials, series.first())?,
-    ];
-    if !auto.is_empty() {
-        charts.push(chart_auto_vs_best(dir, &auto)?);
+    // A chart of one point says nothing: drawn only when its axis has two values or more
+    // (else an earlier report's copy is removed).
+    let mut rings: Vec<u32> = cells.iter().map(|c| c.rings).collect();
+    rings.sort_unstable();
+    rings.dedup();
+    let mut charts = Vec::new();
+    for (name, wanted) in [
+        ("error_vs_rings", rings.len() > 1),
+        ("speed_vs_accuracy", cells.len() > 1),
+        ("auto_vs_best", !auto.is_empty()),
+    ] {
+        if !wanted {
+            for ext in ["png", "svg"] {
+                let stale = dir.join(format!("{name}.{ext}"));
+                match std::fs::remove_file(&stale) {
+                    Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                        return Err(Error::io(&stale, e));
+                    }
+                    _ => {}
+                }
+            }
+            continue;
+        }
+        charts.push(match name {
+            "error_vs_rings" => chart_error_vs_rings(dir, &cells, &series)?,
+            "speed_vs_accuracy" => chart_speed_vs_accuracy(dir, &cells, &series)?,
+            _ => chart_auto_vs_best(dir, &auto)?,
+        });
     }
+    charts.push(chart_error_vs_distance(
+        dir,
+        &best,
+        &sphere_trials,
+        series.first(),
+    )?);
 
     // ---- Markdown and JSON ----
     let sweep_wall_seconds = read_run_seconds(dir);
@@ -407,10 +435,113 @@ pub fn report(dir: &Path) -> Result<Summary> {
     };
     let md = markdown(&summary, &best);
     crate::imageio::write_bytes(&dir.join("report.md"), md.as_bytes())?;
+    let html = html_page(&summary, &best);
+    crate::imageio::write_bytes(&dir.join("index.html"), html.as_bytes())?;
     let json =
         serde_json::to_string_pretty(&summary).map_err(|e| Error::Invalid(e.to_string()))? + "\n";
     crate::imageio::write_bytes(&dir.join("summary.json"), json.as_bytes())?;
     Ok(summary)
+}
+
+/// `index.html` of a sweep: each chart (its SVG) beside the table of what it plots.
+fn html_page(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
+    use crate::output::page::escape;
+    let mut h = format!(
+        "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>lightprobe \
+         sweep</title><style>body{{font-family:'DejaVu Sans',sans-serif;margin:24px;color:#222}}\
+         .pair{{display:flex;gap:24px;align-items:flex-start;flex-wrap:wrap;margin-bottom:32px}}\
+         .pair img{{width:720px}}table{{border-collapse:collapse;font-size:13px}}td,th{{padding:\
+         2px 8px;border-bottom:1px solid #eee;text-align:right}}</style></head><body>\n\
+         <h1>Sweep report</h1><p>{} trials over {} scenarios; {} failed, {} did not converge. \
+         Every chart is an SVG (and a PNG) beside this page; summary.json holds every \
+         figure.</p>\n",
+        s.trials, s.scenarios, s.failed, s.not_converged
+    );
+    let cells_table = |with_time: bool| {
+        let mut t = String::from(
+            "<table><tr><th>series</th><th>rings</th><th>relMAE mean</th><th>std</th>\
+             <th>noise floor</th>",
+        );
+        t += if with_time {
+            "<th>fit (s)</th><th>Pareto front</th></tr>\n"
+        } else {
+            "</tr>\n"
+        };
+        for c in &s.cells {
+            t += &format!(
+                "<tr><td>{}</td><td>{}</td><td>{:.2}%</td><td>{:.2}%</td><td>{:.2}%</td>",
+                escape(&c.series.label()),
+                c.rings,
+                100.0 * c.rel_mae_mean,
+                100.0 * c.rel_mae_std,
+                100.0 * c.noise_floor_mean
+            );
+            if with_time {
+                t += &format!(
+                    "<td>{:.2}</td><td>{}</td>",
+                    c.fit_seconds_mean,
+                    if c.on_pareto_front { "●" } else { "" }
+                );
+            }
+            t += "</tr>\n";
+        }
+        t + "</table>"
+    };
+    for chart in &s.charts {
+        let name = chart
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let table = match name.as_str() {
+            "error_vs_rings.png" => cells_table(false),
+            "speed_vs_accuracy.png" => cells_table(true),
+            "auto_vs_best.png" => {
+                let mut t = String::from(
+                    "<table><tr><th>scenario</th><th>auto rings</th><th>auto relMAE</th>\
+                     <th>best rings</th><th>best relMAE</th></tr>\n",
+                );
+                for a in &s.auto {
+                    t += &format!(
+                        "<tr><td>{}</td><td>{}</td><td>{:.2}%</td><td>{}</td><td>{:.2}%</td></tr>\n",
+                        escape(&a.scenario),
+                        a.auto_rings,
+                        100.0 * a.auto_rel_mae,
+                        a.best_rings,
+                        100.0 * a.best_rel_mae
+                    );
+                }
+                t + "</table>"
+            }
+            _ => {
+                let mut t = String::from(
+                    "<table><tr><th>scenario</th><th>nearest light / scene size</th>\
+                     <th>best relMAE</th><th>rings</th><th>noise floor</th></tr>\n",
+                );
+                for (scenario, r) in best {
+                    let nearest = r
+                        .lights
+                        .iter()
+                        .map(|l| l.distance_over_size)
+                        .fold(f32::INFINITY, f32::min);
+                    t += &format!(
+                        "<tr><td>{}</td><td>{nearest:.2}</td><td>{:.2}%</td><td>{}</td>\
+                         <td>{:.2}%</td></tr>\n",
+                        escape(scenario),
+                        100.0 * r.rel_mae.unwrap_or(f64::NAN),
+                        r.rings,
+                        100.0 * r.noise_floor_rel_mae.unwrap_or(f64::NAN)
+                    );
+                }
+                t + "</table>"
+            }
+        };
+        let svg = name.replace(".png", ".svg");
+        h += &format!(
+            "<div class=\"pair\"><img src=\"{svg}\" alt=\"{}\">{table}</div>\n",
+            escape(&name)
+        );
+    }
+    h + "</body></html>\n"
 }
 
 /// Per (series, rings): the mean and spread of the error over scenarios, and whether the
@@ -465,118 +596,139 @@ fn aggregate(ok: &[&TrialRecord]) -> Vec<Cell> {
 /// The paper's Fig. 4: error against rings, mean ± std over scenarios, per series.
 fn chart_error_vs_rings(dir: &Path, cells: &[Cell], series: &[SeriesKey]) -> Result<PathBuf> {
     let path = dir.join("error_vs_rings.png");
-    let max_rings = cells.iter().map(|c| c.rings).max().unwrap_or(1);
-    let y_max = cells
-        .iter()
-        .map(|c| 100.0 * (c.rel_mae_mean + c.rel_mae_std))
-        .fold(1.0, f64::max)
-        * 1.1;
-    chart(&path, |root| {
+    figure::write_chart(&path, &ErrorVsRings { cells, series })?;
+    Ok(path)
+}
+
+struct ErrorVsRings<'a> {
+    cells: &'a [Cell],
+    series: &'a [SeriesKey],
+}
+
+impl Chart for ErrorVsRings<'_> {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Drawn
+    where
+        DB::ErrorType: 'static,
+    {
+        let &ErrorVsRings { cells, series } = self;
+        let max_rings = cells.iter().map(|c| c.rings).max().unwrap_or(1);
+        let y_max = cells
+            .iter()
+            .map(|c| 100.0 * (c.rel_mae_mean + c.rel_mae_std))
+            .fold(1.0, f64::max)
+            * 1.1;
         let mut ch = ChartBuilder::on(root)
             .caption(
                 "Photometric error against envmap resolution (mean ± std over scenarios)",
-                ("sans-serif", 20),
+                figure::text(20),
             )
             .margin(15)
             .x_label_area_size(45)
             .y_label_area_size(60)
-            .build_cartesian_2d(0u32..max_rings + 2, 0f64..y_max)
-            .map_err(plot_err(&path))?;
+            .build_cartesian_2d(0f64..(max_rings + 2) as f64, 0f64..y_max)?;
         ch.configure_mesh()
             .x_desc("rings")
             .y_desc("relMAE (%)")
-            .label_style(("sans-serif", 15))
-            .draw()
-            .map_err(plot_err(&path))?;
+            .label_style(figure::text(15))
+            .draw()?;
         for (i, s) in series.iter().enumerate() {
-            let col = colour(i);
+            let col = series_colour(series, s);
+            // Series side by side at each ring count, so that their error bars stay apart.
+            let x = |c: &Cell| c.rings as f64 + 0.12 * (i as f64 - 0.5 * (series.len() - 1) as f64);
             let pts: Vec<&Cell> = cells.iter().filter(|c| c.series == *s).collect();
-            let offset = |r: u32| r; // same x for every series; error bars stay readable
-            ch.draw_series(LineSeries::new(
-                pts.iter()
-                    .map(|c| (offset(c.rings), 100.0 * c.rel_mae_mean)),
-                col.stroke_width(2),
-            ))
-            .map_err(plot_err(&path))?
-            .label(s.label())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], col.stroke_width(2)));
+            let line = pts.iter().map(|c| (x(c), 100.0 * c.rel_mae_mean));
             ch.draw_series(pts.iter().map(|c| {
                 PathElement::new(
                     vec![
-                        (c.rings, 100.0 * (c.rel_mae_mean - c.rel_mae_std).max(0.0)),
-                        (c.rings, 100.0 * (c.rel_mae_mean + c.rel_mae_std)),
+                        (x(c), 100.0 * (c.rel_mae_mean - c.rel_mae_std).max(0.0)),
+                        (x(c), 100.0 * (c.rel_mae_mean + c.rel_mae_std)),
                     ],
                     col.stroke_width(1),
                 )
-            }))
-            .map_err(plot_err(&path))?;
-            ch.draw_series(
-                pts.iter()
-                    .map(|c| Circle::new((c.rings, 100.0 * c.rel_mae_mean), 4, col.filled())),
-            )
-            .map_err(plot_err(&path))?;
+            }))?;
+            // NNLS: solid line and circles; the gradient solver: dashed line and triangles.
+            if s.solver == SolverName::Gradient {
+                ch.draw_series(DashedLineSeries::new(line, 8, 5, col.stroke_width(2)))?;
+                ch.draw_series(pts.iter().map(|c| {
+                    TriangleMarker::new((x(c), 100.0 * c.rel_mae_mean), 5, col.filled())
+                }))?
+                .label(s.label())
+                .legend(move |(x, y)| TriangleMarker::new((x + 10, y), 5, col.filled()));
+            } else {
+                ch.draw_series(LineSeries::new(line, col.stroke_width(2)))?;
+                ch.draw_series(
+                    pts.iter()
+                        .map(|c| Circle::new((x(c), 100.0 * c.rel_mae_mean), 4, col.filled())),
+                )?
+                .label(s.label())
+                .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+            }
         }
         let nf: Vec<&Cell> = cells
             .iter()
             .filter(|c| Some(&c.series) == series.first())
             .collect();
         ch.draw_series(LineSeries::new(
-            nf.iter().map(|c| (c.rings, 100.0 * c.noise_floor_mean)),
+            nf.iter()
+                .map(|c| (c.rings as f64, 100.0 * c.noise_floor_mean)),
             BLACK.stroke_width(1),
-        ))
-        .map_err(plot_err(&path))?
+        ))?
         .label("noise floor (two reference renders)")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(1)));
-        legend(&mut ch, SeriesLabelPosition::UpperRight, &path)?;
+        legend(&mut ch, SeriesLabelPosition::UpperRight)?;
         Ok(())
-    })?;
-
-    Ok(path)
+    }
 }
 
 /// Fit time against error for every setting, with the Pareto front.
 fn chart_speed_vs_accuracy(dir: &Path, cells: &[Cell], series: &[SeriesKey]) -> Result<PathBuf> {
     let path = dir.join("speed_vs_accuracy.png");
-    // x is log10(seconds) on a linear axis, labelled in seconds: plotters' log axis shows no
-    // labels over less than a decade.
-    let lt = |c: &Cell| c.fit_seconds_mean.max(1e-4).log10();
-    let t_min = cells.iter().map(lt).fold(f64::INFINITY, f64::min) - 0.1;
-    let t_max = cells
-        .iter()
-        .map(lt)
-        .fold(f64::NEG_INFINITY, f64::max)
-        .max(t_min + 0.3)
-        + 0.1;
-    let y_max = cells
-        .iter()
-        .map(|c| 100.0 * c.rel_mae_mean)
-        .fold(1.0, f64::max)
-        * 1.15;
-    chart(&path, |root| {
+    figure::write_chart(&path, &SpeedVsAccuracy { cells, series })?;
+    Ok(path)
+}
+
+struct SpeedVsAccuracy<'a> {
+    cells: &'a [Cell],
+    series: &'a [SeriesKey],
+}
+
+impl Chart for SpeedVsAccuracy<'_> {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Drawn
+    where
+        DB::ErrorType: 'static,
+    {
+        let &SpeedVsAccuracy { cells, series } = self;
+        // x is log10(seconds) on a linear axis, labelled in seconds: plotters' log axis shows no
+        // labels over less than a decade.
+        let lt = |c: &Cell| c.fit_seconds_mean.max(1e-4).log10();
+        let t_min = cells.iter().map(lt).fold(f64::INFINITY, f64::min) - 0.1;
+        let t_max = cells
+            .iter()
+            .map(lt)
+            .fold(f64::NEG_INFINITY, f64::max)
+            .max(t_min + 0.3)
+            + 0.1;
+        let y_max = cells
+            .iter()
+            .map(|c| 100.0 * c.rel_mae_mean)
+            .fold(1.0, f64::max)
+            * 1.15;
         let mut ch = ChartBuilder::on(root)
             .caption(
                 "Speed against accuracy: every setting tried (mean over scenarios)",
-                ("sans-serif", 20),
+                figure::text(20),
             )
             .margin(15)
             .x_label_area_size(45)
             .y_label_area_size(60)
-            .build_cartesian_2d(t_min..t_max, 0f64..y_max)
-            .map_err(plot_err(&path))?;
+            .build_cartesian_2d(t_min..t_max, 0f64..y_max)?;
         ch.configure_mesh()
-            .x_label_formatter(&|x| {
-                let t = 10f64.powf(*x);
-                if t < 10.0 {
-                    format!("{t:.2}")
-                } else {
-                    format!("{t:.0}")
-                }
-            })
+            .x_labels(0)
             .x_desc("stand-alone fit time per estimate (s, log scale, 2 cores)")
             .y_desc("relMAE (%)")
-            .label_style(("sans-serif", 15))
-            .draw()
-            .map_err(plot_err(&path))?;
+            .label_style(figure::text(15))
+            .draw()?;
+        log_x_axis(root, &mut ch, (t_min, t_max), y_max)?;
         // One front per albedo error: settings fitting different albedos are not rivals, and
         // one line through all of them would zig-zag.
         let mut albedos: Vec<u32> = cells
@@ -591,12 +743,10 @@ fn chart_speed_vs_accuracy(dir: &Path, cells: &[Cell], series: &[SeriesKey]) -> 
                 .filter(|c| c.on_pareto_front && c.series.albedo_error_percent == *albedo)
                 .collect();
             front.sort_by(|a, b| a.fit_seconds_mean.total_cmp(&b.fit_seconds_mean));
-            let line = ch
-                .draw_series(LineSeries::new(
-                    front.iter().map(|c| (lt(c), 100.0 * c.rel_mae_mean)),
-                    BLACK.stroke_width(1),
-                ))
-                .map_err(plot_err(&path))?;
+            let line = ch.draw_series(LineSeries::new(
+                front.iter().map(|c| (lt(c), 100.0 * c.rel_mae_mean)),
+                BLACK.stroke_width(1),
+            ))?;
             if k == 0 {
                 line.label(if albedos.len() > 1 {
                     "Pareto front (one per albedo error)"
@@ -608,23 +758,48 @@ fn chart_speed_vs_accuracy(dir: &Path, cells: &[Cell], series: &[SeriesKey]) -> 
                 });
             }
         }
-        for (i, s) in series.iter().enumerate() {
-            let col = colour(i);
+        for s in series {
+            let col = series_colour(series, s);
             let pts: Vec<&Cell> = cells.iter().filter(|c| c.series == *s).collect();
-            ch.draw_series(pts.iter().map(|c| {
-                EmptyElement::at((lt(c), 100.0 * c.rel_mae_mean))
-                    + Circle::new((0, 0), if c.on_pareto_front { 6 } else { 4 }, col.filled())
-                    + Text::new(format!("{}", c.rings), (6, -14), ("sans-serif", 12))
-            }))
-            .map_err(plot_err(&path))?
-            .label(format!("{} (labels: rings)", s.label()))
-            .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+            let size = |c: &Cell| if c.on_pareto_front { 6 } else { 4 };
+            let at = |c: &Cell| (lt(c), 100.0 * c.rel_mae_mean);
+            let label = format!("{} (labels: rings)", s.label());
+            if s.solver == SolverName::Gradient {
+                ch.draw_series(
+                    pts.iter()
+                        .map(|c| TriangleMarker::new(at(c), size(c) + 1, col.filled())),
+                )?
+                .label(label)
+                .legend(move |(x, y)| TriangleMarker::new((x + 10, y), 5, col.filled()));
+            } else {
+                ch.draw_series(
+                    pts.iter()
+                        .map(|c| Circle::new(at(c), size(c), col.filled())),
+                )?
+                .label(label)
+                .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
+            }
         }
-        legend(&mut ch, SeriesLabelPosition::LowerLeft, &path)?;
+        // Ring labels beside their points, each where it covers no point and no other label.
+        let at: Vec<(i32, i32)> = cells
+            .iter()
+            .map(|c| ch.backend_coord(&(lt(c), 100.0 * c.rel_mae_mean)))
+            .collect();
+        let mut placed: Vec<(i32, i32, i32, i32)> = at
+            .iter()
+            .map(|&(x, y)| (x - 6, y - 6, x + 7, y + 7))
+            .collect();
+        let area = ch.plotting_area().get_pixel_range();
+        for (c, &p) in cells.iter().zip(&at) {
+            let label = c.rings.to_string();
+            let (w, h) = root.estimate_text_size(&label, &figure::text(12))?;
+            let b = figure::label_spot(p, (w as i32 + 2, h as i32), &placed, area.clone());
+            placed.push(b);
+            root.draw(&Text::new(label, (b.0 + 1, b.1), figure::text(12)))?;
+        }
+        legend(&mut ch, SeriesLabelPosition::LowerLeft)?;
         Ok(())
-    })?;
-
-    Ok(path)
+    }
 }
 
 /// Per scenario, its best trial over rings in `series` (fixed resolutions only).
@@ -656,66 +831,96 @@ fn chart_error_vs_distance(
     first_series: Option<&SeriesKey>,
 ) -> Result<PathBuf> {
     let path = dir.join("error_vs_distance.png");
-    let nearest = |r: &TrialRecord| {
-        r.lights
-            .iter()
-            .map(|l| l.distance_over_size)
-            .fold(f32::INFINITY, f32::min) as f64
-    };
-    let x_max = best
-        .values()
-        .chain(sphere_trials)
-        .map(|r| nearest(r))
-        .fold(1.0, f64::max)
-        * 1.2;
-    let y_max = best
-        .values()
-        .chain(sphere_trials)
-        .filter_map(|r| r.rel_mae)
-        .fold(0.01, f64::max)
-        * 110.0;
-    chart(&path, |root| {
+    figure::write_chart(
+        &path,
+        &ErrorVsDistance {
+            best,
+            sphere_trials,
+            first_series,
+        },
+    )?;
+    Ok(path)
+}
+
+struct ErrorVsDistance<'a> {
+    best: &'a BTreeMap<&'a str, &'a TrialRecord>,
+    sphere_trials: &'a [&'a TrialRecord],
+    first_series: Option<&'a SeriesKey>,
+}
+
+impl Chart for ErrorVsDistance<'_> {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Drawn
+    where
+        DB::ErrorType: 'static,
+    {
+        let &ErrorVsDistance {
+            best,
+            sphere_trials,
+            first_series,
+        } = self;
+        // x is log10 of the distance on a linear axis ([`log_x_axis`]).
+        let nearest = |r: &TrialRecord| {
+            (r.lights
+                .iter()
+                .map(|l| l.distance_over_size)
+                .fold(f32::INFINITY, f32::min) as f64)
+                .log10()
+        };
+        let x_max = best
+            .values()
+            .chain(sphere_trials)
+            .map(|r| nearest(r))
+            .fold(0.0, f64::max)
+            + 0.08;
+        let x_min = 0.8f64.log10();
+        let y_max = best
+            .values()
+            .chain(sphere_trials)
+            .filter_map(|r| r.rel_mae)
+            .fold(0.01, f64::max)
+            * 110.0;
         let mut ch = ChartBuilder::on(root)
             .caption(
                 format!(
                     "Best error over rings against the nearest light's distance ({})",
                     first_series.map(|s| s.label()).unwrap_or_default()
                 ),
-                ("sans-serif", 20),
+                figure::text(20),
             )
             .margin(15)
             .x_label_area_size(45)
             .y_label_area_size(60)
-            .build_cartesian_2d((0.8f64..x_max).log_scale(), 0f64..y_max)
-            .map_err(plot_err(&path))?;
+            .build_cartesian_2d(x_min..x_max, 0f64..y_max)?;
         ch.configure_mesh()
+            .x_labels(0)
             .x_desc("nearest light's distance from the scene centre / scene size (log scale)")
             .y_desc("relMAE (%)")
-            .label_style(("sans-serif", 15))
-            .draw()
-            .map_err(plot_err(&path))?;
-        for (lights, col, label) in [(1, colour(0), "one light"), (2, colour(1), "two lights")] {
+            .label_style(figure::text(15))
+            .draw()?;
+        log_x_axis(root, &mut ch, (x_min, x_max), y_max)?;
+        for (lights, col, label) in [
+            (1, figure::series_colour(0, 3), "one light"),
+            (2, figure::series_colour(1, 3), "two lights"),
+        ] {
             ch.draw_series(best.values().filter(|r| r.lights.len() == lights).map(|r| {
                 Circle::new(
                     (nearest(r), 100.0 * r.rel_mae.unwrap_or(0.0)),
                     4,
                     col.filled(),
                 )
-            }))
-            .map_err(plot_err(&path))?
+            }))?
             .label(label)
             .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
         }
         if !sphere_trials.is_empty() {
-            let col = colour(2);
+            let col = figure::series_colour(2, 3);
             ch.draw_series(sphere_trials.iter().map(|r| {
                 TriangleMarker::new(
                     (nearest(r), 100.0 * r.rel_mae.unwrap_or(0.0)),
                     5,
                     col.filled(),
                 )
-            }))
-            .map_err(plot_err(&path))?
+            }))?
             .label("sphere model")
             .legend(move |(x, y)| TriangleMarker::new((x + 10, y), 5, col.filled()));
         }
@@ -725,67 +930,71 @@ fn chart_error_vs_distance(
                 3,
                 BLACK.stroke_width(1),
             )
-        }))
-        .map_err(plot_err(&path))?
+        }))?
         .label("noise floor")
         .legend(|(x, y)| Cross::new((x + 10, y), 3, BLACK.stroke_width(1)));
-        legend(&mut ch, SeriesLabelPosition::UpperRight, &path)?;
+        legend(&mut ch, SeriesLabelPosition::UpperRight)?;
         Ok(())
-    })?;
-
-    Ok(path)
+    }
 }
 
 /// `--rings auto` against each scenario's best fixed resolution.
 fn chart_auto_vs_best(dir: &Path, auto: &[AutoFigures]) -> Result<PathBuf> {
     let path = dir.join("auto_vs_best.png");
-    let top = auto
-        .iter()
-        .map(|a| a.auto_rel_mae.max(a.best_rel_mae))
-        .fold(0.01, f64::max)
-        * 110.0;
-    chart(&path, |root| {
+    figure::write_chart(&path, &AutoVsBest { auto })?;
+    Ok(path)
+}
+
+struct AutoVsBest<'a> {
+    auto: &'a [AutoFigures],
+}
+
+impl Chart for AutoVsBest<'_> {
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Drawn
+    where
+        DB::ErrorType: 'static,
+    {
+        let &AutoVsBest { auto } = self;
+        let top = auto
+            .iter()
+            .map(|a| a.auto_rel_mae.max(a.best_rel_mae))
+            .fold(0.01, f64::max)
+            * 110.0;
         let mut ch = ChartBuilder::on(root)
             .caption(
                 "--rings auto against the best fixed resolution, per scenario",
-                ("sans-serif", 20),
+                figure::text(20),
             )
             .margin(15)
             .x_label_area_size(45)
             .y_label_area_size(60)
-            .build_cartesian_2d(0f64..top, 0f64..top)
-            .map_err(plot_err(&path))?;
+            .build_cartesian_2d(0f64..top, 0f64..top)?;
         ch.configure_mesh()
             .x_desc("best relMAE over the fixed resolutions (%)")
             .y_desc("relMAE with --rings auto (%)")
-            .label_style(("sans-serif", 15))
-            .draw()
-            .map_err(plot_err(&path))?;
+            .label_style(figure::text(15))
+            .draw()?;
         for (k, style, label) in [
             (1.0, BLACK.stroke_width(1), "equal"),
             (1.1, RED.stroke_width(1), "10% worse"),
         ] {
-            ch.draw_series(LineSeries::new([(0.0, 0.0), (top / k, top)], style))
-                .map_err(plot_err(&path))?
+            ch.draw_series(LineSeries::new([(0.0, 0.0), (top / k, top)], style))?
                 .label(label)
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
         }
-        let col = colour(0);
+        let col = figure::series_colour(0, 1);
         ch.draw_series(auto.iter().map(|a| {
             Circle::new(
                 (100.0 * a.best_rel_mae, 100.0 * a.auto_rel_mae),
                 4,
                 col.filled(),
             )
-        }))
-        .map_err(plot_err(&path))?
+        }))?
         .label("scenario")
         .legend(move |(x, y)| Circle::new((x + 10, y), 4, col.filled()));
-        legend(&mut ch, SeriesLabelPosition::UpperLeft, &path)?;
+        legend(&mut ch, SeriesLabelPosition::UpperLeft)?;
         Ok(())
-    })?;
-
-    Ok(path)
+    }
 }
 
 /// Total wall time of the sweep runs logged in `runs*.jsonl` (all shards, summed).
@@ -818,7 +1027,11 @@ fn markdown(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
             w / 60.0
         );
     }
-    md += ".\n\n![error against rings](error_vs_rings.png)\n\n";
+    md += ".\n\n";
+    let drawn = |name: &str| s.charts.iter().any(|c| c.ends_with(name));
+    if drawn("error_vs_rings.png") {
+        md += "![error against rings](error_vs_rings.png)\n\n";
+    }
     md += "| series | rings | scenarios | relMAE mean | std | noise floor | fit (s) | Pareto |\n|---|---:|---:|---:|---:|---:|---:|:-:|\n";
     for c in &s.cells {
         md += &format!(
@@ -833,7 +1046,11 @@ fn markdown(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
             if c.on_pareto_front { "●" } else { "" }
         );
     }
-    md += "\n![speed against accuracy](speed_vs_accuracy.png)\n\n![error against distance](error_vs_distance.png)\n\n";
+    md += "\n";
+    if drawn("speed_vs_accuracy.png") {
+        md += "![speed against accuracy](speed_vs_accuracy.png)\n\n";
+    }
+    md += "![error against distance](error_vs_distance.png)\n\n";
     if let Some(f) = s.auto_within_10_percent {
         let n = s.auto.len();
         let mean_t = s.auto.iter().map(|a| a.auto_fit_seconds).sum::<f64>() / n.max(1) as f64;

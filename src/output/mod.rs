@@ -3,6 +3,8 @@
 //!
 //! ```text
 //! OUT/report.json            the EstimateReport (schemas/report.schema.json)
+//! OUT/index.html             the results page: views, error maps, the envmap and its lights,
+//!                             key figures, model selection (figures/ holds its own pictures)
 //! OUT/envmap.ron, .exr        the ring envmap, and its lat-long EXR (Mitsuba's convention)
 //! OUT/reference/<view>.exr    references rendered from the scene's lights (none when given)
 //! OUT/estimate/<view>.exr     the envmap's re-render, a PNG preview and an error heat map
@@ -29,8 +31,10 @@ use crate::error::{Error, Result};
 use crate::estimate::job::{Estimate, EstimateReport};
 use crate::estimate::pipeline::{SeenViews, SphereOutcome};
 use crate::imageio::{self, Image};
-use crate::metrics;
 use crate::scene::{Scene, export};
+
+pub mod figure;
+pub mod page;
 
 /// Width of the lat-long EXR written beside each envmap: renderers interpolate between pixels,
 /// which blurs a cell's edges by half a pixel (measured in Mitsuba: the worst cell of 9 rings
@@ -96,7 +100,12 @@ pub fn write_estimate(
     }
     write_usd(dir, &[], &[], Some(("envmap", env)))?;
     if !estimate.envmap.renders.is_empty() {
-        write_renders(&dir.join("estimate"), &estimate.envmap.renders, seen)?;
+        write_renders(
+            &dir.join("estimate"),
+            "envmap",
+            &estimate.envmap.renders,
+            seen,
+        )?;
     }
     if let Some(so) = &estimate.spheres {
         let spheres = dir.join("spheres");
@@ -123,6 +132,12 @@ pub fn write_estimate(
         )?;
     }
     estimate.report.timings.total_seconds = started.elapsed().as_secs_f64();
+    // The page reads report.json's own text, so that it shows the numbers as written there
+    // (f32 figures at their shortest, not widened).
+    let json = report_json(&estimate.report)
+        .and_then(|t| serde_json::from_str(&t).map_err(|e| e.to_string()))
+        .map_err(|e| Error::file(dir.join("report.json"), e))?;
+    page::write(dir, &json, estimate, seen, scene, rendered_references)?;
     write_report(dir, &estimate.report)?;
     notes.dedup();
     Ok(notes)
@@ -170,6 +185,7 @@ fn remove_stale(dir: &Path, views: &[&str], spheres: bool, references: bool) -> 
         stale_views(&dir.join("reference"), views)?;
     }
     let spheres_dir = dir.join("spheres");
+    remove_dir(&dir.join("figures"))?;
     for d in [dir, spheres_dir.as_path()] {
         remove_dir(&d.join("mitsuba"))?;
         remove_dir(&d.join("blender_textures"))?;
@@ -279,24 +295,35 @@ pub fn write_envmap(dir: &Path, name: &str, env: &Envmap) -> Result<()> {
     )
 }
 
-/// Writes re-renders into `dir`: per view the EXR, a PNG preview exposed like its reference,
-/// and the error heat map against it.
-pub fn write_renders(dir: &Path, renders: &[Image], seen: &SeenViews) -> Result<()> {
+/// Writes the re-renders of `model` into `dir`: per view the EXR, a PNG preview exposed like
+/// its reference, and the signed-error heat map against it ([`figure::write_error_map`]), all
+/// views on one colour scale.
+pub fn write_renders(dir: &Path, model: &str, renders: &[Image], seen: &SeenViews) -> Result<()> {
     create_dir(dir)?;
-    for (i, (img, cam)) in renders.iter().zip(&seen.views).enumerate() {
-        let reference = &seen.references[i];
+    let errors: Vec<Vec<f32>> = renders
+        .iter()
+        .zip(&seen.references)
+        .zip(&seen.masks)
+        .map(|((img, reference), mask)| figure::signed_error(img, reference, mask))
+        .collect();
+    let scale = figure::shared_scale(&errors);
+    for ((img, cam), (reference, err)) in renders
+        .iter()
+        .zip(&seen.views)
+        .zip(seen.references.iter().zip(&errors))
+    {
         imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
         imageio::write_png(
             &dir.join(format!("{}.png", cam.name)),
             img,
             imageio::auto_exposure(reference),
         )?;
-        metrics::write_heatmap(
+        figure::write_error_map(
             &dir.join(format!("{}.error.png", cam.name)),
-            img,
-            reference,
-            &seen.masks[i],
-            None,
+            &format!("{model}, {}: estimate − reference", cam.name),
+            (img.width, img.height),
+            err,
+            scale,
         )?;
     }
     Ok(())
@@ -305,7 +332,7 @@ pub fn write_renders(dir: &Path, renders: &[Image], seen: &SeenViews) -> Result<
 /// Writes a sphere-model estimate into `dir`: the sidecar fragment, the re-renders, and the
 /// envmap behind the lights if any.
 pub fn write_spheres(dir: &Path, so: &SphereOutcome, seen: &SeenViews) -> Result<()> {
-    write_renders(dir, &so.renders, seen)?;
+    write_renders(dir, &so.fit.model_name(), &so.renders, seen)?;
     imageio::write_bytes(&dir.join("lights.ron"), so.fit.fragment().as_bytes())?;
     if let Some(bg) = &so.fit.background {
         write_envmap(dir, "background", bg)?;

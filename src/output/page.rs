@@ -1,0 +1,553 @@
+//! `index.html`: an estimate's results page, self-contained (no script, no network; its images
+//! are files of the output folder, linked relatively). Every number it shows is read from the
+//! report's JSON by path and carries that path and the value (`data-json`, `data-value`,
+//! `data-format`), so a test can check the page against report.json.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde_json::Value;
+
+use super::figure::{self, Mark, MarkKind};
+use crate::error::Result;
+use crate::estimate::job::Estimate;
+use crate::estimate::pipeline::SeenViews;
+use crate::imageio;
+use crate::scene::Scene;
+
+/// How a number is shown. The same rules are in `scripts/check_page.py`, which checks them.
+#[derive(Debug, Clone, Copy)]
+pub enum Format {
+    /// A fraction as percent, 2 decimals: `9.36%`.
+    Percent,
+    /// Seconds, 2 decimals: `4.21 s`.
+    Seconds,
+    /// A ratio, 2 decimals: `×1.18`.
+    Ratio,
+    /// Degrees, 2 decimals: `13.00°`.
+    Degrees,
+    /// Metres, 3 decimals: `0.011 m`.
+    Metres,
+    /// Bytes as MiB, no decimals: `179 MiB`.
+    MiB,
+    /// 3 significant digits in scientific notation: `4.34e-4`.
+    Scientific,
+    /// A plain number, 3 decimals: `5.611`.
+    Number,
+    /// An integer: `2637`.
+    Integer,
+}
+
+impl Format {
+    fn name(self) -> &'static str {
+        match self {
+            Format::Percent => "percent",
+            Format::Seconds => "seconds",
+            Format::Ratio => "ratio",
+            Format::Degrees => "degrees",
+            Format::Metres => "metres",
+            Format::MiB => "mib",
+            Format::Scientific => "scientific",
+            Format::Number => "number",
+            Format::Integer => "integer",
+        }
+    }
+
+    fn show(self, v: f64) -> String {
+        match self {
+            Format::Percent => format!("{:.2}%", 100.0 * v),
+            Format::Seconds => format!("{v:.2} s"),
+            Format::Ratio => format!("×{v:.2}"),
+            Format::Degrees => format!("{v:.2}°"),
+            Format::Metres => format!("{v:.3} m"),
+            Format::MiB => format!("{:.0} MiB", v / (1024.0 * 1024.0)),
+            Format::Scientific => format!("{v:.2e}"),
+            Format::Number => format!("{v:.3}"),
+            Format::Integer => format!("{v:.0}"),
+        }
+    }
+}
+
+/// The value at `path` (keys and indices joined by dots) in `json`.
+fn at<'a>(json: &'a Value, path: &str) -> Option<&'a Value> {
+    path.split('.')
+        .try_fold(json, |v, key| match key.parse::<usize>() {
+            Ok(i) => v.get(i),
+            Err(_) => v.get(key),
+        })
+}
+
+/// A table cell showing the number at `path` of the report, tagged for the page's test; "—"
+/// when the report has none there.
+fn cell(report: &Value, path: &str, format: Format) -> String {
+    let value = at(report, path).unwrap_or(&Value::Null);
+    let shown = value
+        .as_f64()
+        .map_or_else(|| "—".to_string(), |v| format.show(v));
+    format!(
+        "<td class=\"num\" data-json=\"{path}\" data-value=\"{}\" data-format=\"{}\">{}</td>",
+        escape(&value.to_string()),
+        format.name(),
+        escape(&shown)
+    )
+}
+
+/// Text made safe inside HTML elements and quoted attributes.
+pub fn escape(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// The page's style: one light theme, tables and images that fit a laptop screen.
+const STYLE: &str = "body{font-family:'DejaVu Sans',sans-serif;margin:24px auto;max-width:1200px;\
+color:#222;padding:0 16px}h1{font-size:24px}h2{font-size:19px;margin-top:32px;border-bottom:1px \
+solid #ccc}table{border-collapse:collapse;margin:8px 0}td,th{padding:3px 10px;border-bottom:1px \
+solid #eee;text-align:left;vertical-align:top}td.num{text-align:right;font-variant-numeric:\
+tabular-nums}.views img{width:300px;image-rendering:pixelated}.views img.err{width:440px}.wide{max-width:100%}\
+.note{color:#555;font-size:14px}.warn{background:#fff3cd;border:1px solid #e0c060;padding:8px}\
+.chosen{font-weight:bold}figure{margin:8px 0}";
+
+/// Writes `dir/index.html` and the pictures only it shows (`dir/figures/`): reference
+/// previews, and the envmap as a lat-long picture with the lights marked. `report` is the
+/// report's JSON as written to report.json; the scene, when given, marks its own lights.
+pub fn write(
+    dir: &Path,
+    report: &Value,
+    estimate: &Estimate,
+    seen: &SeenViews,
+    scene: Option<&Scene>,
+    rendered_references: bool,
+) -> Result<()> {
+    let figures = dir.join("figures");
+    super::create_dir(&figures)?;
+    let mut h = String::new();
+    let scene_name = report["scene"].as_str().unwrap_or("");
+    let model = report["model"].as_str().unwrap_or("envmap");
+    let _ = writeln!(
+        h,
+        "<!doctype html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <title>lightprobe: {}</title><style>{STYLE}</style></head><body>\n\
+         <h1>Lighting estimate of <code>{}</code></h1>\n<p class=\"note\">lightprobe {} · \
+         model <b>{}</b> · {}-ring envmap ({} cells), {} solver, {} transport samples per \
+         pixel · references {}</p>",
+        escape(scene_name),
+        escape(scene_name),
+        escape(report["lightprobe_version"].as_str().unwrap_or("")),
+        escape(model),
+        report["rings"],
+        report["cells"],
+        escape(report["solver"].as_str().unwrap_or("")),
+        report["transport_spp"],
+        if rendered_references {
+            "rendered from the scene's lights"
+        } else {
+            "given"
+        }
+    );
+    if report["fit_test"]["misfit"].as_bool() == Some(true) {
+        let causes: Vec<String> = report["fit_test"]["causes"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|c| c.as_str())
+            .map(escape)
+            .collect();
+        let _ = writeln!(
+            h,
+            "<p class=\"warn\">The model <b>{}</b> does not explain the images: its residual \
+             is far above what their noise explains. Check, most likely first: {}</p>",
+            escape(model),
+            causes.join("; ")
+        );
+    }
+    key_figures(&mut h, report);
+    views(&mut h, dir, report, estimate, seen)?;
+    envmap_section(&mut h, dir, report, estimate, scene, rendered_references)?;
+    spheres_section(&mut h, report);
+    selection_sections(&mut h, report);
+    h.push_str(
+        "<h2>Files</h2><ul><li><a href=\"report.json\">report.json</a>: every figure \
+         (schema: schemas/report.schema.json)</li><li><a href=\"envmap.ron\">envmap.ron</a>, \
+         <a href=\"envmap.exr\">envmap.exr</a>: the envmap (lat-long EXR in Mitsuba's \
+         convention)</li><li><a href=\"mitsuba/scene.xml\">mitsuba/scene.xml</a>, \
+         <code>blender.py</code>, <a href=\"lights.usda\">lights.usda</a>: the estimate in \
+         other tools</li></ul>\n</body></html>\n",
+    );
+    imageio::write_bytes(&dir.join("index.html"), h.as_bytes())
+}
+
+fn key_figures(h: &mut String, r: &Value) {
+    h.push_str("<h2>Key figures</h2><table>\n");
+    let rows: [(&str, &str, Format); 12] = [
+        (
+            "relMAE of the envmap's re-render",
+            "rel_mae",
+            Format::Percent,
+        ),
+        (
+            "relMAE of the sphere model's re-render",
+            "spheres.rel_mae",
+            Format::Percent,
+        ),
+        (
+            "noise floor (relMAE the images' noise alone gives)",
+            "noise_floor_rel_mae",
+            Format::Percent,
+        ),
+        (
+            "representation limit (best envmap of this resolution, --oracle)",
+            "representation_limit_rel_mae",
+            Format::Percent,
+        ),
+        (
+            "fit test: residual over what the noise explains",
+            "fit_test.residual_over_noise",
+            Format::Ratio,
+        ),
+        ("fit test: p-value", "fit_test.p_value", Format::Scientific),
+        ("whole command", "timings.total_seconds", Format::Seconds),
+        (
+            "envmap fit (transport and solve)",
+            "timings.fit_seconds",
+            Format::Seconds,
+        ),
+        (
+            "sphere models' fits",
+            "timings.sphere_fit_seconds",
+            Format::Seconds,
+        ),
+        ("re-renders", "timings.rerender_seconds", Format::Seconds),
+        ("peak memory", "memory.peak_bytes", Format::MiB),
+        (
+            "envmap transport's memory (at most)",
+            "memory.transport_bytes",
+            Format::MiB,
+        ),
+    ];
+    for (what, path, format) in rows {
+        if at(r, path).is_some_and(|v| !v.is_null()) {
+            let _ = writeln!(h, "<tr><th>{what}</th>{}</tr>", cell(r, path, format));
+        }
+    }
+    h.push_str("</table>\n");
+}
+
+fn views(
+    h: &mut String,
+    dir: &Path,
+    r: &Value,
+    estimate: &Estimate,
+    seen: &SeenViews,
+) -> Result<()> {
+    if estimate.envmap.renders.is_empty() {
+        h.push_str("<h2>Views</h2><p>No re-render (<code>--fit-only</code>).</p>\n");
+        return Ok(());
+    }
+    for (cam, reference) in seen.views.iter().zip(&seen.references) {
+        imageio::write_png(
+            &dir.join("figures")
+                .join(format!("{}.reference.png", cam.name)),
+            reference,
+            imageio::auto_exposure(reference),
+        )?;
+    }
+    let mut models = vec![("envmap", "estimate", "views", "estimate.rel_mae")];
+    if estimate.spheres.is_some() {
+        models.insert(
+            0,
+            (
+                r["spheres"]["model"].as_str().unwrap_or("spheres"),
+                "spheres",
+                "spheres.views",
+                "rel_mae",
+            ),
+        );
+    }
+    h.push_str("<h2>Views</h2>\n");
+    for (name, folder, list, key) in models {
+        let _ = writeln!(
+            h,
+            "<h3>{}</h3><table class=\"views\"><tr><th>view</th><th>relMAE</th>\
+             <th>reference</th><th>estimate (re-rendered)</th><th>signed error</th></tr>",
+            escape(name)
+        );
+        for (i, cam) in seen.views.iter().enumerate() {
+            let v = escape(&cam.name);
+            let _ = writeln!(
+                h,
+                "<tr><td>{v}</td>{}<td><img src=\"figures/{v}.reference.png\" \
+                 alt=\"reference {v}\"></td><td><img src=\"{folder}/{v}.png\" alt=\"estimate \
+                 {v}\"></td><td><img class=\"err\" src=\"{folder}/{v}.error.png\" alt=\"error {v}\"></td></tr>",
+                cell(r, &format!("{list}.{i}.{key}"), Format::Percent)
+            );
+        }
+        h.push_str("</table>\n");
+    }
+    h.push_str(
+        "<p class=\"note\">Previews: linear radiance × k, clipped to 1, sRGB curve; k puts the \
+         reference's 99th-percentile luminance at 1, and the estimate beside it uses the same \
+         k. Error: (estimate − reference) per pixel, the channels' mean, over the reference's \
+         mean radiance in its view; blue is too dark, red too bright; all views of a model \
+         share one colour scale (its bar); grey pixels are left out (background, saturated, \
+         or masked).</p>\n",
+    );
+    Ok(())
+}
+
+fn envmap_section(
+    h: &mut String,
+    dir: &Path,
+    r: &Value,
+    estimate: &Estimate,
+    scene: Option<&Scene>,
+    rendered_references: bool,
+) -> Result<()> {
+    let vec3 = |v: &Value| -> Option<glam::Vec3> {
+        let a = v.as_array()?;
+        Some(glam::Vec3::new(
+            a.first()?.as_f64()? as f32,
+            a.get(1)?.as_f64()? as f32,
+            a.get(2)?.as_f64()? as f32,
+        ))
+    };
+    let mut marks = Vec::new();
+    let center = scene.map(|s| s.center());
+    if let (Some(scene), Some(c)) = (scene, center) {
+        for (k, l) in scene.lights.iter().enumerate() {
+            marks.push(Mark {
+                direction: (l.center - c).normalize_or_zero(),
+                kind: MarkKind::True,
+                label: if rendered_references {
+                    format!("true {k}")
+                } else {
+                    format!("scene light {k}")
+                },
+            });
+        }
+    }
+    let recovery = r["light_recovery"].as_array().cloned().unwrap_or_default();
+    for (k, cl) in r["clusters"].as_array().into_iter().flatten().enumerate() {
+        let Some(d) = vec3(&cl["direction"]) else {
+            continue;
+        };
+        let matched = recovery
+            .iter()
+            .find(|m| vec3(&m["estimated_direction"]).is_some_and(|e| e == d));
+        let label = match matched {
+            Some(m) => format!(
+                "cluster {k}: {:.1}° off, power ×{:.2}",
+                m["angle_error_degrees"].as_f64().unwrap_or(f64::NAN),
+                m["power_ratio"].as_f64().unwrap_or(f64::NAN)
+            ),
+            None => format!("cluster {k}"),
+        };
+        marks.push(Mark {
+            direction: d,
+            kind: MarkKind::Estimated,
+            label,
+        });
+    }
+    if let (Some(so), Some(c)) = (&estimate.spheres, center) {
+        let recovered = r["spheres"]["recovery"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        for (k, l) in so.fit.lights().iter().enumerate() {
+            let off = recovered
+                .iter()
+                .find(|m| m["estimated"].as_u64() == Some(k as u64))
+                .and_then(|m| m["centre_error_m"].as_f64());
+            marks.push(Mark {
+                direction: (l.center - c).normalize_or_zero(),
+                kind: MarkKind::Estimated,
+                label: match off {
+                    Some(e) => format!("sphere {k}: centre {e:.3} m off"),
+                    None => format!("sphere {k}"),
+                },
+            });
+        }
+    }
+    let env = &estimate.envmap.fit.envmap;
+    figure::write_envmap_figure(
+        &dir.join("figures").join("envmap.png"),
+        &format!(
+            "The {}-ring envmap estimate (○ {} lights, × recovered)",
+            env.grid.rings(),
+            if rendered_references {
+                "true"
+            } else {
+                "the scene's"
+            }
+        ),
+        env,
+        &marks,
+    )?;
+    h.push_str(
+        "<h2>Envmap</h2><figure><img class=\"wide\" src=\"figures/envmap.png\" alt=\"the \
+         envmap in lat-long\"><figcaption class=\"note\">Directions from the scene's centre, \
+         glTF frame (+Y up). Radiance tone-mapped: exposure putting the brightest cell's \
+         luminance at 3, then x/(1+x) per channel and the sRGB curve. Lines: the ring \
+         grid's cells. Sphere lights are marked by their direction from the scene's \
+         centre.</figcaption></figure>\n",
+    );
+    let clusters = r["clusters"].as_array().map_or(0, Vec::len);
+    if clusters > 0 {
+        h.push_str(
+            "<table><tr><th>cluster</th><th>power</th><th>± σ (relative)</th>\
+             <th>direction ± σ</th></tr>\n",
+        );
+        for k in 0..clusters {
+            let _ = writeln!(
+                h,
+                "<tr><td>{k}</td>{}{}{}</tr>",
+                cell(r, &format!("clusters.{k}.power"), Format::Number),
+                cell(
+                    r,
+                    &format!("clusters.{k}.power_sigma_relative"),
+                    Format::Percent
+                ),
+                cell(
+                    r,
+                    &format!("clusters.{k}.direction_sigma_degrees"),
+                    Format::Degrees
+                ),
+            );
+        }
+        h.push_str("</table>\n");
+    }
+    if !recovery.is_empty() {
+        h.push_str(
+            "<table><tr><th>true light</th><th>envmap's direction off by</th>\
+             <th>power ratio</th></tr>\n",
+        );
+        for k in 0..recovery.len() {
+            let _ = writeln!(
+                h,
+                "<tr><td>{k}</td>{}{}</tr>",
+                cell(
+                    r,
+                    &format!("light_recovery.{k}.angle_error_degrees"),
+                    Format::Degrees
+                ),
+                cell(r, &format!("light_recovery.{k}.power_ratio"), Format::Ratio),
+            );
+        }
+        h.push_str("</table>\n");
+    }
+    Ok(())
+}
+
+fn spheres_section(h: &mut String, r: &Value) {
+    let lights = r["spheres"]["lights"].as_array().map_or(0, Vec::len);
+    if lights == 0 {
+        return;
+    }
+    let _ = writeln!(
+        h,
+        "<h2>Sphere lights ({})</h2><table><tr><th>light</th><th>status</th>\
+         <th>radius</th><th>direction ± σ</th><th>distance ± σ</th><th>power ± σ</th></tr>",
+        escape(r["spheres"]["model"].as_str().unwrap_or(""))
+    );
+    for k in 0..lights {
+        let p = format!("spheres.lights.{k}");
+        let _ = writeln!(
+            h,
+            "<tr><td>{k}</td><td>{}</td>{}{}{}{}</tr>",
+            escape(r["spheres"]["lights"][k]["status"].as_str().unwrap_or("")),
+            cell(r, &format!("{p}.light.radius"), Format::Metres),
+            cell(r, &format!("{p}.direction_sigma_degrees"), Format::Degrees),
+            cell(r, &format!("{p}.distance_sigma_m"), Format::Metres),
+            cell(r, &format!("{p}.power_sigma_relative"), Format::Percent),
+        );
+    }
+    h.push_str("</table>\n");
+    let recovered = r["spheres"]["recovery"].as_array().map_or(0, Vec::len);
+    if recovered > 0 {
+        h.push_str(
+            "<table><tr><th>true light</th><th>centre off by</th><th>its distance</th>\
+             <th>radius (true)</th><th>power ratio</th></tr>\n",
+        );
+        for k in 0..recovered {
+            let p = format!("spheres.recovery.{k}");
+            let _ = writeln!(
+                h,
+                "<tr><td>{k}</td>{}{}{}{}</tr>",
+                cell(r, &format!("{p}.centre_error_m"), Format::Metres),
+                cell(r, &format!("{p}.true_distance_m"), Format::Metres),
+                cell(r, &format!("{p}.true_radius"), Format::Metres),
+                cell(r, &format!("{p}.power_ratio"), Format::Ratio),
+            );
+        }
+        h.push_str("</table>\n");
+    }
+}
+
+fn selection_sections(h: &mut String, r: &Value) {
+    for (title, key, name) in [
+        ("Model selection", "model_selection", "model"),
+        (
+            "Resolution selection (--rings auto)",
+            "rings_selection",
+            "rings",
+        ),
+    ] {
+        let Some(candidates) = r[key]["candidates"].as_array() else {
+            continue;
+        };
+        let chosen = &r[key][if key == "model_selection" {
+            "chosen"
+        } else {
+            "rings"
+        }];
+        let _ = writeln!(
+            h,
+            "<h2>{title}</h2><p class=\"note\">Each candidate fitted without a held-out quarter \
+             of the pixels and scored on it; the simplest within one standard error of the best \
+             is chosen (bold).</p><table><tr><th>{name}</th><th>held-out relMAE</th>\
+             <th>excess over the best</th><th>its standard error</th><th>fit time</th></tr>"
+        );
+        for (i, c) in candidates.iter().enumerate() {
+            let p = format!("{key}.candidates.{i}");
+            let label = match &c[name] {
+                Value::String(s) => s.clone(),
+                v => v.to_string(),
+            };
+            let _ = writeln!(
+                h,
+                "<tr{}><td>{}</td>{}{}{}{}</tr>",
+                if &c[name] == chosen {
+                    " class=\"chosen\""
+                } else {
+                    ""
+                },
+                escape(&label),
+                cell(r, &format!("{p}.validation_rel_mae"), Format::Percent),
+                cell(r, &format!("{p}.excess_over_best"), Format::Percent),
+                cell(r, &format!("{p}.standard_error"), Format::Percent),
+                cell(r, &format!("{p}.seconds"), Format::Seconds),
+            );
+        }
+        h.push_str("</table>\n");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cells_show_the_value_at_their_path() {
+        let r: Value = serde_json::json!({"a": [{"b": 0.0936}], "n": null});
+        let c = cell(&r, "a.0.b", Format::Percent);
+        assert_eq!(
+            c,
+            "<td class=\"num\" data-json=\"a.0.b\" data-value=\"0.0936\" \
+             data-format=\"percent\">9.36%</td>"
+        );
+        assert!(cell(&r, "n", Format::Seconds).contains(">—<"));
+        assert!(cell(&r, "missing.0", Format::Seconds).contains("data-value=\"null\""));
+        assert_eq!(escape("<a&\"b\">"), "&lt;a&amp;&quot;b&quot;&gt;");
+    }
+}
