@@ -94,6 +94,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import check_mitsuba as cm  # noqa: E402
 import mitsuba_scene as ms  # noqa: E402
+from figure_check import assert_text_apart  # noqa: E402
 import ring_grid as rg  # noqa: E402
 
 
@@ -241,6 +242,7 @@ def equal_noise_chart(path: Path, configs: dict, target: float, target_label: st
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
+    assert_text_apart(fig, path.name)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     fig.savefig(path.with_suffix(".svg"))

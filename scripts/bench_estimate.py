@@ -93,6 +93,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import mitsuba_scene as ms  # noqa: E402
+from figure_check import assert_text_apart  # noqa: E402
 
 GIB = 1 << 30
 
@@ -799,6 +800,7 @@ def chart(stem: Path, sets: list[dict], meta: dict) -> list[Path]:
                  f"({meta['width']}×{meta['height']}, {len(meta['views'])} views, "
                  f"max_bounces {meta['max_bounces']}, {meta['cpus']} CPUs)", fontsize=11)
     fig.tight_layout()
+    assert_text_apart(fig, stem.name)
     paths = [stem.with_suffix(".png"), stem.with_suffix(".svg")]
     for p in paths:
         fig.savefig(p, dpi=120)
