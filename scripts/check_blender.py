@@ -833,8 +833,7 @@ def main() -> int:
         mask = lp1[..., 3] > 0
         masks[v], refs[v] = mask, (lp1, lp2)
         m = cm.judge(b0, lp1, lp2, b1, mask, spp)
-        err = np.abs(b0[..., :3] - lp1[..., :3]).mean(-1)[mask]
-        scale = float(np.percentile(err, 99)) if err.size else None
+        scale = cm.heatmap_scale(b0, lp1, mask)
         c_b = cm.lightprobe_compare(binary, b0_p, lp1_p, work / f"heat_{v}_blender_vs_lp.png", scale)
         c_f = cm.lightprobe_compare(binary, lp2_p, lp1_p, work / f"heat_{v}_lp2_vs_lp1.png", scale)
         cm.side_by_side(work / f"side_{v}.png", lp1, b0, mask)

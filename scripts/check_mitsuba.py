@@ -223,6 +223,17 @@ def render_lightprobe(bin_, scene, out: Path, spp, seed) -> dict:
     return json.loads(ms.run_lightprobe(cmd))
 
 
+def heatmap_scale(img, ref, mask) -> float | None:
+    """The 99th percentile of |img - ref| in `compare --heatmap`'s units (the channels' mean
+    of the signed error over the reference's mean radiance on the mask), so that several
+    maps can share one colour scale."""
+    mean = ref[..., :3].mean(-1)[mask].mean() if mask.any() else 0.0
+    if not mean > 0:
+        return None
+    err = np.abs((img[..., :3] - ref[..., :3]).mean(-1))[mask] / mean
+    return float(np.percentile(err, 99))
+
+
 def lightprobe_compare(bin_, img: Path, ref: Path, heatmap: Path | None = None,
                        scale: float | None = None) -> dict:
     cmd = [str(bin_), "compare", str(img), str(ref), "--json"]
@@ -293,10 +304,9 @@ def main() -> int:
         mask = lp1[..., 3] > 0
         masks[v], lps[v] = mask, lp1
         m = judge(mi0, lp1, lp2, mi1, mask, spp)
-        # heat maps on a common scale (99th percentile of |mi - lp1|), so the
+        # heat maps on a common scale (99th percentile of |mi - lp1|, relative), so the
         # noise-floor map can be compared with the Mitsuba map by eye
-        err = np.abs(mi0[..., :3] - lp1[..., :3]).mean(-1)[mask]
-        scale = float(np.percentile(err, 99)) if err.size else None
+        scale = heatmap_scale(mi0, lp1, mask)
         c_mi = lightprobe_compare(args.bin, mi_p, lp1_p, work / f"heat_{v}_mitsuba_vs_lp.png", scale)
         c_fl = lightprobe_compare(args.bin, lp2_p, lp1_p, work / f"heat_{v}_lp2_vs_lp1.png", scale)
         side_by_side(work / f"side_{v}.png", lp1, mi0, mask)

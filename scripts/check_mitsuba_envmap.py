@@ -369,8 +369,7 @@ def main() -> int:
         mask = lp1[..., 3] > 0
         masks[v], lp_refs[v] = mask, (lp1, lp2)
         m = cm.judge(mi0, lp1, lp2, mi1, mask, spp)
-        err = np.abs(mi0[..., :3] - lp1[..., :3]).mean(-1)[mask]
-        scale = float(np.percentile(err, 99)) if err.size else None
+        scale = cm.heatmap_scale(mi0, lp1, mask)
         c_mi = cm.lightprobe_compare(args.bin, mi_p, lp1_p, work / f"heat_{v}_mitsuba_vs_lp.png", scale)
         c_fl = cm.lightprobe_compare(args.bin, lp2_p, lp1_p, work / f"heat_{v}_lp2_vs_lp1.png", scale)
         cm.side_by_side(work / f"side_{v}.png", lp1, mi0, mask)

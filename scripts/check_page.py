@@ -5,7 +5,9 @@ estimate's index.html over the DevTools protocol, and the check fails unless
 - every image loaded (complete, with a natural size), and no image is missing;
 - the console logged no error, and the page threw nothing (a missing file logs one);
 - every number tagged `data-json` equals report.json's value at that path, and its text is
-  that value in its `data-format` (the rules of lightprobe's page.rs, written again here).
+  that value in its `data-format` (the rules of lightprobe's page.rs, written again here);
+- the page shows the figures it must (`expected_numbers`: headline errors, every view, every
+  candidate of a selection, every sphere light).
   A sweep's page (`lightprobe report DIR`) has no report.json and tags no number: its images
   and console are checked.
 
@@ -25,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -50,8 +53,10 @@ def fmt(value, kind):
         # Rust's {:.2e}: mantissa with 2 decimals, exponent without sign padding or '+'.
         m, e = f"{value:.2e}".split("e")
         return f"{m}e{int(e)}"
-    if kind == "number":
-        return f"{value:.3f}"
+    if kind == "significant":
+        digits = 0 if value == 0 or not math.isfinite(value) else \
+            max(0, 3 - math.floor(math.log10(abs(value))))
+        return f"{value:.{digits}f}"
     if kind == "integer":
         return f"{value:.0f}"
     raise ValueError(f"unknown data-format {kind!r}")
@@ -69,6 +74,10 @@ def at(report, path):
     return v
 
 
+# What the self-tests leave out of their copies of OUT: files the page links but does not load.
+BULK = shutil.ignore_patterns("*.exr", "mitsuba", "blender_textures", "*.glb", "*.gltf")
+
+
 class Browser:
     """One headless Chromium with one page, driven over the DevTools protocol."""
 
@@ -80,20 +89,35 @@ class Browser:
              f"--user-data-dir={self.profile}", "--remote-debugging-port=0",
              "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        port_file = Path(self.profile) / "DevToolsActivePort"
-        deadline = time.time() + 60
-        while not port_file.exists() or not port_file.read_text().strip():
-            if time.time() > deadline or self.proc.poll() is not None:
-                self.close()
-                sys.exit(f"check_page: {binary} did not start its DevTools endpoint")
-            time.sleep(0.1)
-        port = port_file.read_text().split()[0]
-        targets = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list"))
-        page = next(t for t in targets if t["type"] == "page")
-        self.ws = websocket.create_connection(page["webSocketDebuggerUrl"], timeout=60,
-                                                 suppress_origin=True)
+        self.ws = None
+        try:
+            self.ws = self.connect(binary)
+        except BaseException:
+            self.close()
+            raise
         self.next_id = 0
         self.events = []
+
+    def connect(self, binary):
+        """The DevTools websocket of Chromium's first page, once it lists one (60 s)."""
+        port_file = Path(self.profile) / "DevToolsActivePort"
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            if self.proc.poll() is not None:
+                break
+            if port_file.exists() and port_file.read_text().strip():
+                port = port_file.read_text().split()[0]
+                try:
+                    targets = json.load(
+                        urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=5))
+                except OSError:
+                    targets = []
+                pages = [t for t in targets if t.get("type") == "page"]
+                if pages:
+                    return websocket.create_connection(pages[0]["webSocketDebuggerUrl"],
+                                                       timeout=60, suppress_origin=True)
+            time.sleep(0.1)
+        raise SystemExit(f"check_page: {binary} did not open its DevTools endpoint")
 
     def call(self, method, **params):
         self.next_id += 1
@@ -122,16 +146,38 @@ class Browser:
         return r["result"]["value"]
 
     def close(self):
-        try:
+        if self.ws is not None:
             self.ws.close()
-        except Exception:
-            pass
         self.proc.terminate()
         try:
             self.proc.wait(10)
         except subprocess.TimeoutExpired:
             self.proc.kill()
         shutil.rmtree(self.profile, ignore_errors=True)
+
+
+def expected_numbers(report):
+    """Paths of report.json the page must show: the headline figures, every view's error,
+    every candidate of a selection, every sphere light (where the report has them)."""
+    paths = ["rings", "cells", "transport_spp", "timings.total_seconds", "memory.peak_bytes"]
+    for key in ("rel_mae", "noise_floor_rel_mae", "representation_limit_rel_mae",
+                "fit_test.residual_over_noise", "spheres.rel_mae"):
+        if at(report, key) is not None:
+            paths.append(key)
+    for i, v in enumerate(report["views"]):
+        if v.get("estimate") is not None:
+            paths.append(f"views.{i}.estimate.rel_mae")
+    for key in ("model_selection", "rings_selection"):
+        for i, _ in enumerate((report.get(key) or {}).get("candidates", [])):
+            paths.append(f"{key}.candidates.{i}.validation_rel_mae")
+    spheres = report.get("spheres") or {}
+    for i, _ in enumerate(spheres.get("lights", [])):
+        paths.append(f"spheres.lights.{i}.light.radius")
+    for i, _ in enumerate(spheres.get("views", [])):
+        paths.append(f"spheres.views.{i}.rel_mae")
+    for i, _ in enumerate(report.get("light_recovery", [])):
+        paths.append(f"light_recovery.{i}.angle_error_degrees")
+    return paths
 
 
 PROBE = """(async () => {
@@ -176,6 +222,11 @@ def inspect(browser, out, screenshot=None, shot_height=None):
         faults.append("the page tags no number")
     if report is None and page["numbers"]:
         faults.append("the page tags numbers but there is no report.json")
+    if report is not None:
+        shown = {n["path"] for n in page["numbers"]}
+        for path in expected_numbers(report):
+            if path not in shown:
+                faults.append(f"the page does not show {path}")
     for n in page["numbers"]:
         want = at(report, n["path"])
         shown = json.loads(n["value"])
@@ -188,10 +239,10 @@ def inspect(browser, out, screenshot=None, shot_height=None):
             faults.append(f"{n['path']}: shown {n['text']!r}, its value reads {text!r}")
     if screenshot:
         height = min(page["height"], shot_height or 8000)
-        browser.call("Emulation.setDeviceMetricsOverride", width=1280,
+        browser.call("Emulation.setDeviceMetricsOverride", width=1440,
                      height=height, deviceScaleFactor=1, mobile=False)
         shot = browser.call("Page.captureScreenshot", format="png",
-                            clip={"x": 0, "y": 0, "width": 1280, "height": height, "scale": 1})
+                            clip={"x": 0, "y": 0, "width": 1440, "height": height, "scale": 1})
         Path(screenshot).write_bytes(base64.b64decode(shot["data"]))
     return faults, page
 
@@ -214,15 +265,15 @@ def main():
         # The check must see faults: one image gone, one number changed.
         with tempfile.TemporaryDirectory() as tmp:
             copy = Path(tmp) / "out"
-            shutil.copytree(a.out, copy)
+            shutil.copytree(a.out, copy, ignore=BULK)
             gone = page["images"][-1]["src"]
-            os.remove(copy / gone)
+            os.remove(copy / urllib.parse.unquote(gone))
             lost, _ = inspect(browser, copy)
             if not any(gone in f for f in lost):
                 faults.append(f"self-test: deleting {gone} went unnoticed ({lost})")
             if page["numbers"]:
                 os.remove(copy / "index.html")
-                shutil.copytree(a.out, copy, dirs_exist_ok=True)
+                shutil.copytree(a.out, copy, dirs_exist_ok=True, ignore=BULK)
                 html = (copy / "index.html").read_text()
                 first = page["numbers"][0]
                 tag = f'data-json="{first["path"]}" data-value="'

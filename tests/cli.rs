@@ -250,7 +250,7 @@ fn compare_reports_metrics_and_heatmap() {
         },
     )
     .unwrap();
-    let layout = lightprobe::output::figure::HeatMapLayout::of(32);
+    let layout = lightprobe::output::figure::HeatMapLayout::of(32, 24);
     assert_eq!(layout.zoom, 8);
     assert!(png.width >= layout.left + 32 * 8 && png.height >= layout.top + 24 * 8);
     let scale = m["heatmap"]["scale"].as_f64().unwrap() as f32;
@@ -1326,8 +1326,23 @@ fn check_results_page(out: &Path) {
         Some(tag[i..i + tag[i..].find('"')?].to_string())
     };
     let mut images = 0;
+    // The page's links are percent-encoded paths.
+    let decode = |s: &str| -> String {
+        let b = s.as_bytes();
+        let (mut out, mut i) = (Vec::new(), 0);
+        while i < b.len() {
+            if b[i] == b'%' {
+                out.push(u8::from_str_radix(&s[i + 1..i + 3], 16).unwrap());
+                i += 3;
+            } else {
+                out.push(b[i]);
+                i += 1;
+            }
+        }
+        String::from_utf8(out).unwrap()
+    };
     for tag in html.split("<img ").skip(1) {
-        let src = attr(tag, "src").unwrap();
+        let src = decode(&attr(tag, "src").unwrap());
         assert!(
             out.join(&src).is_file(),
             "the page shows {src}, which is not there"

@@ -1,7 +1,7 @@
 //! The charts of `report` as a reader sees them: on the committed experiments' trials, every
 //! chart has its SVG beside its PNG, and no two texts of a chart overlap — each text's box is
 //! measured with the bundled font's own glyph advances at the size and anchor the SVG gives
-//! it (so two ring labels drawn into one "33" fail).
+//! it, at the size of the PNG's rasterised text (so two ring labels drawn into one "33" fail).
 
 use std::path::Path;
 
@@ -15,6 +15,7 @@ type TextBox = ([f64; 4], String);
 fn text_boxes(svg: &str, font: &FontRef) -> Vec<TextBox> {
     let doc = roxmltree::Document::parse(svg).unwrap();
     let em = font.units_per_em().unwrap() as f64;
+    let height_em = (font.ascent_unscaled() - font.descent_unscaled()) as f64 / em;
     let mut boxes = Vec::new();
     for t in doc.descendants().filter(|n| n.has_tag_name("text")) {
         let text = t.text().unwrap_or("").trim().to_string();
@@ -22,7 +23,11 @@ fn text_boxes(svg: &str, font: &FontRef) -> Vec<TextBox> {
             continue;
         }
         let num = |a: &str| t.attribute(a).unwrap().parse::<f64>().unwrap();
-        let (x, y, size) = (num("x"), num("y"), num("font-size"));
+        // The PNG's text, which plotters rasterises at its own size (the SVG's font-size is
+        // that over 1.24, and ab_glyph scales glyphs by ascent − descent, not the em): the
+        // larger of the two drawings is measured.
+        let size = num("font-size") * 1.24 / height_em;
+        let (x, y) = (num("x"), num("y"));
         let width: f64 = text
             .chars()
             .map(|c| font.h_advance_unscaled(font.glyph_id(c)) as f64 / em * size)
@@ -85,8 +90,10 @@ fn the_overlap_test_sees_two_labels_drawn_into_one() {
         <text x="30" y="340" dy="0.76em" text-anchor="start" font-size="12">x</text>
     </svg>"#;
     let boxes = text_boxes(svg, &font);
-    // A digit of DejaVu Sans is 0.636 em wide.
-    assert!((boxes[0].0[2] - boxes[0].0[0] - 6.36).abs() < 0.01);
+    // A digit of DejaVu Sans is 0.636 em wide; font-size 10 in the SVG is drawn in the PNG
+    // with an em of 10 × 1.24 / 1.164 (DejaVu's ascent − descent is 1.164 em).
+    let want = 0.636 * 10.0 * 1.24 / (2384.0 / 2048.0);
+    assert!((boxes[0].0[2] - boxes[0].0[0] - want).abs() < 0.01);
     let found = overlaps(&boxes);
     assert_eq!(found.len(), 1, "{found:?}");
     assert!(found[0].starts_with("\"3\""));

@@ -79,9 +79,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let scale = match &a.heatmap {
         Some(p) => {
             let err = figure::signed_error(&image, &reference, &mask);
-            let scale = a
-                .scale
-                .unwrap_or_else(|| figure::shared_scale(std::slice::from_ref(&err)));
+            let scale = a.scale.unwrap_or_else(|| figure::shared_scale([&err]));
             let title = format!(
                 "{} − {}",
                 a.image.file_name().unwrap_or_default().to_string_lossy(),

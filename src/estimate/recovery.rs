@@ -19,6 +19,8 @@ use crate::scene::SphereLight;
 /// Recovery figures of one light.
 #[derive(Debug, Clone, Serialize, schemars::JsonSchema)]
 pub struct LightRecovery {
+    /// Which true light: its index among the scene's lights (the sidecar's order).
+    pub true_light: usize,
     /// True direction from the scene centre (unit, world).
     pub true_direction: [f32; 3],
     /// Estimated direction: power-weighted centroid of the light's cluster.
@@ -31,9 +33,16 @@ pub struct LightRecovery {
 
 /// Matches clusters of bright cells to the true lights.
 pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<LightRecovery> {
-    let mut order: Vec<(f32, &SphereLight)> = lights
+    let mut order: Vec<(f32, usize, &SphereLight)> = lights
         .iter()
-        .map(|l| (luminance(l.radiance) * l.solid_angle_from(scene_center), l))
+        .enumerate()
+        .map(|(i, l)| {
+            (
+                luminance(l.radiance) * l.solid_angle_from(scene_center),
+                i,
+                l,
+            )
+        })
         .collect();
     order.sort_by(|a, b| b.0.total_cmp(&a.0));
     let clusters: Vec<(Vec3, f32, usize)> = clusters(env)
@@ -44,7 +53,7 @@ pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<
     // ---- Match each true light to the nearest unmatched cluster ----
     let mut used = vec![false; clusters.len()];
     let mut out = Vec::new();
-    for (true_power, light) in order {
+    for (true_power, true_light, light) in order {
         let truth = (light.center - scene_center).normalize();
         let best = (0..clusters.len()).filter(|&k| !used[k]).min_by(|&a, &b| {
             clusters[a]
@@ -60,6 +69,7 @@ pub fn recover(env: &Envmap, lights: &[SphereLight], scene_center: Vec3) -> Vec<
             None => (Vec3::ZERO, 0.0, 0),
         };
         out.push(LightRecovery {
+            true_light,
             true_direction: truth.to_array(),
             estimated_direction: est.to_array(),
             angle_error_degrees: if count > 0 {
@@ -225,7 +235,11 @@ pub fn cluster_estimates(env: &Envmap, replicates: &[Envmap]) -> Vec<ClusterEsti
 /// Recovery figures of one true sphere light against a sphere-model estimate.
 #[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct SphereRecovery {
-    /// Index of the matched estimated light (None: the model has fewer lights).
+    /// Which true light: its index among the scene's lights (the sidecar's order).
+    #[serde(default)]
+    pub true_light: usize,
+    /// Index of the matched estimated light among the model's lights (those kept: not
+    /// merged, contributing; None: the model has fewer lights).
     pub estimated: Option<usize>,
     /// Distance of the true light from the scene centre, metres.
     pub true_distance_m: f32,
@@ -244,12 +258,12 @@ pub fn recover_spheres(
     scene_center: Vec3,
 ) -> Vec<SphereRecovery> {
     let power = |l: &SphereLight| luminance(l.intensity());
-    let mut order: Vec<&SphereLight> = truth.iter().collect();
-    order.sort_by(|a, b| power(b).total_cmp(&power(a)));
+    let mut order: Vec<(usize, &SphereLight)> = truth.iter().enumerate().collect();
+    order.sort_by(|a, b| power(b.1).total_cmp(&power(a.1)));
     let mut used = vec![false; estimated.len()];
     order
         .into_iter()
-        .map(|t| {
+        .map(|(true_light, t)| {
             let d = (t.center - scene_center).length();
             let j = (0..estimated.len()).filter(|&j| !used[j]).min_by(|&a, &b| {
                 estimated[a]
@@ -263,6 +277,7 @@ pub fn recover_spheres(
             });
             let off = e.map(|e| e.center.distance(t.center));
             SphereRecovery {
+                true_light,
                 estimated: j,
                 true_distance_m: d,
                 centre_error_m: off,

@@ -43,11 +43,8 @@ pub fn text(size: u32) -> TextStyle<'static> {
 }
 
 fn lerp_stops(stops: &[[f32; 3]], t: f32) -> [u8; 3] {
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        1.0
-    } * (stops.len() - 1) as f32;
+    // ±∞ clamp to the ends; NaN (no value) takes the top colour, callers grey it first.
+    let t = if t.is_nan() { 1.0 } else { t.clamp(0.0, 1.0) } * (stops.len() - 1) as f32;
     let i = (t as usize).min(stops.len() - 2);
     let c = Vec3::from(stops[i]).lerp(Vec3::from(stops[i + 1]), t - i as f32);
     (c * 255.0 + 0.5).to_array().map(|v| v as u8)
@@ -118,6 +115,10 @@ pub fn series_colour(i: usize, n: usize) -> RGBColor {
 /// Ticks of a log axis from 10^`lo` to 10^`hi`: the 1-2-5 steps of every decade inside,
 /// or every integer step of the decade (1, 2, …, 9) when the range holds fewer than three.
 pub fn log_ticks(lo: f64, hi: f64) -> Vec<f64> {
+    // An axis of more than 30 decades (or without ends) is not one a chart draws.
+    if !(lo.is_finite() && hi.is_finite() && hi - lo <= 30.0) {
+        return Vec::new();
+    }
     let ticks = |mantissas: &[f64]| -> Vec<f64> {
         let mut v = Vec::new();
         for decade in lo.floor() as i32..=hi.ceil() as i32 {
@@ -177,16 +178,15 @@ pub fn signed_error(image: &imageio::Image, reference: &imageio::Image, mask: &[
         .collect()
 }
 
-/// The colour bar's half-range shared by `errors` (maps of [`signed_error`]): the 99th
-/// percentile of their magnitudes, so one pixel's outlier does not wash out the rest; 1 when
-/// nothing is finite and non-zero.
-pub fn shared_scale(errors: &[Vec<f32>]) -> f32 {
-    let mut v: Vec<f32> = errors
-        .iter()
-        .flatten()
-        .filter(|e| e.is_finite())
-        .map(|e| e.abs())
-        .collect();
+/// The colour bar's half-range shared by `errors` (maps of [`signed_error`], taken one at a
+/// time so that only their magnitudes are held at once): the 99th percentile of their
+/// magnitudes, so one pixel's outlier does not wash out the rest; 1 when nothing is finite
+/// and non-zero.
+pub fn shared_scale<E: AsRef<[f32]>>(errors: impl IntoIterator<Item = E>) -> f32 {
+    let mut v: Vec<f32> = Vec::new();
+    for e in errors {
+        v.extend(e.as_ref().iter().filter(|e| e.is_finite()).map(|e| e.abs()));
+    }
     if v.is_empty() {
         return 1.0;
     }
@@ -195,23 +195,59 @@ pub fn shared_scale(errors: &[Vec<f32>]) -> f32 {
     if *p > 0.0 { *p } else { 1.0 }
 }
 
-/// Where a heat map's pixels go in its PNG: its map starts at (`left`, `top`) and shows each
-/// image pixel as a `zoom × zoom` block.
+/// Where a heat map's pixels go in its PNG: its map starts at (`left`, `top`); each image
+/// pixel is a `zoom × zoom` block of it, or each of its pixels the mean of a `block × block`
+/// block of the image (one of the two is 1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct HeatMapLayout {
     pub left: u32,
     pub top: u32,
     pub zoom: u32,
+    pub block: u32,
 }
 
 impl HeatMapLayout {
-    /// The layout of a `width`-pixel-wide image: small images are enlarged to about 512
-    /// pixels (at most 8×), large ones shown 1:1.
-    pub fn of(width: u32) -> Self {
+    /// The layout of a `width × height` image: small images enlarged to about 400 pixels on
+    /// their longer side (at most 8×), large ones reduced to at most 640.
+    pub fn of(width: u32, height: u32) -> Self {
+        let long = width.max(height).max(1);
         HeatMapLayout {
             left: 10,
             top: 34,
-            zoom: (512 / width.max(1)).clamp(1, 8),
+            zoom: (400 / long).clamp(1, 8),
+            block: long.div_ceil(640),
+        }
+    }
+
+    /// The map's size in the PNG, pixels.
+    pub fn map_size(&self, width: u32, height: u32) -> (u32, u32) {
+        (
+            width.div_ceil(self.block) * self.zoom,
+            height.div_ceil(self.block) * self.zoom,
+        )
+    }
+
+    /// The value of the map's pixel (`x`, `y`): the image pixel under it, or the mean of the
+    /// finite values of the block under it (NaN when it has none).
+    fn value(&self, err: &[f32], width: u32, height: u32, x: u32, y: u32) -> f32 {
+        if self.block == 1 {
+            return err[((y / self.zoom) * width + x / self.zoom) as usize];
+        }
+        let (x0, y0) = (x * self.block, y * self.block);
+        let (mut sum, mut n) = (0.0f64, 0u32);
+        for yy in y0..(y0 + self.block).min(height) {
+            for xx in x0..(x0 + self.block).min(width) {
+                let e = err[(yy * width + xx) as usize];
+                if e.is_finite() {
+                    sum += e as f64;
+                    n += 1;
+                }
+            }
+        }
+        if n == 0 {
+            f32::NAN
+        } else {
+            (sum / n as f64) as f32
         }
     }
 }
@@ -227,18 +263,19 @@ pub fn write_error_map(
     scale: f32,
 ) -> Result<HeatMapLayout> {
     font()?;
-    let layout = HeatMapLayout::of(width);
-    let z = layout.zoom;
-    let (iw, ih) = (width * z, height * z);
+    let layout = HeatMapLayout::of(width, height);
+    let (iw, ih) = layout.map_size(width, height);
     let bar = 150;
+    // Wide enough for the title (DejaVu Sans at 15 px: under 9 px a character).
+    let title_width = 9 * title.chars().count() as u32 + 2 * layout.left;
     let size = (
-        layout.left + iw + bar,
+        (layout.left + iw + bar).max(title_width),
         (layout.top + ih + 12).max(layout.top + 200),
     );
     draw_png(path, size, |root| {
         for y in 0..ih {
             for x in 0..iw {
-                let e = err[((y / z) * width + x / z) as usize];
+                let e = layout.value(err, width, height, x, y);
                 let [r, g, b] = if e.is_nan() {
                     MASKED
                 } else {
@@ -287,21 +324,19 @@ pub fn write_error_map(
     Ok(layout)
 }
 
-/// `v` (a fraction) in percent, signed, with as many decimals as `scale` needs to tell the
-/// ticks apart.
+/// `v` (a fraction) in percent, signed, with as many decimals as the ticks of `scale` need
+/// to differ (ticks at quarters of ±`scale`).
 fn percent_label(v: f32, scale: f32) -> String {
-    let decimals = if scale >= 0.2 {
-        0
-    } else if scale >= 0.02 {
-        1
+    let step = 50.0 * scale; // percent between ticks
+    let decimals = if step > 0.0 && step.is_finite() {
+        (1.0 - step.log10().floor()).clamp(0.0, 6.0) as usize
     } else {
         2
     };
-    let s = format!("{:+.*}%", decimals, 100.0 * v);
     if v == 0.0 {
         format!("{:.*}%", decimals, 0.0)
     } else {
-        s
+        format!("{:+.*}%", decimals, 100.0 * v)
     }
 }
 
@@ -390,11 +425,19 @@ pub fn write_envmap_figure(path: &Path, title: &str, env: &Envmap, marks: &[Mark
                 ch.draw_series([PathElement::new([(x, top), (x, bottom)], line)])?;
             }
         }
-        let mut placed: Vec<(i32, i32, i32, i32)> = Vec::new();
-        for m in marks {
-            let (theta, phi) = grid::angles(m.direction);
-            let at = (phi.to_degrees(), elevation(theta));
-            let c = ch.backend_coord(&at);
+        // Labels go where they cover no mark and no other label.
+        let at: Vec<(i32, i32)> = marks
+            .iter()
+            .map(|m| {
+                let (theta, phi) = grid::angles(m.direction);
+                ch.backend_coord(&(phi.to_degrees(), elevation(theta)))
+            })
+            .collect();
+        let mut placed: Vec<(i32, i32, i32, i32)> = at
+            .iter()
+            .map(|&(x, y)| (x - 10, y - 10, x + 11, y + 11))
+            .collect();
+        for (m, &c) in marks.iter().zip(&at) {
             match m.kind {
                 MarkKind::True => {
                     root.draw(&Circle::new(c, 9, WHITE.stroke_width(3)))?;
@@ -424,8 +467,8 @@ pub fn write_envmap_figure(path: &Path, title: &str, env: &Envmap, marks: &[Mark
 }
 
 /// Where a label box of `size` goes beside the point `at`: the first of eight spots around it
-/// that overlaps no box already `placed` and stays inside the plot (the first spot when none
-/// does). Boxes are (left, top, right, bottom) in pixels.
+/// that overlaps no box already `placed` and stays inside the plot (when none does, the one
+/// that covers least). Boxes are (left, top, right, bottom) in pixels.
 pub fn label_spot(
     at: (i32, i32),
     (w, h): (i32, i32),
@@ -444,16 +487,22 @@ pub fn label_spot(
         (x - w / 2, y + 12),
     ];
     let boxes = spots.map(|(l, t)| (l, t, l + w, t + h));
-    let free = |b: &(i32, i32, i32, i32)| {
-        b.0 >= xs.start
-            && b.2 <= xs.end
-            && b.1 >= ys.start
-            && b.3 <= ys.end
-            && placed
-                .iter()
-                .all(|p| b.2 <= p.0 || p.2 <= b.0 || b.3 <= p.1 || p.3 <= b.1)
+    // Pixels of `b` covered by placed boxes, and outside the plot (counted double).
+    let cost = |b: &(i32, i32, i32, i32)| -> i64 {
+        let covered: i64 = placed
+            .iter()
+            .map(|p| {
+                let dx = (b.2.min(p.2) - b.0.max(p.0)).max(0) as i64;
+                let dy = (b.3.min(p.3) - b.1.max(p.1)).max(0) as i64;
+                dx * dy
+            })
+            .sum();
+        let inside = (b.2.min(xs.end) - b.0.max(xs.start)).max(0) as i64
+            * (b.3.min(ys.end) - b.1.max(ys.start)).max(0) as i64;
+        covered + 2 * (w as i64 * h as i64 - inside)
     };
-    boxes.iter().copied().find(free).unwrap_or(boxes[0])
+    // The first free spot; when none is, the one that covers least.
+    boxes.iter().copied().min_by_key(cost).unwrap_or(boxes[0])
 }
 
 /// What drawing a figure returns: plotters' errors, boxed (the caller names the file).
@@ -563,7 +612,7 @@ mod tests {
         assert!(e[2].is_nan());
         // The 99th percentile of the magnitudes over every map, NaN left out.
         let ramp: Vec<f32> = (0..=100).map(|i| -(i as f32) / 100.0).collect();
-        assert_eq!(shared_scale(&[e, ramp]), 0.98);
+        assert_eq!(shared_scale([e, ramp]), 0.98);
     }
 
     #[test]

@@ -300,18 +300,18 @@ pub fn write_envmap(dir: &Path, name: &str, env: &Envmap) -> Result<()> {
 /// views on one colour scale.
 pub fn write_renders(dir: &Path, model: &str, renders: &[Image], seen: &SeenViews) -> Result<()> {
     create_dir(dir)?;
-    let errors: Vec<Vec<f32>> = renders
-        .iter()
-        .zip(&seen.references)
-        .zip(&seen.masks)
-        .map(|((img, reference), mask)| figure::signed_error(img, reference, mask))
-        .collect();
-    let scale = figure::shared_scale(&errors);
-    for ((img, cam), (reference, err)) in renders
-        .iter()
-        .zip(&seen.views)
-        .zip(seen.references.iter().zip(&errors))
-    {
+    let views = || {
+        renders
+            .iter()
+            .zip(&seen.views)
+            .zip(&seen.references)
+            .zip(&seen.masks)
+    };
+    // One view's error map at a time: first for the shared scale, then drawn.
+    let scale = figure::shared_scale(
+        views().map(|(((img, _), reference), mask)| figure::signed_error(img, reference, mask)),
+    );
+    for (((img, cam), reference), mask) in views() {
         imageio::write_exr(&dir.join(format!("{}.exr", cam.name)), img)?;
         imageio::write_png(
             &dir.join(format!("{}.png", cam.name)),
@@ -322,7 +322,7 @@ pub fn write_renders(dir: &Path, model: &str, renders: &[Image], seen: &SeenView
             &dir.join(format!("{}.error.png", cam.name)),
             &format!("{model}, {}: estimate − reference", cam.name),
             (img.width, img.height),
-            err,
+            &figure::signed_error(img, reference, mask),
             scale,
         )?;
     }

@@ -32,8 +32,8 @@ pub enum Format {
     MiB,
     /// 3 significant digits in scientific notation: `4.34e-4`.
     Scientific,
-    /// A plain number, 3 decimals: `5.611`.
-    Number,
+    /// 4 significant digits: `5.611`, `0.01235`, `1235`.
+    Significant,
     /// An integer: `2637`.
     Integer,
 }
@@ -48,7 +48,7 @@ impl Format {
             Format::Metres => "metres",
             Format::MiB => "mib",
             Format::Scientific => "scientific",
-            Format::Number => "number",
+            Format::Significant => "significant",
             Format::Integer => "integer",
         }
     }
@@ -62,7 +62,14 @@ impl Format {
             Format::Metres => format!("{v:.3} m"),
             Format::MiB => format!("{:.0} MiB", v / (1024.0 * 1024.0)),
             Format::Scientific => format!("{v:.2e}"),
-            Format::Number => format!("{v:.3}"),
+            Format::Significant => {
+                let digits = if v == 0.0 || !v.is_finite() {
+                    0
+                } else {
+                    (3 - v.abs().log10().floor() as i32).max(0) as usize
+                };
+                format!("{v:.digits$}")
+            }
             Format::Integer => format!("{v:.0}"),
         }
     }
@@ -92,6 +99,28 @@ fn cell(report: &Value, path: &str, format: Format) -> String {
     )
 }
 
+/// The number at `path` inline, tagged as [`cell`]'s.
+fn span(report: &Value, path: &str, format: Format) -> String {
+    cell(report, path, format)
+        .replacen("<td class=\"num\"", "<span", 1)
+        .replace("</td>", "</span>")
+}
+
+/// A relative path (of `/`-separated names) as a URL: every byte but unreserved ones and
+/// `/` percent-encoded, so that a view named `cam#1` or `50%` links its own file.
+pub fn url(path: &str) -> String {
+    let mut out = String::new();
+    for b in path.bytes() {
+        match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'.' | b'_' | b'~' | b'/' => {
+                out.push(b as char)
+            }
+            _ => out.push_str(&format!("%{b:02X}")),
+        }
+    }
+    out
+}
+
 /// Text made safe inside HTML elements and quoted attributes.
 pub fn escape(s: &str) -> String {
     s.replace('&', "&amp;")
@@ -100,12 +129,23 @@ pub fn escape(s: &str) -> String {
         .replace('"', "&quot;")
 }
 
-/// The page's style: one light theme, tables and images that fit a laptop screen.
-const STYLE: &str = "body{font-family:'DejaVu Sans',sans-serif;margin:24px auto;max-width:1200px;\
+/// What the page calls the scene's own lights: the truth when the references were rendered
+/// from them, else only what the scene file says.
+fn truth_word(rendered_references: bool) -> &'static str {
+    if rendered_references {
+        "true light"
+    } else {
+        "scene light"
+    }
+}
+
+/// The page's style: one light theme; previews at 288 pixels wide, error maps at their own
+/// size (their colour bar's labels stay legible), 1400 pixels in all.
+const STYLE: &str = "body{font-family:'DejaVu Sans',sans-serif;margin:24px auto;max-width:1400px;\
 color:#222;padding:0 16px}h1{font-size:24px}h2{font-size:19px;margin-top:32px;border-bottom:1px \
 solid #ccc}table{border-collapse:collapse;margin:8px 0}td,th{padding:3px 10px;border-bottom:1px \
 solid #eee;text-align:left;vertical-align:top}td.num{text-align:right;font-variant-numeric:\
-tabular-nums}.views img{width:300px;image-rendering:pixelated}.views img.err{width:440px}.wide{max-width:100%}\
+tabular-nums}.views img{width:288px;image-rendering:pixelated}.views img.err{width:auto}.wide{max-width:100%}\
 .note{color:#555;font-size:14px}.warn{background:#fff3cd;border:1px solid #e0c060;padding:8px}\
 .chosen{font-weight:bold}figure{margin:8px 0}";
 
@@ -136,10 +176,10 @@ pub fn write(
         escape(scene_name),
         escape(report["lightprobe_version"].as_str().unwrap_or("")),
         escape(model),
-        report["rings"],
-        report["cells"],
+        span(report, "rings", Format::Integer),
+        span(report, "cells", Format::Integer),
         escape(report["solver"].as_str().unwrap_or("")),
-        report["transport_spp"],
+        span(report, "transport_spp", Format::Integer),
         if rendered_references {
             "rendered from the scene's lights"
         } else {
@@ -165,7 +205,7 @@ pub fn write(
     key_figures(&mut h, report);
     views(&mut h, dir, report, estimate, seen)?;
     envmap_section(&mut h, dir, report, estimate, scene, rendered_references)?;
-    spheres_section(&mut h, report);
+    spheres_section(&mut h, report, truth_word(rendered_references));
     selection_sections(&mut h, report);
     h.push_str(
         "<h2>Files</h2><ul><li><a href=\"report.json\">report.json</a>: every figure \
@@ -180,7 +220,7 @@ pub fn write(
 
 fn key_figures(h: &mut String, r: &Value) {
     h.push_str("<h2>Key figures</h2><table>\n");
-    let rows: [(&str, &str, Format); 12] = [
+    let rows: [(&str, &str, Format); 13] = [
         (
             "relMAE of the envmap's re-render",
             "rel_mae",
@@ -207,7 +247,11 @@ fn key_figures(h: &mut String, r: &Value) {
             Format::Ratio,
         ),
         ("fit test: p-value", "fit_test.p_value", Format::Scientific),
-        ("whole command", "timings.total_seconds", Format::Seconds),
+        (
+            "whole command (all but writing this page and report.json)",
+            "timings.total_seconds",
+            Format::Seconds,
+        ),
         (
             "envmap fit (transport and solve)",
             "timings.fit_seconds",
@@ -218,8 +262,21 @@ fn key_figures(h: &mut String, r: &Value) {
             "timings.sphere_fit_seconds",
             Format::Seconds,
         ),
-        ("re-renders", "timings.rerender_seconds", Format::Seconds),
-        ("peak memory", "memory.peak_bytes", Format::MiB),
+        (
+            "envmap's re-render and the noise floor",
+            "timings.rerender_seconds",
+            Format::Seconds,
+        ),
+        (
+            "sphere model's re-render",
+            "spheres.rerender_seconds",
+            Format::Seconds,
+        ),
+        (
+            "peak memory (of the estimate, before its files)",
+            "memory.peak_bytes",
+            Format::MiB,
+        ),
         (
             "envmap transport's memory (at most)",
             "memory.transport_bytes",
@@ -275,12 +332,16 @@ fn views(
         );
         for (i, cam) in seen.views.iter().enumerate() {
             let v = escape(&cam.name);
+            let src = |file: String| escape(&url(&file));
             let _ = writeln!(
                 h,
-                "<tr><td>{v}</td>{}<td><img src=\"figures/{v}.reference.png\" \
-                 alt=\"reference {v}\"></td><td><img src=\"{folder}/{v}.png\" alt=\"estimate \
-                 {v}\"></td><td><img class=\"err\" src=\"{folder}/{v}.error.png\" alt=\"error {v}\"></td></tr>",
-                cell(r, &format!("{list}.{i}.{key}"), Format::Percent)
+                "<tr><td>{v}</td>{}<td><img src=\"{}\" alt=\"reference {v}\"></td>\
+                 <td><img src=\"{}\" alt=\"estimate {v}\"></td><td><img class=\"err\" \
+                 src=\"{}\" alt=\"error {v}\"></td></tr>",
+                cell(r, &format!("{list}.{i}.{key}"), Format::Percent),
+                src(format!("figures/{}.reference.png", cam.name)),
+                src(format!("{folder}/{}.png", cam.name)),
+                src(format!("{folder}/{}.error.png", cam.name)),
             );
         }
         h.push_str("</table>\n");
@@ -312,6 +373,7 @@ fn envmap_section(
             a.get(2)?.as_f64()? as f32,
         ))
     };
+    let word = truth_word(rendered_references);
     let mut marks = Vec::new();
     let center = scene.map(|s| s.center());
     if let (Some(scene), Some(c)) = (scene, center) {
@@ -319,11 +381,7 @@ fn envmap_section(
             marks.push(Mark {
                 direction: (l.center - c).normalize_or_zero(),
                 kind: MarkKind::True,
-                label: if rendered_references {
-                    format!("true {k}")
-                } else {
-                    format!("scene light {k}")
-                },
+                label: format!("{word} {k}"),
             });
         }
     }
@@ -337,8 +395,9 @@ fn envmap_section(
             .find(|m| vec3(&m["estimated_direction"]).is_some_and(|e| e == d));
         let label = match matched {
             Some(m) => format!(
-                "cluster {k}: {:.1}° off, power ×{:.2}",
+                "cluster {k}: {:.1}° off {word} {}, power ×{:.2}",
                 m["angle_error_degrees"].as_f64().unwrap_or(f64::NAN),
+                m["true_light"],
                 m["power_ratio"].as_f64().unwrap_or(f64::NAN)
             ),
             None => format!("cluster {k}"),
@@ -349,22 +408,34 @@ fn envmap_section(
             label,
         });
     }
-    if let (Some(so), Some(c)) = (&estimate.spheres, center) {
+    // Sphere lights by their row in the report's (and the page's) table; the model's lights
+    // are the kept ones, which the recovery's `estimated` counts.
+    let fitted = r["spheres"]["lights"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
+    let kept = kept_rows(r);
+    if let Some(c) = center {
         let recovered = r["spheres"]["recovery"]
             .as_array()
             .cloned()
             .unwrap_or_default();
-        for (k, l) in so.fit.lights().iter().enumerate() {
-            let off = recovered
+        for (j, &k) in kept.iter().enumerate() {
+            let Some(at) = vec3(&fitted[k]["light"]["center"]) else {
+                continue;
+            };
+            let rec = recovered
                 .iter()
-                .find(|m| m["estimated"].as_u64() == Some(k as u64))
-                .and_then(|m| m["centre_error_m"].as_f64());
+                .find(|m| m["estimated"].as_u64() == Some(j as u64));
+            let off = rec.and_then(|m| m["centre_error_m"].as_f64());
             marks.push(Mark {
-                direction: (l.center - c).normalize_or_zero(),
+                direction: (at - c).normalize_or_zero(),
                 kind: MarkKind::Estimated,
-                label: match off {
-                    Some(e) => format!("sphere {k}: centre {e:.3} m off"),
-                    None => format!("sphere {k}"),
+                label: match (off, rec) {
+                    (Some(e), Some(m)) => {
+                        format!("sphere {k}: centre {e:.3} m off {word} {}", m["true_light"])
+                    }
+                    _ => format!("sphere {k}"),
                 },
             });
         }
@@ -373,13 +444,8 @@ fn envmap_section(
     figure::write_envmap_figure(
         &dir.join("figures").join("envmap.png"),
         &format!(
-            "The {}-ring envmap estimate (○ {} lights, × recovered)",
+            "The {}-ring envmap estimate (○ {word}s, × recovered)",
             env.grid.rings(),
-            if rendered_references {
-                "true"
-            } else {
-                "the scene's"
-            }
         ),
         env,
         &marks,
@@ -395,14 +461,14 @@ fn envmap_section(
     let clusters = r["clusters"].as_array().map_or(0, Vec::len);
     if clusters > 0 {
         h.push_str(
-            "<table><tr><th>cluster</th><th>power</th><th>± σ (relative)</th>\
-             <th>direction ± σ</th></tr>\n",
+            "<table><tr><th>cluster</th><th>power (luminance × sr)</th>\
+             <th>its σ (relative)</th><th>σ of its direction</th></tr>\n",
         );
         for k in 0..clusters {
             let _ = writeln!(
                 h,
                 "<tr><td>{k}</td>{}{}{}</tr>",
-                cell(r, &format!("clusters.{k}.power"), Format::Number),
+                cell(r, &format!("clusters.{k}.power"), Format::Significant),
                 cell(
                     r,
                     &format!("clusters.{k}.power_sigma_relative"),
@@ -418,14 +484,20 @@ fn envmap_section(
         h.push_str("</table>\n");
     }
     if !recovery.is_empty() {
-        h.push_str(
-            "<table><tr><th>true light</th><th>envmap's direction off by</th>\
-             <th>power ratio</th></tr>\n",
+        let _ = writeln!(
+            h,
+            "<table><tr><th>{word}</th><th>envmap's direction off by</th>\
+             <th>power ratio</th></tr>",
         );
         for k in 0..recovery.len() {
             let _ = writeln!(
                 h,
-                "<tr><td>{k}</td>{}{}</tr>",
+                "<tr>{}{}{}</tr>",
+                cell(
+                    r,
+                    &format!("light_recovery.{k}.true_light"),
+                    Format::Integer
+                ),
                 cell(
                     r,
                     &format!("light_recovery.{k}.angle_error_degrees"),
@@ -439,7 +511,24 @@ fn envmap_section(
     Ok(())
 }
 
-fn spheres_section(h: &mut String, r: &Value) {
+/// The rows of the report's `spheres.lights` that are the model's lights (not merged,
+/// contributing), in order.
+fn kept_rows(r: &Value) -> Vec<usize> {
+    let fitted = r["spheres"]["lights"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default();
+    (0..fitted.len())
+        .filter(|&k| {
+            matches!(
+                fitted[k]["status"].as_str(),
+                Some("identified" | "distance_unidentified")
+            )
+        })
+        .collect()
+}
+
+fn spheres_section(h: &mut String, r: &Value, word: &str) {
     let lights = r["spheres"]["lights"].as_array().map_or(0, Vec::len);
     if lights == 0 {
         return;
@@ -447,7 +536,8 @@ fn spheres_section(h: &mut String, r: &Value) {
     let _ = writeln!(
         h,
         "<h2>Sphere lights ({})</h2><table><tr><th>light</th><th>status</th>\
-         <th>radius</th><th>direction ± σ</th><th>distance ± σ</th><th>power ± σ</th></tr>",
+         <th>radius</th><th>σ of its direction</th><th>σ of its distance</th>\
+         <th>σ of its power (relative)</th></tr>",
         escape(r["spheres"]["model"].as_str().unwrap_or(""))
     );
     for k in 0..lights {
@@ -465,15 +555,22 @@ fn spheres_section(h: &mut String, r: &Value) {
     h.push_str("</table>\n");
     let recovered = r["spheres"]["recovery"].as_array().map_or(0, Vec::len);
     if recovered > 0 {
-        h.push_str(
-            "<table><tr><th>true light</th><th>centre off by</th><th>its distance</th>\
-             <th>radius (true)</th><th>power ratio</th></tr>\n",
+        let _ = writeln!(
+            h,
+            "<table><tr><th>{word}</th><th>sphere light</th><th>centre off by</th>\
+             <th>its distance</th><th>its radius</th><th>power ratio</th></tr>",
         );
         for k in 0..recovered {
             let p = format!("spheres.recovery.{k}");
+            // The table's light: `estimated` counts the kept lights only.
+            let estimated = r["spheres"]["recovery"][k]["estimated"]
+                .as_u64()
+                .and_then(|j| kept_rows(r).get(j as usize).copied())
+                .map_or("—".to_string(), |row| row.to_string());
             let _ = writeln!(
                 h,
-                "<tr><td>{k}</td>{}{}{}{}</tr>",
+                "<tr>{}<td>{estimated}</td>{}{}{}{}</tr>",
+                cell(r, &format!("{p}.true_light"), Format::Integer),
                 cell(r, &format!("{p}.centre_error_m"), Format::Metres),
                 cell(r, &format!("{p}.true_distance_m"), Format::Metres),
                 cell(r, &format!("{p}.true_radius"), Format::Metres),
@@ -549,5 +646,11 @@ mod tests {
         assert!(cell(&r, "n", Format::Seconds).contains(">—<"));
         assert!(cell(&r, "missing.0", Format::Seconds).contains("data-value=\"null\""));
         assert_eq!(escape("<a&\"b\">"), "&lt;a&amp;&quot;b&quot;&gt;");
+        // A view's name goes into a link whole: '#', '?', '%' and spaces are its own.
+        assert_eq!(url("figures/cam #1?%.png"), "figures/cam%20%231%3F%25.png");
+        assert_eq!(url("estimate/vue_é.png"), "estimate/vue_%C3%A9.png");
+        assert_eq!(Format::Significant.show(5.61146), "5.611");
+        assert_eq!(Format::Significant.show(0.0123456), "0.01235");
+        assert_eq!(Format::Significant.show(12345.6), "12346");
     }
 }
