@@ -218,10 +218,14 @@ def equal_noise_chart(path: Path, configs: dict, target: float, target_label: st
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(8, 5.5))
-    for i, (name, c) in enumerate(configs.items()):
+    cmap = plt.get_cmap("viridis")
+    others = [n for n in configs if n != "lightprobe"]
+    for name, c in configs.items():
         if not c["spp"]:
             continue
-        col = "black" if name == "lightprobe" else f"C{i}"
+        # lightprobe in black; Mitsuba's samplers along viridis, its yellow end left out.
+        col = "black" if name == "lightprobe" else \
+            cmap(0.85 * others.index(name) / max(1, len(others) - 1))
         ax.plot(c["seconds"], c["rel_mse"], "o", color=col, label=name)
         f, t = c.get("fit"), c.get("target")
         if not f:
@@ -540,9 +544,18 @@ def main() -> int:
     ap.add_argument("--target-spp", type=int, default=None,
                     help="--equal-noise: target = lightprobe's noise at this spp (one of "
                          "--spp-list; default 512 if listed, else the largest)")
+    ap.add_argument("--replot", type=Path, default=None,
+                    help="only redraw the equal-noise chart from a result JSON's "
+                         "equal_noise section (into --out)")
     ap.add_argument("--out", type=Path, default=ms.REPO / "out" / "bench",
                     help="--equal-noise: directory of the chart")
     args = ap.parse_args()
+    if args.replot:
+        eq = json.loads(args.replot.read_text())["equal_noise"]
+        chart = args.out / "equal_noise.png"
+        equal_noise_chart(chart, eq["configs"], eq["target"]["rel_mse"], eq["target"]["from"])
+        print(f"redrew {chart} (and .svg) from {args.replot}")
+        return 0
 
     if not ms.install_llvm19():
         print("bench.py needs Mitsuba's llvm_ad_rgb variant (libLLVM 19)", file=sys.stderr)
