@@ -158,7 +158,8 @@ class Browser:
 
 def expected_numbers(report):
     """Paths of report.json the page must show: the headline figures, every view's error,
-    every candidate of a selection, every sphere light (where the report has them)."""
+    every candidate of a selection, every sphere light, every fitted exposure (where the
+    report has them)."""
     paths = ["rings", "cells", "transport_spp", "timings.total_seconds", "memory.peak_bytes"]
     for key in ("rel_mae", "noise_floor_rel_mae", "representation_limit_rel_mae",
                 "fit_test.residual_over_noise", "spheres.rel_mae"):
@@ -177,6 +178,8 @@ def expected_numbers(report):
         paths.append(f"spheres.views.{i}.rel_mae")
     for i, _ in enumerate(report.get("light_recovery", [])):
         paths.append(f"light_recovery.{i}.angle_error_degrees")
+    for i, _ in enumerate((report.get("exposure") or {}).get("relative", [])):
+        paths.append(f"exposure.relative.{i}.exposure")
     return paths
 
 

@@ -207,9 +207,10 @@ pub fn write(
     envmap_section(&mut h, dir, report, estimate, scene, rendered_references)?;
     spheres_section(&mut h, report, truth_word(rendered_references));
     selection_sections(&mut h, report);
+    exposure_section(&mut h, report);
     h.push_str(
         "<h2>Files</h2><ul><li><a href=\"report.json\">report.json</a>: every figure \
-         (schema: schemas/report.schema.json)</li><li><a href=\"envmap.ron\">envmap.ron</a>, \
+         (its JSON Schema: <code>lightprobe schema --report</code>)</li><li><a href=\"envmap.ron\">envmap.ron</a>, \
          <a href=\"envmap.exr\">envmap.exr</a>: the envmap (lat-long EXR in Mitsuba's \
          convention)</li><li><a href=\"mitsuba/scene.xml\">mitsuba/scene.xml</a>, \
          <code>blender.py</code>, <a href=\"lights.usda\">lights.usda</a>: the estimate in \
@@ -284,7 +285,9 @@ fn key_figures(h: &mut String, r: &Value) {
         ),
     ];
     for (what, path, format) in rows {
-        if at(r, path).is_some_and(|v| !v.is_null()) {
+        // Rows of what this run did not do are left out: null figures, and zero seconds.
+        let zero_time = path.starts_with("timings.") && at(r, path) == Some(&Value::from(0.0));
+        if at(r, path).is_some_and(|v| !v.is_null()) && !zero_time {
             let _ = writeln!(h, "<tr><th>{what}</th>{}</tr>", cell(r, path, format));
         }
     }
@@ -511,6 +514,34 @@ fn envmap_section(
     Ok(())
 }
 
+/// `--exposure per-view`: each view's fitted exposure relative to their geometric mean.
+fn exposure_section(h: &mut String, r: &Value) {
+    let Some(views) = r["exposure"]["relative"].as_array() else {
+        return;
+    };
+    let _ = writeln!(
+        h,
+        "<h2>Exposures (--exposure per-view)</h2><p class=\"note\">Each view's exposure \
+         relative to their geometric mean (the lighting is in that mean's units), from {} \
+         alternating fits; {}.</p><table><tr><th>view</th><th>relative exposure</th></tr>",
+        r["exposure"]["fits"],
+        if r["exposure"]["converged"].as_bool() == Some(true) {
+            "converged"
+        } else {
+            "<b>not converged</b>"
+        }
+    );
+    for (i, v) in views.iter().enumerate() {
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td>{}</tr>",
+            escape(v["view"].as_str().unwrap_or("")),
+            cell(r, &format!("exposure.relative.{i}.exposure"), Format::Ratio),
+        );
+    }
+    h.push_str("</table>\n");
+}
+
 /// The rows of the report's `spheres.lights` that are the model's lights (not merged,
 /// contributing), in order.
 fn kept_rows(r: &Value) -> Vec<usize> {
@@ -602,7 +633,8 @@ fn selection_sections(h: &mut String, r: &Value) {
             h,
             "<h2>{title}</h2><p class=\"note\">Each candidate fitted without a held-out quarter \
              of the pixels and scored on it; the simplest within one standard error of the best \
-             is chosen (bold).</p><table><tr><th>{name}</th><th>held-out relMAE</th>\
+             is chosen (bold). A sphere model's fit time includes the smaller models' it grew \
+             from.</p><table><tr><th>{name}</th><th>held-out relMAE</th>\
              <th>excess over the best</th><th>its standard error</th><th>fit time</th></tr>"
         );
         for (i, c) in candidates.iter().enumerate() {
