@@ -11,8 +11,9 @@ estimate's index.html over the DevTools protocol, and the check fails unless
   A sweep's page (`lightprobe report DIR`) has no report.json and tags no number: its images
   and console are checked.
 
-It first proves it can fail: on a copy of the page with one image deleted, and on one with a
-number changed, it must report the fault. A screenshot of the whole page is saved.
+It first proves it can fail: on a copy of the page with one image deleted, one with a number's
+value changed and one with a number's text changed, it must report the fault. A screenshot of
+the whole page is saved.
 
     check_page.py OUT [--screenshot page.png [--screenshot-height H]] [--chromium chromium]
 """
@@ -23,6 +24,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -83,14 +85,15 @@ class Browser:
 
     def __init__(self, binary):
         self.profile = tempfile.mkdtemp(prefix="lp-chromium-")
-        self.proc = subprocess.Popen(
-            [binary, "--headless=new", "--no-sandbox", "--disable-gpu",
-             "--no-first-run", "--disable-extensions", "--hide-scrollbars",
-             f"--user-data-dir={self.profile}", "--remote-debugging-port=0",
-             "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        self.ws = None
+        self.proc = self.ws = None
         try:
+            # Its own process group, so that close() ends Chromium's helpers too.
+            self.proc = subprocess.Popen(
+                [binary, "--headless=new", "--no-sandbox", "--disable-gpu",
+                 "--no-first-run", "--disable-extensions", "--hide-scrollbars",
+                 f"--user-data-dir={self.profile}", "--remote-debugging-port=0",
+                 "about:blank"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
             self.ws = self.connect(binary)
         except BaseException:
             self.close()
@@ -148,11 +151,16 @@ class Browser:
     def close(self):
         if self.ws is not None:
             self.ws.close()
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
+        if self.proc is not None:
+            for sig, wait in ((signal.SIGTERM, 10), (signal.SIGKILL, 10)):
+                try:
+                    os.killpg(self.proc.pid, sig)
+                    self.proc.wait(wait)
+                    break
+                except ProcessLookupError:
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
         shutil.rmtree(self.profile, ignore_errors=True)
 
 
@@ -258,6 +266,8 @@ def main():
                     help="only the top this many pixels (the README's docs/page.png: 1400)")
     ap.add_argument("--chromium", default=shutil.which("chromium") or "chromium")
     a = ap.parse_args()
+    # A stopped check (SIGTERM, Ctrl-C) still ends Chromium and removes its profile.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit("check_page: stopped"))
     browser = Browser(a.chromium)
     try:
         faults, page = inspect(browser, a.out, a.screenshot, a.screenshot_height)
@@ -288,6 +298,17 @@ def main():
                 wrong, _ = inspect(browser, copy)
                 if not any(first["path"] in f for f in wrong):
                     faults.append(f"self-test: a changed {first['path']} went unnoticed")
+                # The text of a percentage, its value left as it is.
+                pct = next(n for n in page["numbers"] if n["format"] == "percent"
+                           and n["text"] != "—")
+                cell = f'data-json="{pct["path"]}"'
+                i = html.index(cell)
+                i = html.index(">", i) + 1
+                j = html.index("<", i)
+                (copy / "index.html").write_text(html[:i] + "1" + html[i:j] + html[j:])
+                wrong, _ = inspect(browser, copy)
+                if not any(pct["path"] in f and "shown" in f for f in wrong):
+                    faults.append(f"self-test: a misprinted {pct['path']} went unnoticed")
     finally:
         browser.close()
     for f in faults:
@@ -296,7 +317,7 @@ def main():
         sys.exit(1)
     if page["numbers"]:
         print("check_page: ok (images loaded, no console error, numbers equal report.json; "
-              "a deleted image and a changed number are caught)")
+              "a deleted image, a changed number and a misprinted one are caught)")
     else:
         print("check_page: ok (images loaded, no console error; a deleted image is caught)")
 

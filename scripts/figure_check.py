@@ -66,7 +66,9 @@ def repeated_tick_labels(fig):
 
 
 def assert_text_apart(fig, what):
-    """Raises unless every text stands apart and no axis repeats a tick label."""
+    """Raises unless every text stands apart and no axis repeats a tick label (the figure is
+    laid out first: tick labels exist only once it is drawn)."""
+    fig.canvas.draw()
     repeated = repeated_tick_labels(fig)
     if repeated:
         raise ValueError(f"{what}: an axis labels two ticks {repeated[0]!r}")

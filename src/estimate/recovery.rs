@@ -235,9 +235,10 @@ pub fn cluster_estimates(env: &Envmap, replicates: &[Envmap]) -> Vec<ClusterEsti
 /// Recovery figures of one true sphere light against a sphere-model estimate.
 #[derive(Debug, Clone, Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct SphereRecovery {
-    /// Which true light: its index among the scene's lights (the sidecar's order).
+    /// Which true light: its index among the scene's lights (the sidecar's order); None in
+    /// records written before it was reported.
     #[serde(default)]
-    pub true_light: usize,
+    pub true_light: Option<usize>,
     /// Index of the matched estimated light among the model's lights (those kept: not
     /// merged, contributing; None: the model has fewer lights).
     pub estimated: Option<usize>,
@@ -277,7 +278,7 @@ pub fn recover_spheres(
             });
             let off = e.map(|e| e.center.distance(t.center));
             SphereRecovery {
-                true_light,
+                true_light: Some(true_light),
                 estimated: j,
                 true_distance_m: d,
                 centre_error_m: off,

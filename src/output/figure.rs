@@ -207,8 +207,9 @@ pub struct HeatMapLayout {
 }
 
 impl HeatMapLayout {
-    /// The layout of a `width × height` image: small images enlarged to about 400 pixels on
-    /// their longer side (at most 8×), large ones reduced to at most 640.
+    /// The layout of a `width × height` image: small images enlarged by the largest whole
+    /// factor (at most 8) that keeps their longer side within 400 pixels, large ones reduced
+    /// by block means to at most 640.
     pub fn of(width: u32, height: u32) -> Self {
         let long = width.max(height).max(1);
         HeatMapLayout {
@@ -477,10 +478,10 @@ pub fn label_spot(
 ) -> (i32, i32, i32, i32) {
     let (x, y) = at;
     let spots = [
-        (x + 10, y - h - 4),
-        (x + 10, y + 4),
-        (x - 10 - w, y - h - 4),
-        (x - 10 - w, y + 4),
+        (x + 12, y - h - 4),
+        (x + 12, y + 4),
+        (x - 12 - w, y - h - 4),
+        (x - 12 - w, y + 4),
         (x + 12, y - h / 2),
         (x - 12 - w, y - h / 2),
         (x - w / 2, y - h - 12),

@@ -140,12 +140,12 @@ fn truth_word(rendered_references: bool) -> &'static str {
 }
 
 /// The page's style: one light theme; previews at 288 pixels wide, error maps at their own
-/// size (their colour bar's labels stay legible), 1400 pixels in all.
+/// size up to 560 (their colour bar's labels stay legible), 1400 pixels in all.
 const STYLE: &str = "body{font-family:'DejaVu Sans',sans-serif;margin:24px auto;max-width:1400px;\
 color:#222;padding:0 16px}h1{font-size:24px}h2{font-size:19px;margin-top:32px;border-bottom:1px \
 solid #ccc}table{border-collapse:collapse;margin:8px 0}td,th{padding:3px 10px;border-bottom:1px \
 solid #eee;text-align:left;vertical-align:top}td.num{text-align:right;font-variant-numeric:\
-tabular-nums}.views img{width:288px;image-rendering:pixelated}.views img.err{width:auto}.wide{max-width:100%}\
+tabular-nums}.views img{width:288px;image-rendering:pixelated}.views img.err{width:auto;max-width:560px}.wide{max-width:100%}\
 .note{color:#555;font-size:14px}.warn{background:#fff3cd;border:1px solid #e0c060;padding:8px}\
 .chosen{font-weight:bold}figure{margin:8px 0}";
 
@@ -285,9 +285,13 @@ fn key_figures(h: &mut String, r: &Value) {
         ),
     ];
     for (what, path, format) in rows {
-        // Rows of what this run did not do are left out: null figures, and zero seconds.
-        let zero_time = path.starts_with("timings.") && at(r, path) == Some(&Value::from(0.0));
-        if at(r, path).is_some_and(|v| !v.is_null()) && !zero_time {
+        // Rows of what this run did not do are left out: null figures, and phases that took
+        // no time to speak of (a re-render skipped by --fit-only still times its set-up).
+        let idle = matches!(format, Format::Seconds)
+            && at(r, path)
+                .and_then(Value::as_f64)
+                .is_some_and(|t| t < 0.005);
+        if at(r, path).is_some_and(|v| !v.is_null()) && !idle {
             let _ = writeln!(h, "<tr><th>{what}</th>{}</tr>", cell(r, path, format));
         }
     }
@@ -524,7 +528,7 @@ fn exposure_section(h: &mut String, r: &Value) {
         "<h2>Exposures (--exposure per-view)</h2><p class=\"note\">Each view's exposure \
          relative to their geometric mean (the lighting is in that mean's units), from {} \
          alternating fits; {}.</p><table><tr><th>view</th><th>relative exposure</th></tr>",
-        r["exposure"]["fits"],
+        span(r, "exposure.fits", Format::Integer),
         if r["exposure"]["converged"].as_bool() == Some(true) {
             "converged"
         } else {
@@ -639,19 +643,20 @@ fn selection_sections(h: &mut String, r: &Value) {
         );
         for (i, c) in candidates.iter().enumerate() {
             let p = format!("{key}.candidates.{i}");
+            // A model's name, or a ring count (a number of the report: tagged).
             let label = match &c[name] {
-                Value::String(s) => s.clone(),
-                v => v.to_string(),
+                Value::String(s) => format!("<td>{}</td>", escape(s)),
+                _ => cell(r, &format!("{p}.{name}"), Format::Integer),
             };
             let _ = writeln!(
                 h,
-                "<tr{}><td>{}</td>{}{}{}{}</tr>",
+                "<tr{}>{}{}{}{}{}</tr>",
                 if &c[name] == chosen {
                     " class=\"chosen\""
                 } else {
                     ""
                 },
-                escape(&label),
+                label,
                 cell(r, &format!("{p}.validation_rel_mae"), Format::Percent),
                 cell(r, &format!("{p}.excess_over_best"), Format::Percent),
                 cell(r, &format!("{p}.standard_error"), Format::Percent),
