@@ -10,12 +10,25 @@ use ab_glyph::{Font, FontRef};
 /// A text's box, pixels: (left, top, right, bottom), and its text.
 type TextBox = ([f64; 4], String);
 
-/// The boxes of every `<text>` in an SVG written by plotters: `x`, `y`, `dy` (in em or ex),
-/// `text-anchor`, `font-size` and a `rotate(θ, x, y)` transform.
-fn text_boxes(svg: &str, font: &FontRef) -> Vec<TextBox> {
+/// How an SVG's text is drawn in its PNG.
+#[derive(Clone, Copy)]
+enum Raster {
+    /// plotters' PNG beside it: the same text, rasterised larger (see [`text_boxes`]).
+    Plotters,
+    /// The SVG itself, rasterised as a browser draws it (`rsvg-convert`).
+    AsWritten,
+}
+
+/// The boxes of every `<text>` in an SVG: `x`, `y`, `dy` (in em or ex), `text-anchor`,
+/// `font-size` (its own or an ancestor's) and a `rotate(θ, x, y)` transform.
+fn text_boxes(svg: &str, font: &FontRef, raster: Raster) -> Vec<TextBox> {
     let doc = roxmltree::Document::parse(svg).unwrap();
     let em = font.units_per_em().unwrap() as f64;
     let height_em = (font.ascent_unscaled() - font.descent_unscaled()) as f64 / em;
+    let scale = match raster {
+        Raster::Plotters => 1.24 / height_em,
+        Raster::AsWritten => 1.0,
+    };
     let mut boxes = Vec::new();
     for t in doc.descendants().filter(|n| n.has_tag_name("text")) {
         let text = t.text().unwrap_or("").trim().to_string();
@@ -23,10 +36,16 @@ fn text_boxes(svg: &str, font: &FontRef) -> Vec<TextBox> {
             continue;
         }
         let num = |a: &str| t.attribute(a).unwrap().parse::<f64>().unwrap();
-        // The PNG's text, which plotters rasterises at its own size (the SVG's font-size is
-        // that over 1.24, and ab_glyph scales glyphs by ascent − descent, not the em): the
-        // larger of the two drawings is measured.
-        let size = num("font-size") * 1.24 / height_em;
+        // plotters rasterises its PNG's text at its own size (the SVG's font-size is that
+        // over 1.24, and ab_glyph scales glyphs by ascent − descent, not the em): the larger
+        // of the two drawings is measured.
+        let font_size = t
+            .ancestors()
+            .find_map(|n| n.attribute("font-size"))
+            .unwrap()
+            .parse::<f64>()
+            .unwrap();
+        let size = font_size * scale;
         let (x, y) = (num("x"), num("y"));
         let width: f64 = text
             .chars()
@@ -48,11 +67,19 @@ fn text_boxes(svg: &str, font: &FontRef) -> Vec<TextBox> {
         };
         // Digits and capitals rise 0.73 em above the baseline; descenders reach 0.24 em below.
         let (top, bottom) = (shift - 0.73 * size, shift + 0.24 * size);
-        let b = match t.attribute("transform") {
-            Some(tr) if tr.starts_with("rotate(270") => [x + top, y - right, x + bottom, y - left],
-            Some(tr) if tr.starts_with("rotate(90") => [x - bottom, y + left, x - top, y + right],
-            Some(tr) => panic!("a transform the test does not know: {tr}"),
-            None => [x + left, y + top, x + right, y + bottom],
+        // rotate(θ, x, y) or rotate(θ x y) about the text's own anchor.
+        let angle = t.attribute("transform").map(|tr| {
+            let args = tr
+                .strip_prefix("rotate(")
+                .unwrap_or_else(|| panic!("a transform the test does not know: {tr}"));
+            let a: f64 = args.split([',', ' ', ')']).next().unwrap().parse().unwrap();
+            a.rem_euclid(360.0)
+        });
+        let b = match angle {
+            Some(270.0) => [x + top, y - right, x + bottom, y - left],
+            Some(90.0) => [x - bottom, y + left, x - top, y + right],
+            Some(0.0) | None => [x + left, y + top, x + right, y + bottom],
+            Some(a) => panic!("a rotation the test does not know: {a}°"),
         };
         boxes.push((b, text));
     }
@@ -89,7 +116,7 @@ fn the_overlap_test_sees_two_labels_drawn_into_one() {
               transform="rotate(270, 30, 300)">relMAE (%)</text>
         <text x="30" y="340" dy="0.76em" text-anchor="start" font-size="12">x</text>
     </svg>"#;
-    let boxes = text_boxes(svg, &font);
+    let boxes = text_boxes(svg, &font, Raster::Plotters);
     // A digit of DejaVu Sans is 0.636 em wide; font-size 10 in the SVG is drawn in the PNG
     // with an em of 10 × 1.24 / 1.164 (DejaVu's ascent − descent is 1.164 em).
     let want = 0.636 * 10.0 * 1.24 / (2384.0 / 2048.0);
@@ -121,7 +148,7 @@ fn report_charts_have_svgs_and_no_overlapping_text() {
             let svg = png.with_extension("svg");
             let text = std::fs::read_to_string(&svg)
                 .unwrap_or_else(|e| panic!("{study}: {}: {e}", svg.display()));
-            let boxes = text_boxes(&text, &font);
+            let boxes = text_boxes(&text, &font, Raster::Plotters);
             assert!(boxes.len() > 5, "{study}: {} has no labels", svg.display());
             let found = overlaps(&boxes);
             assert!(
@@ -144,4 +171,20 @@ fn report_charts_have_svgs_and_no_overlapping_text() {
         }
     }
     assert!(charts >= 10, "{charts} charts");
+}
+
+#[test]
+fn the_scaling_benchmark_chart_has_no_overlapping_text() {
+    // `scripts/plot_scaling.py` writes its SVG by hand (the matplotlib charts draw text as
+    // paths: `scripts/figure_check.py` measures those).
+    let font = font();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/bench/scaling.svg");
+    let boxes = text_boxes(
+        &std::fs::read_to_string(&path).unwrap(),
+        &font,
+        Raster::AsWritten,
+    );
+    assert!(boxes.len() > 10, "{} texts", boxes.len());
+    let found = overlaps(&boxes);
+    assert!(found.is_empty(), "texts overlap: {found:#?}");
 }
