@@ -87,23 +87,27 @@ fn at<'a>(json: &'a Value, path: &str) -> Option<&'a Value> {
 /// A table cell showing the number at `path` of the report, tagged for the page's test; "—"
 /// when the report has none there.
 fn cell(report: &Value, path: &str, format: Format) -> String {
+    tagged("td class=\"num\"", "td", report, path, format)
+}
+
+/// The number at `path` inline, tagged as [`cell`]'s.
+fn span(report: &Value, path: &str, format: Format) -> String {
+    tagged("span", "span", report, path, format)
+}
+
+/// The number at `path` in an element opened by `open` and closed by `close`, carrying its
+/// path, its value as report.json writes it, and its format.
+fn tagged(open: &str, close: &str, report: &Value, path: &str, format: Format) -> String {
     let value = at(report, path).unwrap_or(&Value::Null);
     let shown = value
         .as_f64()
         .map_or_else(|| "—".to_string(), |v| format.show(v));
     format!(
-        "<td class=\"num\" data-json=\"{path}\" data-value=\"{}\" data-format=\"{}\">{}</td>",
+        "<{open} data-json=\"{path}\" data-value=\"{}\" data-format=\"{}\">{}</{close}>",
         escape(&value.to_string()),
         format.name(),
         escape(&shown)
     )
-}
-
-/// The number at `path` inline, tagged as [`cell`]'s.
-fn span(report: &Value, path: &str, format: Format) -> String {
-    cell(report, path, format)
-        .replacen("<td class=\"num\"", "<span", 1)
-        .replace("</td>", "</span>")
 }
 
 /// A relative path (of `/`-separated names) as a URL: every byte but unreserved ones and
@@ -204,8 +208,23 @@ pub fn write(
     }
     key_figures(&mut h, report);
     views(&mut h, dir, report, estimate, seen)?;
-    envmap_section(&mut h, dir, report, estimate, scene, rendered_references)?;
-    spheres_section(&mut h, report, truth_word(rendered_references));
+    // The rows of `spheres.lights` (every fitted light) that are the model's lights: those
+    // the recoveries' `estimated` counts.
+    let kept: Vec<usize> = estimate.spheres.as_ref().map_or_else(Vec::new, |so| {
+        (0..so.fit.fitted.len())
+            .filter(|&k| so.fit.fitted[k].kept())
+            .collect()
+    });
+    envmap_section(
+        &mut h,
+        dir,
+        report,
+        estimate,
+        &kept,
+        scene,
+        rendered_references,
+    )?;
+    spheres_section(&mut h, report, &kept, truth_word(rendered_references));
     selection_sections(&mut h, report);
     exposure_section(&mut h, report);
     h.push_str(
@@ -369,6 +388,7 @@ fn envmap_section(
     dir: &Path,
     r: &Value,
     estimate: &Estimate,
+    kept: &[usize],
     scene: Option<&Scene>,
     rendered_references: bool,
 ) -> Result<()> {
@@ -417,26 +437,18 @@ fn envmap_section(
     }
     // Sphere lights by their row in the report's (and the page's) table; the model's lights
     // are the kept ones, which the recovery's `estimated` counts.
-    let fitted = r["spheres"]["lights"]
-        .as_array()
-        .cloned()
-        .unwrap_or_default();
-    let kept = kept_rows(r);
-    if let Some(c) = center {
+    if let (Some(so), Some(c)) = (&estimate.spheres, center) {
         let recovered = r["spheres"]["recovery"]
             .as_array()
             .cloned()
             .unwrap_or_default();
         for (j, &k) in kept.iter().enumerate() {
-            let Some(at) = vec3(&fitted[k]["light"]["center"]) else {
-                continue;
-            };
             let rec = recovered
                 .iter()
                 .find(|m| m["estimated"].as_u64() == Some(j as u64));
             let off = rec.and_then(|m| m["centre_error_m"].as_f64());
             marks.push(Mark {
-                direction: (at - c).normalize_or_zero(),
+                direction: (so.fit.fitted[k].light.center - c).normalize_or_zero(),
                 kind: MarkKind::Estimated,
                 label: match (off, rec) {
                     (Some(e), Some(m)) => {
@@ -546,24 +558,7 @@ fn exposure_section(h: &mut String, r: &Value) {
     h.push_str("</table>\n");
 }
 
-/// The rows of the report's `spheres.lights` that are the model's lights (not merged,
-/// contributing), in order.
-fn kept_rows(r: &Value) -> Vec<usize> {
-    let fitted = r["spheres"]["lights"]
-        .as_array()
-        .cloned()
-        .unwrap_or_default();
-    (0..fitted.len())
-        .filter(|&k| {
-            matches!(
-                fitted[k]["status"].as_str(),
-                Some("identified" | "distance_unidentified")
-            )
-        })
-        .collect()
-}
-
-fn spheres_section(h: &mut String, r: &Value, word: &str) {
+fn spheres_section(h: &mut String, r: &Value, kept: &[usize], word: &str) {
     let lights = r["spheres"]["lights"].as_array().map_or(0, Vec::len);
     if lights == 0 {
         return;
@@ -600,7 +595,7 @@ fn spheres_section(h: &mut String, r: &Value, word: &str) {
             // The table's light: `estimated` counts the kept lights only.
             let estimated = r["spheres"]["recovery"][k]["estimated"]
                 .as_u64()
-                .and_then(|j| kept_rows(r).get(j as usize).copied())
+                .and_then(|j| kept.get(j as usize).copied())
                 .map_or("—".to_string(), |row| row.to_string());
             let _ = writeln!(
                 h,
