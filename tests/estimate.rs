@@ -703,6 +703,7 @@ fn select_model(
         true,
         &render,
         true,
+        &|_| false,
         &|_| {},
     )
     .unwrap();
@@ -788,7 +789,7 @@ fn paths_walked_once_and_lit_again_render_what_a_fresh_render_does() {
     let base = Renderer::new(&sc, &none);
     let cam = &sc.cameras[1];
     let walked = settings(16, 7);
-    let paths = base.trace_paths(cam, 3, &walked);
+    let paths = base.trace_paths(cam, 3, &walked, None);
     let moved = SphereLight {
         center: Vec3::new(-0.5, 1.2, 0.9),
         ..NEAR_LIGHT
@@ -1097,6 +1098,7 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
             center,
             2.0,
             &SphereSettings::new(1, &render),
+            &mut |_| true,
         )
         .pop()
         .unwrap();
@@ -1501,5 +1503,88 @@ fn the_jackknife_intervals_of_envmap_clusters_match_their_spread_over_seeds() {
             (0.5..2.0).contains(&(spread / stated)),
             "spread {spread}, stated {stated}"
         );
+    }
+}
+
+#[test]
+fn choosing_stops_at_a_model_at_the_noise_floor_and_goes_on_where_none_is() {
+    // A near lamp alone: one sphere re-renders at the noise floor, so no larger model could
+    // be chosen over it and none is fitted (no second light, no envmap behind it). A lamp
+    // under a sky: neither one sphere nor the envmap reaches the floor, so the sequence goes
+    // on to the lamp with an envmap behind it. Both through the estimate job, whose progress
+    // must still end each phase at what it declared.
+    use lightprobe::estimate::job::{self, EstimateSettings, Job, LightModel, References, Rings};
+    let g = RingGrid::new(5);
+    let sky = (0..g.cell_count() as u32)
+        .map(|c| Vec3::new(0.25, 0.3, 0.45) * (0.3 + 0.7 * g.center(c).y.max(0.0)))
+        .collect();
+    let sc = scene(vec![NEAR_LIGHT]);
+    let lamp = Lights::new(sc.lights.clone());
+    let lamp_and_sky = Lights {
+        env: Some(Envmap::new(5, sky).unwrap()),
+        ..lamp.clone()
+    };
+    let render = settings(256, 1);
+    for (lights, stop) in [(&lamp, Some("spheres:1")), (&lamp_and_sky, None)] {
+        let r = Renderer::new(&sc, lights);
+        let seen = job::observe(&r, &render, References::Render, &()).unwrap();
+        let settings = EstimateSettings {
+            rings: Rings::Fixed(5),
+            model: LightModel::Auto,
+            spp: 256,
+            ..EstimateSettings::new(&sc.settings)
+        };
+        let rec = Recorder::default();
+        let est = job::run(&Job::new(&r, &seen, &render, &settings), &rec).unwrap();
+        let sel = est.report.model_selection.unwrap();
+        eprintln!("{sel:#?}");
+        let names: Vec<&str> = sel.candidates.iter().map(|c| c.model.as_str()).collect();
+        assert_eq!(sel.at_noise_floor.as_deref(), stop, "{sel:#?}");
+        match stop {
+            Some(_) => {
+                assert_eq!(names, ["spheres:1", "envmap"], "{sel:#?}");
+                assert_eq!(sel.chosen, "spheres:1");
+            }
+            None => assert!(names.contains(&"envmap+spheres:1"), "{sel:#?}"),
+        }
+        for (name, declared, done) in rec.0.into_inner().unwrap() {
+            assert_eq!(done, declared, "phase {name}");
+        }
+    }
+}
+
+#[test]
+fn pixels_left_out_of_a_walk_or_render_change_no_other_pixel() {
+    // The sphere fit walks and lights only the pixels it compares (the mask less the held-out
+    // quarter): every other pixel must come out exactly as a full render makes it, and the
+    // left-out ones empty with coverage 0.
+    let sc = scene(vec![NEAR_LIGHT]);
+    let lights = Lights::new(vec![NEAR_LIGHT]);
+    let r = Renderer::new(&sc, &lights);
+    let cam = &sc.cameras[1];
+    let st = settings(16, 7);
+    let keep = |i: u32| !i.is_multiple_of(3) && i % 7 != 2;
+    let wanted: Vec<bool> = (0..cam.width * cam.height).map(keep).collect();
+    let acc = lightprobe::render::RadianceAccumulator(&lights);
+    let full = r.render(cam, 3, &st, &acc, &|_| {});
+    let walked = r.trace_paths(cam, 3, &st, Some(wanted.clone()));
+    let lit = r.render_paths(&walked, cam, &st, &acc);
+    let some = r.render_some(cam, 3, &st, &acc, Some(&keep), &|_| {});
+    let all_paths = r.trace_paths(cam, 3, &st, None);
+    assert!(
+        walked.bytes() < all_paths.bytes() * 3 / 4,
+        "the left-out pixels were walked"
+    );
+    let lit_all = r.render_paths(&all_paths, cam, &st, &acc);
+    for (part, full) in [(&lit, &lit_all), (&some, &full)] {
+        for (i, w) in wanted.iter().enumerate() {
+            if *w {
+                assert_eq!(part.pixels[i], full.pixels[i], "pixel {i}");
+                assert_eq!(part.coverage[i], full.coverage[i], "pixel {i}");
+            } else {
+                assert_eq!(part.pixels[i], Vec3::ZERO, "pixel {i}");
+                assert_eq!(part.coverage[i], 0.0, "pixel {i}");
+            }
+        }
     }
 }

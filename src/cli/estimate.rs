@@ -103,11 +103,12 @@ pub struct Args {
     /// an even scan of directions) and a distance search, refined by Levenberg–Marquardt
     /// (centres, radii; radiances exact), written as a sidecar fragment (spheres/lights.ron)
     /// with its own re-render and errors; `spheres`: 1, 2, … (at most 3) lights fitted on
-    /// three quarters of the pixels, the fewest
-    /// within one standard error of the best on the held-out quarter kept; `auto`: the same
-    /// with two more candidates, the envmap, and the sphere model chosen so far with an envmap
-    /// behind its lights (`envmap+spheres:K`, for light from afar beside near lights; written
-    /// as spheres/lights.ron plus spheres/background.ron and .exr).
+    /// three quarters of the pixels, the fewest within one standard error of the best on the
+    /// held-out quarter kept; `auto`: the same with two more candidates, the envmap, and the
+    /// sphere model chosen so far with an envmap behind its lights (`envmap+spheres:K`, for
+    /// light from afar beside near lights; written as spheres/lights.ron plus
+    /// spheres/background.ron and .exr). Choosing stops at the first model that re-renders
+    /// within 10% of the noise floor: no larger one could be chosen over it.
     #[arg(long, default_value = "envmap", value_parser = parse_model)]
     model: LightModel,
     /// Resolutions `--rings auto` chooses from.
@@ -451,6 +452,12 @@ fn summary(r: &EstimateReport) -> Vec<String> {
                 .join(", "),
             sel.best
         ));
+        if let Some(m) = &sel.at_noise_floor {
+            lines.push(format!(
+                "{m} re-renders within {:.0}% of the noise floor: no larger model was fitted (none could be chosen over it)",
+                100.0 * lightprobe::estimate::select::MODEL_TOLERANCE
+            ));
+        }
     }
     if let Some(s) = &r.spheres {
         lines.extend(spheres_summary(s, r.rel_mae));

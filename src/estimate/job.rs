@@ -1157,6 +1157,12 @@ fn fit_spheres(
         stage: "sphere-light model",
         inner: Box::new(e),
     };
+    // Choosing: the nested sequence ends at a model already at the noise floor, and no
+    // sphere model is fitted again with a background behind it once any model is.
+    let floor = choose.then(|| known_noise_floor(job, envmap)).flatten();
+    let at_floor = |renders: &[Image], errors: &[Metrics]| {
+        choose && at_noise_floor(job, floor, renders, errors)
+    };
     progress.phase("sphere lights", pixels * max_lights as u64);
     let mut models = pipeline::run_sphere_models(
         job.fit,
@@ -1169,13 +1175,21 @@ fn fit_spheres(
         choose,
         job.render,
         s.evaluate,
+        &|so| at_floor(&so.renders, &so.errors),
         &|k| progress.advance(k),
     )
     .map_err(in_spheres)?;
     // Nested fits: the last one's time includes the others'.
     let mut seconds = models.last().map_or(0.0, |m| m.fit.seconds);
+    // In order of parameter count: the sphere models, then the envmap.
+    let sufficient = models
+        .iter()
+        .map(|m| (&m.renders, &m.errors, m.fit.model_name()))
+        .chain(model_auto.then(|| (&envmap.renders, &envmap.errors, "envmap".to_string())))
+        .find(|(renders, errors, _)| at_floor(renders, errors))
+        .map(|(_, _, name)| name);
     // --model auto: sphere models again, with an envmap behind their lights.
-    let bases: Vec<_> = if model_auto {
+    let bases: Vec<_> = if model_auto && sufficient.is_none() {
         pipeline::background_bases(&models, &seen.references, &seen.masks)
             .into_iter()
             .map(|b| b.fit.clone())
@@ -1227,13 +1241,14 @@ fn fit_spheres(
             ..SphereModels::default()
         });
     }
-    let sel = pipeline::select_model(
+    let mut sel = pipeline::select_model(
         model_auto.then_some(envmap),
         &models,
         &seen.references,
         &seen.masks,
     )
     .ok_or_else(|| in_spheres(Error::Invalid("no candidate model to choose from".into())))?;
+    sel.at_noise_floor = sufficient;
     let Some(i) = models.iter().position(|m| sel.chosen == m.fit.model_name()) else {
         // The envmap was chosen.
         return Ok(SphereModels {
@@ -1243,7 +1258,8 @@ fn fit_spheres(
             seconds,
         });
     };
-    // Chosen on held-out pixels: fitted again on all of them.
+    // Chosen on held-out pixels: fitted again on all of them, whose paths are walked anew.
+    paths.clear();
     progress.phase("refit on all pixels", pixels);
     let mut refit = pipeline::refit_on_all_pixels(
         job.fit,
@@ -1266,6 +1282,45 @@ fn fit_spheres(
         selection: Some(sel),
         seconds,
     })
+}
+
+/// The relMAE the references' noise alone gives, mean over the seen views, where it is known
+/// without a model: the true lights' second render where lightprobe rendered the references,
+/// the given twins' difference otherwise (None: neither; see [`at_noise_floor`]).
+fn known_noise_floor(job: &Job, envmap: &Outcome) -> Option<f64> {
+    let seen = job.seen;
+    if seen.rendered {
+        pipeline::mean_rel_mae(&envmap.noise_floor)
+    } else if seen.twins.len() == seen.references.len() {
+        let floors = pipeline::compare_views(&seen.twins, &seen.references, &seen.masks).ok()?;
+        pipeline::mean_rel_mae(&floors)
+    } else {
+        None
+    }
+}
+
+/// Whether a candidate model's re-render (`renders`, with their `errors`) scores within
+/// [`select::MODEL_TOLERANCE`] of the noise floor (`floor`, else its own residual's
+/// neighbouring pixels, [`ResidualNoise`]). A larger model is chosen only where it beats a
+/// smaller one by that fraction ([`select::choose_model`]) and none beats the true lights,
+/// which score the noise floor: fitting larger models after this one would only cost time.
+fn at_noise_floor(job: &Job, floor: Option<f64>, renders: &[Image], errors: &[Metrics]) -> bool {
+    let seen = job.seen;
+    let floor = floor.or_else(|| {
+        let each: Vec<f64> = seen
+            .references
+            .iter()
+            .zip(renders)
+            .zip(&seen.masks)
+            .filter_map(|((r, x), m)| ResidualNoise::of(r, x, m, None).rel_mae())
+            .collect();
+        (each.len() == renders.len() && !each.is_empty())
+            .then(|| each.iter().sum::<f64>() / each.len() as f64)
+    });
+    match (pipeline::mean_rel_mae(errors), floor) {
+        (Some(e), Some(f)) => f > 0.0 && e < (1.0 + select::MODEL_TOLERANCE) * f,
+        _ => false,
+    }
 }
 
 /// Re-fits the envmap with one more bounce, at a quarter of the samples, and says in `test`'s

@@ -556,9 +556,10 @@ impl SphereOutcome {
 
 /// Fits sphere models of 1, 2, … up to `max_lights` lights (greedy and nested, see
 /// [`spheres::fit_sphere_models`]; directions from `envmap`, an envmap estimate of the same
-/// images), then optionally re-renders each (`all`) or the largest with a seed the fit never
-/// saw, in the scene of `truth_renderer`, and matches it to `truth`. `scene` is the scene's
-/// centre and size (metres).
+/// images), or with `all` false the `max_lights` one alone; each re-rendered as it is made
+/// (with `evaluate`) with a seed the fit never saw, in the scene of `truth_renderer`, and
+/// matched to `truth`. `enough` ends the nested sequence at the first model it accepts (from
+/// its outcome). `scene` is the scene's centre and size (metres).
 #[allow(clippy::too_many_arguments)]
 pub fn run_sphere_models(
     renderer: &Renderer,
@@ -571,24 +572,21 @@ pub fn run_sphere_models(
     all: bool,
     render: &RenderSettings,
     evaluate: bool,
+    enough: &dyn Fn(&SphereOutcome) -> bool,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Result<Vec<SphereOutcome>> {
     let settings = SphereSettings {
         at_once: !all,
         ..SphereSettings::new(max_lights, render)
     };
-    let mut fits = spheres::fit_sphere_models(renderer, obs, envmap, center, size, &settings);
-    if !all {
-        fits = fits.split_off(fits.len().saturating_sub(1));
-    }
     let mut out = Vec::new();
-    for fit in fits {
-        let lights = fit.lights();
-        if lights.is_empty() {
-            continue;
+    let mut failed = None;
+    spheres::fit_sphere_models(renderer, obs, envmap, center, size, &settings, &mut |fit| {
+        if fit.lights().is_empty() {
+            return true;
         }
-        out.push(outcome_of(
-            fit,
+        let outcome = outcome_of(
+            fit.clone(),
             truth_renderer,
             obs,
             truth,
@@ -596,7 +594,30 @@ pub fn run_sphere_models(
             render,
             evaluate,
             progress,
-        )?);
+        );
+        match outcome {
+            Ok(o) => {
+                let go_on = !enough(&o);
+                out.push(o);
+                go_on
+            }
+            Err(e) => {
+                failed = Some(e);
+                false
+            }
+        }
+    });
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    // Models the sequence did not need to fit: their re-renders' share of the progress.
+    if evaluate {
+        let pixels: u64 = obs
+            .cameras
+            .iter()
+            .map(|c| (c.width * c.height) as u64)
+            .sum();
+        progress(pixels * max_lights.saturating_sub(out.len()) as u64);
     }
     if out.is_empty() {
         return Err(Error::Invalid(

@@ -148,6 +148,11 @@ pub struct ModelSelection {
     pub best: String,
     pub held_out_pixels: usize,
     pub candidates: Vec<ModelCandidate>,
+    /// The first candidate whose re-render scored within [`MODEL_TOLERANCE`] of the noise
+    /// floor, if any: no larger model could be chosen over it, so none was fitted after it
+    /// (no further sphere light, no sphere model with an envmap behind it).
+    #[serde(default)]
+    pub at_noise_floor: Option<String>,
 }
 
 /// A light model with more parameters must beat a smaller one by more than this fraction of
@@ -188,6 +193,7 @@ pub fn choose_model(candidates: Vec<(String, usize, Validation, f64)>) -> Option
                 seconds: *secs,
             })
             .collect(),
+        at_noise_floor: None,
     })
 }
 

@@ -54,20 +54,22 @@ pub struct Observations<'a> {
 pub struct PathCache {
     #[allow(clippy::type_complexity)]
     paths: std::sync::Mutex<
-        std::collections::HashMap<(usize, u64, u64, u32, u32), std::sync::Arc<Paths>>,
+        std::collections::HashMap<(usize, u64, u64, u32, u32, bool), std::sync::Arc<Paths>>,
     >,
 }
 
 impl PathCache {
     pub const MAX_SPP: u32 = 64;
 
-    /// The paths of view `view` (random stream `stream`) under `settings`, walked now if new.
+    /// The paths of view `view` (random stream `stream`) under `settings`, walked now if new,
+    /// of the pixels `wanted` flags (the same flags whenever `holdout` is: the fit's pixels).
     fn get(
         &self,
         renderer: &Renderer,
         camera: &Camera,
         stream: u64,
         settings: &RenderSettings,
+        (holdout, wanted): (bool, impl FnOnce() -> Vec<bool>),
     ) -> std::sync::Arc<Paths> {
         let key = (
             renderer.scene as *const _ as usize,
@@ -75,11 +77,20 @@ impl PathCache {
             settings.seed,
             settings.spp,
             settings.max_bounces,
+            holdout,
         );
         let mut map = self.paths.lock().unwrap_or_else(|e| e.into_inner());
         map.entry(key)
-            .or_insert_with(|| std::sync::Arc::new(renderer.trace_paths(camera, stream, settings)))
+            .or_insert_with(|| {
+                let paths = renderer.trace_paths(camera, stream, settings, Some(wanted()));
+                std::sync::Arc::new(paths)
+            })
             .clone()
+    }
+
+    /// Drops every path kept (e.g. the held-out fits' once the refit on all pixels begins).
+    pub fn clear(&self) {
+        self.paths.lock().unwrap_or_else(|e| e.into_inner()).clear();
     }
 
     /// Bytes held.
@@ -179,12 +190,15 @@ fn transport(
     let mut y: [Vec<f64>; 3] = std::array::from_fn(|_| Vec::new());
     for (v, (cam, mask)) in obs.cameras.iter().zip(obs.masks).enumerate() {
         let stream = 2000 + v as u64;
+        // Only the pixels the fit compares are rendered.
+        let fitted = |i: u32| mask[i as usize] && !(obs.holdout && is_held_out((v, i)));
         let frame = match obs.paths.filter(|_| settings.spp <= PathCache::MAX_SPP) {
             Some(cache) => {
-                let paths = cache.get(&renderer, cam, stream, settings);
+                let wanted = || (0..mask.len() as u32).map(fitted).collect();
+                let paths = cache.get(&renderer, cam, stream, settings, (obs.holdout, wanted));
                 renderer.render_paths(&paths, cam, settings, &acc)
             }
-            None => renderer.render(cam, stream, settings, &acc, &|_| {}),
+            None => renderer.render_some(cam, stream, settings, &acc, Some(&fitted), &|_| {}),
         };
         let (w, h) = (frame.width, frame.height);
         let bw = w.div_ceil(bin) as usize;
@@ -1271,9 +1285,10 @@ fn angular_radius(l: &SphereLight, center: Vec3) -> f32 {
 /// is judged. A new light that lands within 2° plus their angular radii of another (the images
 /// cannot separate the pair) is marked merged, one that gets no radiance as contributing
 /// nothing; either ends the sequence, as does running out of candidate directions or a light
-/// that lowers the objective by less than 5% (the data need no more). Returns
-/// the fits in order of light count (nested, so `seconds` and `renders` are cumulative).
-/// `center` and `size` are the scene's centre and size (metres).
+/// that lowers the objective by less than 5% (the data need no more), as does `go_on`
+/// returning false for the fit just made (the caller's judgement, e.g. a model already at the
+/// images' noise). Returns the fits in order of light count (nested, so `seconds` and
+/// `renders` are cumulative). `center` and `size` are the scene's centre and size (metres).
 pub fn fit_sphere_models(
     renderer: &Renderer,
     obs: &Observations,
@@ -1281,6 +1296,7 @@ pub fn fit_sphere_models(
     center: Vec3,
     size: f32,
     settings: &SphereSettings,
+    go_on: &mut dyn FnMut(&SphereFit) -> bool,
 ) -> Vec<SphereFit> {
     let t0 = Instant::now();
     let mut renders = 0;
@@ -1308,7 +1324,7 @@ pub fn fit_sphere_models(
         let start = joint_start(settings.k, &mut r);
         let refined = refine(renderer, obs, &start, center, &settings.refine);
         let (fitted, j) = judge(renderer, obs, &refined, center, &settings.refine.residual);
-        return vec![SphereFit {
+        let fit = SphereFit {
             requested: settings.k,
             fitted,
             start,
@@ -1318,7 +1334,9 @@ pub fn fit_sphere_models(
             history: refined.history,
             seconds: t0.elapsed().as_secs_f64(),
             background: None,
-        }];
+        };
+        go_on(&fit);
+        return vec![fit];
     }
     let mut fitted_lights: Vec<SphereLight> = Vec::new();
     for k in 1..=settings.k {
@@ -1421,7 +1439,8 @@ pub fn fit_sphere_models(
             [.., before, after] => 1.0 - after.history_last() / before.history_last(),
             _ => 1.0,
         };
-        if done || gain < 0.05 {
+        let wanted = fits.last().is_some_and(&mut *go_on);
+        if done || gain < 0.05 || !wanted {
             break;
         }
     }

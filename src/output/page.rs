@@ -659,6 +659,15 @@ fn selection_sections(h: &mut String, r: &Value) {
             );
         }
         h.push_str("</table>\n");
+        if let Some(m) = r[key]["at_noise_floor"].as_str() {
+            let _ = writeln!(
+                h,
+                "<p class=\"note\">{} re-renders within {:.0}% of the noise floor: no larger \
+                 model was fitted, since none could be chosen over it.</p>",
+                escape(m),
+                100.0 * crate::estimate::select::MODEL_TOLERANCE
+            );
+        }
     }
 }
 

@@ -244,10 +244,25 @@ impl<'a> Renderer<'a> {
         acc: &A,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Frame<A::Pixel> {
+        self.render_some(camera, stream, settings, acc, None, progress)
+    }
+
+    /// [`Renderer::render`], of only the pixels `wanted` flags (by index) if given: the others
+    /// get the accumulator's empty pixel and coverage 0, the flagged ones what `render` gives
+    /// them. `progress` counts every pixel of a finished tile, flagged or not.
+    pub fn render_some<A: Accumulator>(
+        &self,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+        acc: &A,
+        wanted: Option<&(dyn Fn(u32) -> bool + Sync)>,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Frame<A::Pixel> {
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(camera.width, camera.height)
             .par_iter()
             .map(|&tile| {
-                let pixels = self.render_tile(camera, stream, settings, acc, tile, None);
+                let pixels = self.render_tile(camera, stream, settings, acc, tile, wanted);
                 progress(pixels.len() as u64);
                 pixels
             })
@@ -283,12 +298,24 @@ impl<'a> Renderer<'a> {
 
     /// Walks every camera path of a render of `camera` (as [`Renderer::render`] would with
     /// these settings and `stream`), keeping their vertices to be lit later by
-    /// [`Renderer::render_paths`], under any lights. Memory: about 64 bytes per vertex, up to
-    /// `max_bounces` vertices per sample.
-    pub fn trace_paths(&self, camera: &Camera, stream: u64, settings: &RenderSettings) -> Paths {
+    /// [`Renderer::render_paths`], under any lights. With `wanted` (one flag per pixel, row by
+    /// row), only the pixels it flags: the others are neither walked nor lit later (a pixel's
+    /// paths do not depend on which others are walked). Memory: about 64 bytes per vertex, up
+    /// to `max_bounces` vertices per sample.
+    pub fn trace_paths(
+        &self,
+        camera: &Camera,
+        stream: u64,
+        settings: &RenderSettings,
+        wanted: Option<Vec<bool>>,
+    ) -> Paths {
         let tracer = self.tracer(settings);
         let ray_dir = camera.ray_dirs();
-        let view = self.view(camera, settings, stream, &ray_dir);
+        let filter = wanted.as_ref().map(|w| move |i: u32| w[i as usize]);
+        let view = View {
+            wanted: filter.as_ref().map(|f| f as _),
+            ..self.view(camera, settings, stream, &ray_dir)
+        };
         let tiles = tiles(camera.width, camera.height)
             .par_iter()
             .map(|&tile| walk_tile(&view, &tracer, tile))
@@ -298,6 +325,7 @@ impl<'a> Renderer<'a> {
             height: camera.height,
             settings: *settings,
             stream,
+            wanted,
             tiles,
         }
     }
@@ -305,6 +333,7 @@ impl<'a> Renderer<'a> {
     /// Lights `paths` (walked by [`Renderer::trace_paths`] from `camera`) with this renderer's
     /// lights: the image [`Renderer::render`] makes with the paths' seed, samples and bounces
     /// and `settings`' strategy and emitter options, without tracing a camera path again.
+    /// Pixels the walk left out get the accumulator's empty pixel and coverage 0.
     pub fn render_paths<A: Accumulator>(
         &self,
         paths: &Paths,
@@ -321,7 +350,11 @@ impl<'a> Renderer<'a> {
         };
         let tracer = self.tracer(&settings);
         let ray_dir = camera.ray_dirs();
-        let view = self.view(camera, &settings, paths.stream, &ray_dir);
+        let filter = paths.wanted.as_ref().map(|w| move |i: u32| w[i as usize]);
+        let view = View {
+            wanted: filter.as_ref().map(|f| f as _),
+            ..self.view(camera, &settings, paths.stream, &ray_dir)
+        };
         let done: Vec<Vec<Done<A::Pixel>>> = tiles(w, h)
             .par_iter()
             .zip(&paths.tiles)
@@ -487,6 +520,8 @@ pub struct Paths {
     /// The settings they were walked with (seed, samples, bounces).
     pub settings: RenderSettings,
     pub stream: u64,
+    /// The pixels walked, if not all (one flag per pixel, row by row).
+    wanted: Option<Vec<bool>>,
     /// Per tile, in [`tiles`] order.
     tiles: Vec<TilePaths>,
 }
@@ -494,7 +529,8 @@ pub struct Paths {
 impl Paths {
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        self.tiles.iter().map(TilePaths::bytes).sum()
+        self.tiles.iter().map(TilePaths::bytes).sum::<usize>()
+            + self.wanted.as_ref().map_or(0, Vec::len)
     }
 }
 
