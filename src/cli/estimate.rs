@@ -15,7 +15,7 @@ use lightprobe::output;
 use lightprobe::render::{Lights, RenderSettings, Renderer};
 use lightprobe::scene::{Scene, sidecar};
 
-use super::{Bars, SceneArgs, SolverArg, check_memory, outln, prepare_out_dir, say};
+use super::{Bars, ColourArg, SceneArgs, SolverArg, check_memory, outln, prepare_out_dir, say};
 
 /// `--model`: the envmap, K sphere lights (None: 1 to 3, chosen on held-out pixels), or
 /// chosen from the data.
@@ -133,6 +133,11 @@ pub struct Args {
     /// visible 1% of brightness on coarse grids).
     #[arg(long, default_value_t = 1e-3)]
     ridge: f64,
+    /// How NNLS treats a cell's three channels. `together` removes the red, green and blue
+    /// patchwork of near-white lights at equal error, but its clusters' directions scatter
+    /// more between seeds than their intervals say: see docs/design.md.
+    #[arg(long, value_enum, default_value_t = ColourArg::PerChannel)]
+    colour: ColourArg,
     /// How the transport's --spp is split. nnls (default 4): into that many independent
     /// parts, whose cell sampling a pilot pass over a quarter of the pixels steers (the fit
     /// takes TᵀT from products of different parts: unbiased from 2 on). gradient (default 3):
@@ -178,6 +183,7 @@ impl Args {
             rounds: self.rounds.unwrap_or(solver.default_rounds()),
             smooth: self.smooth,
             ridge: self.ridge,
+            colour: self.colour.into(),
             // Checked by `EstimateSettings::check`; NaN and negatives become zero, which fails it.
             time_limit: Duration::try_from_secs_f64(self.time_limit).unwrap_or(Duration::ZERO),
             evaluate: !self.fit_only,
@@ -422,8 +428,9 @@ fn summary(r: &EstimateReport) -> Vec<String> {
             ),
             _ => format!(", power {:.4}", c.power),
         };
+        let [r_, g_, b_] = c.chromaticity;
         lines.push(format!(
-            "envmap cluster {k} ({} cells): direction ({:.3}, {:.3}, {:.3}){intervals}",
+            "envmap cluster {k} ({} cells): direction ({:.3}, {:.3}, {:.3}){intervals}; colour R:G:B {r_:.2}:{g_:.2}:{b_:.2}",
             c.cells.len(),
             d[0],
             d[1],

@@ -11,7 +11,7 @@ use lightprobe::experiment::scenarios;
 use lightprobe::imageio;
 use lightprobe::scene::Scene;
 
-use super::{SolverArg, flag_error, outln, prepare_out_dir, say};
+use super::{ColourArg, SolverArg, flag_error, outln, prepare_out_dir, say};
 
 #[derive(clap::Args)]
 pub struct ScenariosArgs {
@@ -60,6 +60,9 @@ pub struct SweepArgs {
     /// Ridge weight (as for estimate).
     #[arg(long, default_value_t = 1e-3)]
     ridge: f64,
+    /// How NNLS treats a cell's three channels (as for estimate).
+    #[arg(long, value_enum, default_value_t = ColourArg::PerChannel)]
+    colour: ColourArg,
     /// Time budget per channel solve, seconds.
     #[arg(long, default_value_t = 60.0)]
     time_limit: f64,
@@ -174,6 +177,7 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         shard: Shard::parse(&a.shard).map_err(flag_error)?,
         smooth: a.smooth,
         ridge: a.ridge,
+        colour: a.colour.into(),
         time_limit: std::time::Duration::from_secs_f64(a.time_limit),
         auto: a.auto,
         albedo_errors: a.albedo_error.clone(),

@@ -17,8 +17,8 @@ use std::sync::Mutex;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use lightprobe::envmap::latlong::{Filter, Target};
-use lightprobe::estimate::Solver;
 use lightprobe::estimate::job::Progress;
+use lightprobe::estimate::{Colour, Solver};
 use lightprobe::render::Strategy;
 
 /// Mirrors a library option enum as a clap value enum (the library does not depend on clap);
@@ -48,6 +48,15 @@ cli_enum!(SolverArg => Solver {
     Nnls,
     /// The paper's projected gradient descent with sequential Monte Carlo re-sampling.
     Gradient,
+});
+cli_enum!(ColourArg => Colour {
+    /// A grey map first (which cells are lit, how brightly), then each channel as that map
+    /// times a per-cell factor, smooth between neighbouring lit cells: a light's colour stays
+    /// together.
+    Together,
+    /// Each channel fitted on its own (the paper's way); can split a white light into red,
+    /// green and blue cells.
+    PerChannel,
 });
 cli_enum!(TargetArg => Target {
     /// Mitsuba 3's envmap: +Y up, poles on the first and last rows.

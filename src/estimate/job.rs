@@ -32,7 +32,7 @@ use super::pipeline::{self, EstimateOptions, Outcome, SeenViews, SphereOutcome};
 use super::recovery::{self, ClusterEstimate, LightRecovery, SphereRecovery};
 use super::select::{self, ModelSelection, Selection};
 use super::spheres::{FittedLight, Observations, PathCache};
-use super::{ChannelFit, FitSettings, Solver};
+use super::{ChannelFit, Colour, FitSettings, Solver};
 use crate::envmap::MAX_RINGS;
 use crate::error::{Error, Result};
 use crate::imageio::Image;
@@ -96,6 +96,8 @@ pub struct EstimateSettings {
     pub smooth: f64,
     /// Ridge weight toward zero (relative to the mean diagonal of TᵀT).
     pub ridge: f64,
+    /// How NNLS treats a cell's channels.
+    pub colour: Colour,
     /// Wall-clock budget of each channel's solve.
     pub time_limit: Duration,
     /// Re-render the estimate with a seed the fit never saw and measure its error.
@@ -172,6 +174,7 @@ impl EstimateSettings {
             rounds: Solver::Nnls.default_rounds(),
             smooth: 0.0,
             ridge: 1e-3,
+            colour: Colour::PerChannel,
             time_limit: Duration::from_secs(60),
             evaluate: true,
             noise_floor: true,
@@ -434,6 +437,8 @@ pub struct EstimateReport {
     pub solver: Solver,
     pub smooth: f64,
     pub ridge: f64,
+    /// How NNLS treated a cell's channels (the gradient solver fits each on its own).
+    pub colour: Colour,
     /// Transport samples per pixel, over all parts (NNLS) or rounds (gradient).
     pub transport_spp: u32,
     pub rounds: u32,
@@ -461,6 +466,9 @@ pub struct EstimateReport {
     /// The envmap's bright clusters (brightest first, at most 8, each at least 5% of the
     /// power) with their 95% intervals' standard deviations ([`recovery::cluster_estimates`]).
     pub clusters: Vec<ClusterEstimate>,
+    /// How the envmap's colour holds together ([`recovery::colour_figures`]; against the
+    /// scene's sphere lights where it has any).
+    pub envmap_colour: recovery::ColourFigures,
     /// The envmap's bright clusters matched to the true sphere lights, brightest first.
     pub light_recovery: Vec<LightRecovery>,
     /// The model the estimate ends with: `envmap`, `spheres:K` or `envmap+spheres:K`.
@@ -819,6 +827,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     let template = FitSettings {
         smooth: s.smooth,
         ridge: s.ridge,
+        colour: s.colour,
         time_limit: s.time_limit,
         holdout: model_auto,
         ..FitSettings::new(job.render, 1, s.solver, s.spp, s.rounds)
@@ -1009,6 +1018,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         solver: s.solver,
         smooth: s.smooth,
         ridge: s.ridge,
+        colour: s.colour,
         transport_spp: s.spp,
         rounds: s.rounds,
         settings: *job.render,
@@ -1044,6 +1054,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         views_without_geometry: seen.blind.clone(),
         channels: fit.channels.clone(),
         clusters: recovery::cluster_estimates(&envmap.fit.envmap, &envmap.fit.replicates),
+        envmap_colour: recovery::colour_figures(&envmap.fit.envmap, truth_lights, job.center),
         light_recovery: envmap.recovery.clone(),
         model,
         model_selection,

@@ -189,6 +189,49 @@ pub struct ClusterEstimate {
     pub direction_sigma_degrees: Option<f64>,
     /// One standard deviation of the power, relative, from the same replicates.
     pub power_sigma_relative: Option<f64>,
+    /// Its colour: Σ radiance × solid angle of its cells per channel (R, G, B), over their
+    /// sum (a white light: one third each).
+    pub chromaticity: [f32; 3],
+}
+
+/// How an envmap's colour holds together ([`crate::estimate::Colour`]).
+#[derive(Debug, Clone, Copy, Serialize, serde::Deserialize, schemars::JsonSchema)]
+pub struct ColourFigures {
+    /// Share of the map's power (luminance × solid angle) in cells with a channel below a
+    /// fifth of their brightest: near-primary cells, the patchwork channels fitted apart make
+    /// of lights that are nearly white.
+    pub split_power: f64,
+    /// With the true sphere lights known: the mean angle, weighted by power, between each lit
+    /// cell's RGB and the lights' summed RGB as seen from the scene centre (radiance × solid
+    /// angle), degrees; 0 where every cell has the lights' colour.
+    pub angle_to_lights_degrees: Option<f64>,
+}
+
+/// The colour figures of `env`, against `truth` seen from `center` where given.
+pub fn colour_figures(env: &Envmap, truth: &[SphereLight], center: Vec3) -> ColourFigures {
+    let lit: Vec<(Vec3, f64)> = (0..env.grid.cell_count() as u32)
+        .map(|c| {
+            let rgb = env.radiance()[c as usize];
+            (rgb, (luminance(rgb) * env.solid_angle(c)) as f64)
+        })
+        .filter(|&(rgb, p)| p > 0.0 && rgb.max_element() > 0.0)
+        .collect();
+    let total: f64 = lit.iter().map(|l| l.1).sum();
+    let share = |keep: &dyn Fn(Vec3) -> f64| {
+        (total > 0.0).then(|| lit.iter().map(|&(rgb, p)| p * keep(rgb)).sum::<f64>() / total)
+    };
+    let split = share(&|rgb| (rgb.min_element() < 0.2 * rgb.max_element()) as u8 as f64);
+    let lights: Vec3 = truth
+        .iter()
+        .map(|l| l.radiance * l.solid_angle_from(center))
+        .sum();
+    let angle = (lights.max_element() > 0.0)
+        .then(|| share(&|rgb| rgb.angle_between(lights).to_degrees() as f64))
+        .flatten();
+    ColourFigures {
+        split_power: split.unwrap_or(0.0),
+        angle_to_lights_degrees: angle,
+    }
 }
 
 /// The bright clusters of `env`, each with the jackknife standard deviations of its
@@ -221,9 +264,19 @@ pub fn cluster_estimates(env: &Envmap, replicates: &[Envmap]) -> Vec<ClusterEsti
                 let powers: Vec<f64> = reps.iter().map(|r| r.power as f64).collect();
                 power_sigma = Some(jackknife(&powers) / c.power as f64);
             }
+            let rgb: Vec3 = cells
+                .iter()
+                .map(|&i| env.radiance()[i as usize] * env.solid_angle(i))
+                .sum();
+            let sum = rgb.element_sum();
             ClusterEstimate {
                 direction: c.direction.to_array(),
                 power: c.power,
+                chromaticity: if sum > 0.0 {
+                    (rgb / sum).to_array()
+                } else {
+                    [1.0 / 3.0; 3]
+                },
                 cells: cells.clone(),
                 direction_sigma_degrees: direction_sigma,
                 power_sigma_relative: power_sigma,

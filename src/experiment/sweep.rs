@@ -83,6 +83,7 @@ pub struct SweepSettings {
     pub shard: Shard,
     pub smooth: f64,
     pub ridge: f64,
+    pub colour: crate::estimate::Colour,
     pub time_limit: Duration,
     /// Also run a `--rings auto` trial per scenario, choosing among `rings`.
     pub auto: bool,
@@ -193,6 +194,9 @@ pub struct TrialRecord {
     /// sphere model's; `rings` is the initialising envmap's).
     #[serde(default)]
     pub spheres: Option<SphereTrial>,
+    /// How the envmap's colour holds together, against the scenario's lights.
+    #[serde(default)]
+    pub colour: Option<crate::estimate::recovery::ColourFigures>,
 }
 
 /// A sphere-model trial's own figures.
@@ -367,10 +371,11 @@ pub fn run(
     let fingerprint = |s: usize, solver: Solver| {
         format!(
             // The transport method: a sweep started by another cannot be resumed into this one.
-            "{} smooth={} ridge={} time_limit={}s rounds={} transport=streamed-pilot-parts",
+            "{} smooth={} ridge={} colour={:?} time_limit={}s rounds={} transport=streamed-pilot-parts",
             scenarios[s].fingerprint,
             settings.smooth,
             settings.ridge,
+            settings.colour,
             settings.time_limit.as_secs_f64(),
             solver.default_rounds()
         )
@@ -826,6 +831,7 @@ fn blank_record(
         timings: Timings::default(),
         auto: None,
         spheres: None,
+        colour: None,
         albedo_error,
         fingerprint: String::new(),
         transport_bytes: 0,
@@ -882,6 +888,7 @@ fn trial_settings(
         rounds: solver.default_rounds(),
         smooth: settings.smooth,
         ridge: settings.ridge,
+        colour: settings.colour,
         time_limit: settings.time_limit,
         evaluate: true,
         noise_floor: false,
@@ -939,6 +946,7 @@ fn fill_record(
     record.rings = report.rings;
     record.cells = report.cells;
     record.rel_mae = report.rel_mae;
+    record.colour = Some(report.envmap_colour);
     let fig = |m: &Metrics, nf: f64, view: &str| ViewFigures {
         view: view.to_string(),
         rel_mae: fin(m.rel_mae),

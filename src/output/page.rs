@@ -151,7 +151,8 @@ solid #ccc}table{border-collapse:collapse;margin:8px 0}td,th{padding:3px 10px;bo
 solid #eee;text-align:left;vertical-align:top}td.num{text-align:right;font-variant-numeric:\
 tabular-nums}.views img{width:288px;image-rendering:pixelated}.views img.err{width:auto;max-width:560px}.wide{max-width:100%}\
 .note{color:#555;font-size:14px}.warn{background:#fff3cd;border:1px solid #e0c060;padding:8px}\
-.chosen{font-weight:bold}figure{margin:8px 0}";
+.chosen{font-weight:bold}figure{margin:8px 0}.swatch{display:inline-block;width:28px;height:14px;\
+border:1px solid #999}";
 
 /// Writes `dir/index.html` and the pictures only it shows (`dir/figures/`): reference
 /// previews, and the envmap as a lat-long picture with the lights marked. `report` is the
@@ -481,12 +482,34 @@ fn envmap_section(
     if clusters > 0 {
         h.push_str(
             "<table><tr><th>cluster</th><th>power (luminance × sr)</th>\
-             <th>its σ (relative)</th><th>σ of its direction</th></tr>\n",
+             <th>its σ (relative)</th><th>σ of its direction</th>\
+             <th colspan=\"4\">colour: share of its power in R, G, B</th></tr>\n",
         );
         for k in 0..clusters {
+            let share: Vec<f64> = (0..3)
+                .map(|c| r["clusters"][k]["chromaticity"][c].as_f64().unwrap_or(0.0))
+                .collect();
+            // The swatch: the colour at its brightest channel's full value.
+            let top = share.iter().copied().fold(0.0, f64::max).max(1e-9);
+            let srgb = |v: f64| (255.0 * imageio::linear_to_srgb((v / top) as f32)).round() as u8;
+            let swatch = format!(
+                "<td><span class=\"swatch\" style=\"background:rgb({},{},{})\"></span></td>",
+                srgb(share[0]),
+                srgb(share[1]),
+                srgb(share[2])
+            );
+            let shares: String = (0..3)
+                .map(|c| {
+                    cell(
+                        r,
+                        &format!("clusters.{k}.chromaticity.{c}"),
+                        Format::Percent,
+                    )
+                })
+                .collect();
             let _ = writeln!(
                 h,
-                "<tr><td>{k}</td>{}{}{}</tr>",
+                "<tr><td>{k}</td>{}{}{}{swatch}{shares}</tr>",
                 cell(r, &format!("clusters.{k}.power"), Format::Significant),
                 cell(
                     r,
