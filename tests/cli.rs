@@ -1984,3 +1984,43 @@ fn estimate_views_picks_the_views_it_fits() {
         assert!(err.contains(expect), "{err}");
     }
 }
+
+#[test]
+fn colour_together_with_the_gradient_solver_is_refused_before_any_work() {
+    // The gradient solver fits each channel on its own: asking it to keep colour together
+    // would be silently ignored, so it is an error naming the setting, with no output written.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = small_scene(dir.path(), "");
+    let out = dir.path().join("out");
+    let o = run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--solver",
+        "gradient",
+        "--colour",
+        "together",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("colour") && err.contains("per-channel"),
+        "{err}"
+    );
+    assert!(!out.join("report.json").exists());
+    // And together with NNLS runs, saying so in its report.
+    let o = run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--colour",
+        "together",
+        "--fit-only",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["colour"], "together");
+}

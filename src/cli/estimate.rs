@@ -108,7 +108,8 @@ pub struct Args {
     /// sphere model chosen so far with an envmap behind its lights (`envmap+spheres:K`, for
     /// light from afar beside near lights; written as spheres/lights.ron plus
     /// spheres/background.ron and .exr). Choosing stops at the first model that re-renders
-    /// within 10% of the noise floor: no larger one could be chosen over it.
+    /// within 10% of the noise floor and is chosen over every smaller one: no larger one could
+    /// change the choice.
     #[arg(long, default_value = "envmap", value_parser = parse_model)]
     model: LightModel,
     /// Resolutions `--rings auto` chooses from.
@@ -459,9 +460,9 @@ fn summary(r: &EstimateReport) -> Vec<String> {
                 .join(", "),
             sel.best
         ));
-        if let Some(m) = &sel.at_noise_floor {
+        if let (Some(m), Some(x)) = (&sel.at_noise_floor, sel.over_noise_floor) {
             lines.push(format!(
-                "{m} re-renders within {:.0}% of the noise floor: no larger model was fitted (none could be chosen over it)",
+                "{m} re-renders at {x:.3}× the noise floor on the held-out pixels (within {:.0}%) and is chosen over every smaller model: no larger model was fitted",
                 100.0 * lightprobe::estimate::select::MODEL_TOLERANCE
             ));
         }

@@ -51,8 +51,7 @@ cli_enum!(SolverArg => Solver {
 });
 cli_enum!(ColourArg => Colour {
     /// A grey map first (which cells are lit, how brightly), then each channel as that map
-    /// times a per-cell factor, smooth between neighbouring lit cells: a light's colour stays
-    /// together.
+    /// times a per-cell factor pulled weakly toward grey: a light's colour stays together.
     Together,
     /// Each channel fitted on its own (the paper's way); can split a white light into red,
     /// green and blue cells.

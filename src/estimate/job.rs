@@ -32,7 +32,7 @@ use super::pipeline::{self, EstimateOptions, Outcome, SeenViews, SphereOutcome};
 use super::recovery::{self, ClusterEstimate, LightRecovery, SphereRecovery};
 use super::select::{self, ModelSelection, Selection};
 use super::spheres::{FittedLight, Observations, PathCache};
-use super::{ChannelFit, Colour, FitSettings, Solver};
+use super::{ChannelFit, Colour, FitSettings, Solver, Validation};
 use crate::envmap::MAX_RINGS;
 use crate::error::{Error, Result};
 use crate::imageio::Image;
@@ -223,6 +223,13 @@ impl EstimateSettings {
                 "rounds",
                 "between 1 and 100".into(),
                 self.rounds.to_string(),
+            );
+        }
+        if self.solver == Solver::Gradient && self.colour == Colour::Together {
+            return setting(
+                "colour",
+                "per-channel with the gradient solver (it fits each channel on its own)".into(),
+                "together".into(),
             );
         }
         for (name, v) in [("smooth", self.smooth), ("ridge", self.ridge)] {
@@ -1168,11 +1175,25 @@ fn fit_spheres(
         stage: "sphere-light model",
         inner: Box::new(e),
     };
-    // Choosing: the nested sequence ends at a model already at the noise floor, and no
-    // sphere model is fitted again with a background behind it once any model is.
-    let floor = choose.then(|| known_noise_floor(job, envmap)).flatten();
-    let at_floor = |renders: &[Image], errors: &[Metrics]| {
-        choose && at_noise_floor(job, floor, renders, errors)
+    // Choosing: the nested sequence ends at the first model no larger one could be chosen
+    // over ([`select::larger_models_needed`]), and then no sphere model is fitted again with
+    // an envmap behind it; nor when the envmap is such a model.
+    let floor = choose.then(|| held_out_noise_floor(job, envmap)).flatten();
+    let candidates = std::cell::RefCell::new(Vec::new());
+    let sufficient = std::cell::RefCell::new(None);
+    let enough = |renders: &[Image], name: String| {
+        if !choose || renders.is_empty() {
+            return false;
+        }
+        let mut seen_so_far = candidates.borrow_mut();
+        seen_so_far.push(select::held_out(renders, &seen.references, &seen.masks));
+        let floor = floor.or_else(|| neighbour_noise_floor(job, renders));
+        let all: Vec<&Validation> = seen_so_far.iter().collect();
+        let done = floor.is_some_and(|f| !select::larger_models_needed(&all, f));
+        if let (true, Some(f), Some(last)) = (done, floor, all.last()) {
+            *sufficient.borrow_mut() = Some((name, last.rel_mae() / f));
+        }
+        done
     };
     progress.phase("sphere lights", pixels * max_lights as u64);
     let mut models = pipeline::run_sphere_models(
@@ -1186,19 +1207,18 @@ fn fit_spheres(
         choose,
         job.render,
         s.evaluate,
-        &|so| at_floor(&so.renders, &so.errors),
+        // A model whose lights merged is no candidate of the selection ([`select_model`]).
+        &|so| so.fit.lights().len() == so.fit.requested && enough(&so.renders, so.fit.model_name()),
         &|k| progress.advance(k),
     )
     .map_err(in_spheres)?;
     // Nested fits: the last one's time includes the others'.
     let mut seconds = models.last().map_or(0.0, |m| m.fit.seconds);
-    // In order of parameter count: the sphere models, then the envmap.
-    let sufficient = models
-        .iter()
-        .map(|m| (&m.renders, &m.errors, m.fit.model_name()))
-        .chain(model_auto.then(|| (&envmap.renders, &envmap.errors, "envmap".to_string())))
-        .find(|(renders, errors, _)| at_floor(renders, errors))
-        .map(|(_, _, name)| name);
+    // The envmap comes after the sphere models in parameter count.
+    if model_auto && sufficient.borrow().is_none() {
+        enough(&envmap.renders, "envmap".to_string());
+    }
+    let sufficient = sufficient.into_inner();
     // --model auto: sphere models again, with an envmap behind their lights.
     let bases: Vec<_> = if model_auto && sufficient.is_none() {
         pipeline::background_bases(&models, &seen.references, &seen.masks)
@@ -1259,7 +1279,7 @@ fn fit_spheres(
         &seen.masks,
     )
     .ok_or_else(|| in_spheres(Error::Invalid("no candidate model to choose from".into())))?;
-    sel.at_noise_floor = sufficient;
+    (sel.at_noise_floor, sel.over_noise_floor) = sufficient.unzip();
     let Some(i) = models.iter().position(|m| sel.chosen == m.fit.model_name()) else {
         // The envmap was chosen.
         return Ok(SphereModels {
@@ -1295,43 +1315,40 @@ fn fit_spheres(
     })
 }
 
-/// The relMAE the references' noise alone gives, mean over the seen views, where it is known
-/// without a model: the true lights' second render where lightprobe rendered the references,
-/// the given twins' difference otherwise (None: neither; see [`at_noise_floor`]).
-fn known_noise_floor(job: &Job, envmap: &Outcome) -> Option<f64> {
+/// The held-out relMAE the true lights would score (the noise alone), where it is known
+/// without a model: the true lights' second render where lightprobe rendered the references
+/// (it lights the candidates' camera paths, so it is their floor exactly); the given twins'
+/// over √2 otherwise (their difference holds two captures' noise, a render of the true lights
+/// one capture's and its own: √2 takes the render's as nil, the floor's lowest, so choosing
+/// stops no earlier than it should). None: neither ([`neighbour_noise_floor`]).
+fn held_out_noise_floor(job: &Job, envmap: &Outcome) -> Option<f64> {
     let seen = job.seen;
-    if seen.rendered {
-        pipeline::mean_rel_mae(&envmap.noise_floor)
-    } else if seen.twins.len() == seen.references.len() {
-        let floors = pipeline::compare_views(&seen.twins, &seen.references, &seen.masks).ok()?;
-        pipeline::mean_rel_mae(&floors)
+    let v = if seen.rendered && envmap.twins.len() == seen.references.len() {
+        select::held_out(&envmap.twins, &seen.references, &seen.masks).rel_mae()
+    } else if !seen.rendered && seen.twins.len() == seen.references.len() {
+        select::held_out(&seen.twins, &seen.references, &seen.masks).rel_mae()
+            / std::f64::consts::SQRT_2
     } else {
-        None
-    }
+        return None;
+    };
+    (v.is_finite() && v > 0.0).then_some(v)
 }
 
-/// Whether a candidate model's re-render (`renders`, with their `errors`) scores within
-/// [`select::MODEL_TOLERANCE`] of the noise floor (`floor`, else its own residual's
-/// neighbouring pixels, [`ResidualNoise`]). A larger model is chosen only where it beats a
-/// smaller one by that fraction ([`select::choose_model`]) and none beats the true lights,
-/// which score the noise floor: fitting larger models after this one would only cost time.
-fn at_noise_floor(job: &Job, floor: Option<f64>, renders: &[Image], errors: &[Metrics]) -> bool {
+/// The relMAE the noise alone gives in a candidate's residual (`renders` against the
+/// references), from neighbouring pixels over the masks ([`ResidualNoise`]), mean over views.
+/// Lenient where a misfit is sharp-edged (part of it reads as noise): used only where no twin
+/// gives the floor.
+fn neighbour_noise_floor(job: &Job, renders: &[Image]) -> Option<f64> {
     let seen = job.seen;
-    let floor = floor.or_else(|| {
-        let each: Vec<f64> = seen
-            .references
-            .iter()
-            .zip(renders)
-            .zip(&seen.masks)
-            .filter_map(|((r, x), m)| ResidualNoise::of(r, x, m, None).rel_mae())
-            .collect();
-        (each.len() == renders.len() && !each.is_empty())
-            .then(|| each.iter().sum::<f64>() / each.len() as f64)
-    });
-    match (pipeline::mean_rel_mae(errors), floor) {
-        (Some(e), Some(f)) => f > 0.0 && e < (1.0 + select::MODEL_TOLERANCE) * f,
-        _ => false,
-    }
+    let each: Vec<f64> = seen
+        .references
+        .iter()
+        .zip(renders)
+        .zip(&seen.masks)
+        .filter_map(|((r, x), m)| ResidualNoise::of(r, x, m, None).rel_mae())
+        .collect();
+    (each.len() == renders.len() && !each.is_empty())
+        .then(|| each.iter().sum::<f64>() / each.len() as f64)
 }
 
 /// Re-fits the envmap with one more bounce, at a quarter of the samples, and says in `test`'s

@@ -207,7 +207,10 @@ impl FitSettings {
     }
 }
 
-/// One channel's solve.
+/// One channel's solve. With [`Colour::Together`]: the iterations of the grey fit (counted in
+/// every channel) and of this channel's factors, the KKT violation and convergence of the
+/// problems solved (grey and factors; the channel's own problem is not solved, its unlit cells
+/// are held dark), and each of those solves has the whole time budget.
 #[derive(Debug, Clone, Serialize, schemars::JsonSchema)]
 pub struct ChannelFit {
     pub iterations: usize,
@@ -383,8 +386,8 @@ fn colour_together(
                 x,
                 iterations: grey.iterations + f.iterations,
                 converged: grey.converged && f.converged,
+                kkt_violation: grey.kkt_violation.max(f.kkt_violation),
                 objective,
-                ..f
             }
         })
         .collect()

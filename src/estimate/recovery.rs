@@ -199,8 +199,8 @@ pub struct ClusterEstimate {
 pub struct ColourFigures {
     /// Share of the map's power (luminance × solid angle) in cells with a channel below a
     /// fifth of their brightest: near-primary cells, the patchwork channels fitted apart make
-    /// of lights that are nearly white.
-    pub split_power: f64,
+    /// of lights that are nearly white. None for a black map.
+    pub split_power: Option<f64>,
     /// With the true sphere lights known: the mean angle, weighted by power, between each lit
     /// cell's RGB and the lights' summed RGB as seen from the scene centre (radiance × solid
     /// angle), degrees; 0 where every cell has the lights' colour.
@@ -229,7 +229,7 @@ pub fn colour_figures(env: &Envmap, truth: &[SphereLight], center: Vec3) -> Colo
         .then(|| share(&|rgb| rgb.angle_between(lights).to_degrees() as f64))
         .flatten();
     ColourFigures {
-        split_power: split.unwrap_or(0.0),
+        split_power: split,
         angle_to_lights_degrees: angle,
     }
 }

@@ -153,6 +153,9 @@ pub struct ModelSelection {
     /// (no further sphere light, no sphere model with an envmap behind it).
     #[serde(default)]
     pub at_noise_floor: Option<String>,
+    /// That candidate's held-out relMAE over the noise floor's (below 1 + [`MODEL_TOLERANCE`]).
+    #[serde(default)]
+    pub over_noise_floor: Option<f64>,
 }
 
 /// A light model with more parameters must beat a smaller one by more than this fraction of
@@ -163,6 +166,22 @@ pub struct ModelSelection {
 /// third light beside two), where a true second light gains 50–80% and an envmap behind a
 /// lamp under a sky 29%.
 pub const MODEL_TOLERANCE: f64 = 0.10;
+
+/// Whether light models larger than the last of `validations` (the held-out errors of the
+/// candidates so far, in order of parameter count) could change the choice. Not when the last
+/// one scores within [`MODEL_TOLERANCE`] of `floor` (the held-out relMAE of the true lights,
+/// which no model can hope to beat) and [`choose_model`]'s rule already picks it over every
+/// smaller one: a larger model scoring the floor would leave each smaller one as far outside
+/// its bar as it is now, and the last one inside it.
+pub fn larger_models_needed(validations: &[&Validation], floor: f64) -> bool {
+    let Some(last) = validations.last() else {
+        return true;
+    };
+    let at_floor = floor > 0.0 && last.rel_mae() < (1.0 + MODEL_TOLERANCE) * floor;
+    let chosen = one_standard_error(validations, MODEL_TOLERANCE)
+        .is_some_and(|o| o.chosen == validations.len() - 1);
+    !(at_floor && chosen)
+}
 
 /// Chooses among light models fitted without the held-out pixels, by the error of their
 /// re-renders there: the fewest parameters within one standard error (and within
@@ -194,6 +213,7 @@ pub fn choose_model(candidates: Vec<(String, usize, Validation, f64)>) -> Option
             })
             .collect(),
         at_noise_floor: None,
+        over_noise_floor: None,
     })
 }
 
@@ -382,6 +402,21 @@ mod tests {
             abs_error: errors.to_vec(),
             reference_abs: 100.0,
         }
+    }
+
+    #[test]
+    fn larger_models_are_needed_unless_none_could_change_the_choice() {
+        // Held-out relMAE (reference 100 over 8 pixels of equal error): floor 1.0%.
+        let at = |e: f64| v(&[e * 100.0 / 8.0; 8]);
+        let (floor, far, near, last) = (0.01, at(0.05), at(0.0115), at(0.0109));
+        // A smaller model far off: a larger one scoring the floor would not change the choice.
+        assert!(!larger_models_needed(&[&far, &last], floor));
+        // A smaller one within the last one's bar (1.15% against 1.09% × 1.1): chosen now,
+        // but a larger model at the floor would choose the last one; fit on.
+        assert!(larger_models_needed(&[&near, &last], floor));
+        // The last one off the floor by more than the tolerance: a larger one may win.
+        assert!(larger_models_needed(&[&far, &at(0.0111)], floor));
+        assert!(larger_models_needed(&[], floor));
     }
 
     #[test]

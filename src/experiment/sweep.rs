@@ -369,13 +369,17 @@ pub fn run(
     let plan = plan(&scenarios, &axes, settings);
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let fingerprint = |s: usize, solver: Solver| {
+        // The colour mode changes NNLS fits only.
+        let colour = match (solver, settings.colour) {
+            (Solver::Nnls, crate::estimate::Colour::Together) => " colour=together",
+            _ => "",
+        };
         format!(
             // The transport method: a sweep started by another cannot be resumed into this one.
-            "{} smooth={} ridge={} colour={:?} time_limit={}s rounds={} transport=streamed-pilot-parts",
+            "{} smooth={} ridge={}{colour} time_limit={}s rounds={} transport=streamed-pilot-parts",
             scenarios[s].fingerprint,
             settings.smooth,
             settings.ridge,
-            settings.colour,
             settings.time_limit.as_secs_f64(),
             solver.default_rounds()
         )
@@ -888,7 +892,11 @@ fn trial_settings(
         rounds: solver.default_rounds(),
         smooth: settings.smooth,
         ridge: settings.ridge,
-        colour: settings.colour,
+        // The gradient solver fits each channel on its own, whatever the sweep's colour.
+        colour: match solver {
+            Solver::Nnls => settings.colour,
+            Solver::Gradient => crate::estimate::Colour::PerChannel,
+        },
         time_limit: settings.time_limit,
         evaluate: true,
         noise_floor: false,

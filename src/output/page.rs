@@ -685,9 +685,11 @@ fn selection_sections(h: &mut String, r: &Value) {
         if let Some(m) = r[key]["at_noise_floor"].as_str() {
             let _ = writeln!(
                 h,
-                "<p class=\"note\">{} re-renders within {:.0}% of the noise floor: no larger \
-                 model was fitted, since none could be chosen over it.</p>",
+                "<p class=\"note\">{} re-renders at {} the noise floor on the \
+                 held-out pixels (within {:.0}%) and is chosen over every smaller model: no \
+                 larger model was fitted, since none could change the choice.</p>",
                 escape(m),
+                span(r, &format!("{key}.over_noise_floor"), Format::Ratio),
                 100.0 * crate::estimate::select::MODEL_TOLERANCE
             );
         }
