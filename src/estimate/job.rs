@@ -1187,13 +1187,15 @@ fn fit_spheres(
         }
         let mut seen_so_far = candidates.borrow_mut();
         seen_so_far.push(select::held_out(renders, &seen.references, &seen.masks));
-        let floor = floor.or_else(|| neighbour_noise_floor(job, renders));
+        let Some(f) = floor.or_else(|| neighbour_noise_floor(job, renders)) else {
+            return false;
+        };
         let all: Vec<&Validation> = seen_so_far.iter().collect();
-        let done = floor.is_some_and(|f| !select::larger_models_needed(&all, f));
-        if let (true, Some(f), Some(last)) = (done, floor, all.last()) {
-            *sufficient.borrow_mut() = Some((name, last.rel_mae() / f));
+        if select::larger_models_needed(&all, f) {
+            return false;
         }
-        done
+        *sufficient.borrow_mut() = Some((name, all[all.len() - 1].rel_mae() / f));
+        true
     };
     progress.phase("sphere lights", pixels * max_lights as u64);
     let mut models = pipeline::run_sphere_models(

@@ -207,7 +207,7 @@ fn transport(
         let mut yb: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; bins]);
         let mut used = vec![false; bins];
         for (i, row) in frame.pixels.iter().enumerate() {
-            if !mask[i] || (obs.holdout && is_held_out((v, i as u32))) {
+            if !fitted(i as u32) {
                 continue;
             }
             let (x, yy) = (i as u32 % w, i as u32 / w);
