@@ -1512,6 +1512,67 @@ fn the_jackknife_intervals_of_envmap_clusters_match_their_spread_over_seeds() {
 }
 
 #[test]
+fn choosing_the_rings_keeps_the_chosen_fits_jackknife() {
+    // `--rings auto`: the candidates' pass keeps its sums per jackknife group, so the chosen
+    // resolution comes with replicates, whether refitted on every pixel or kept as the
+    // hold-out fit (`--model auto`). Grouping only reorders the sums: the envmap is the one
+    // chosen without groups. The intervals describe the chosen fit's own scatter: within a
+    // factor of 2 of a fixed fit of the same resolution on the same references.
+    use lightprobe::estimate::select;
+    let rings = 5;
+    let sc = scene(vec![]);
+    let lights = Lights::env(known_envmap(rings));
+    let r = Renderer::new(&sc, &lights);
+    let cams: Vec<&Camera> = sc.cameras.iter().collect();
+    let (refs, masks) = render_all(&r, &sc, 64, 7);
+    let template = |jackknife, holdout| FitSettings {
+        rounds: 4,
+        jackknife,
+        holdout,
+        transport: settings(64, 8),
+        ..fit_settings(rings, 256, Solver::Nnls, 1e-3)
+    };
+    let choose = |settings: &FitSettings| {
+        select::select_rings(&r, &cams, &refs, &masks, &[3, 5], settings, &|_| {}).unwrap()
+    };
+    let fixed = estimate::fit(&r, &cams, &refs, &masks, &template(16, false), &|_| {});
+    let fixed = recovery::cluster_estimates(&fixed.envmap, &fixed.replicates);
+    for holdout in [false, true] {
+        let grouped = choose(&template(16, holdout));
+        let plain = choose(&template(0, holdout));
+        assert_eq!(grouped.selection.rings, rings, "holdout {holdout}");
+        let (grouped, plain) = (grouped.fit.unwrap(), plain.fit.unwrap());
+        assert!(plain.replicates.is_empty());
+        assert_eq!(grouped.replicates.len(), 16, "holdout {holdout}");
+        for (a, b) in grouped
+            .envmap
+            .radiance()
+            .iter()
+            .zip(plain.envmap.radiance())
+        {
+            assert!(
+                (*a - *b).abs().max_element() <= 1e-4 * b.max_element().max(1e-3),
+                "{a} against {b}"
+            );
+        }
+        let clusters = recovery::cluster_estimates(&grouped.envmap, &grouped.replicates);
+        let (c, f) = (&clusters[0], &fixed[0]);
+        for (stated, fixed) in [
+            (c.power_sigma_relative, f.power_sigma_relative),
+            (c.direction_sigma_degrees, f.direction_sigma_degrees),
+        ] {
+            let ratio = stated.unwrap() / fixed.unwrap();
+            // Three quarters of the pixels: sqrt(4/3) wider, ideally.
+            let expected = if holdout { 1.15 } else { 1.0 };
+            assert!(
+                (0.5..2.0).contains(&(ratio / expected)),
+                "holdout {holdout}: {stated:?} against a fixed fit's {fixed:?}"
+            );
+        }
+    }
+}
+
+#[test]
 fn choosing_stops_at_a_model_at_the_noise_floor_and_goes_on_where_none_is() {
     // A near lamp alone: one sphere re-renders at the noise floor, so no larger model could
     // be chosen over it and none is fitted (no second light, no envmap behind it). A lamp

@@ -837,6 +837,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         colour: s.colour,
         time_limit: s.time_limit,
         holdout: model_auto,
+        jackknife: if s.diagnose { JACKKNIFE_GROUPS } else { 0 },
         ..FitSettings::new(job.render, 1, s.solver, s.spp, s.rounds)
     };
     let (rings, selection, fitted) = match &s.rings {
@@ -863,11 +864,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     // ---- The envmap: fit (unless choosing the rings made it), re-render, noise floor,
     // representation limit ----
     let options = EstimateOptions {
-        fit: FitSettings {
-            rings,
-            jackknife: if s.diagnose { JACKKNIFE_GROUPS } else { 0 },
-            ..template
-        },
+        fit: FitSettings { rings, ..template },
         fitted: fitted.is_some(),
         evaluate: s.evaluate,
         noise_floor: s.noise_floor,

@@ -469,29 +469,47 @@ fn fit_jackknife(
         grids: std::slice::from_ref(&grid),
         sets: groups,
         set_of: &group_of,
+        max_set_cells: MAX_JACKKNIFE_CELLS,
     };
     let pass = nnls_pass(
         renderer, cameras, references, masks, settings, &grid, &targets, progress,
     );
-    let mut all = pass.sums[0][0].clone();
-    for per_grid in &pass.sums[1..] {
-        all.add(&per_grid[0]);
+    let mut fit = solved(&pass.total(0), &grid, settings, (pass.seconds, pass.bytes));
+    add_replicates(&mut fit, &pass.sums[0], &grid, settings);
+    fit
+}
+
+/// Adds to `fit` (of `grid`, on the sums of every group in `per_group`) its delete-a-group
+/// jackknife replicates, each solved on the sums of the other groups. With fewer than two
+/// groups, none; a replicate that fails or stops short leaves none rather than a wrong
+/// interval.
+fn add_replicates(
+    fit: &mut Fit,
+    per_group: &[NormalEquations],
+    grid: &RingGrid,
+    settings: &FitSettings,
+) {
+    let groups = per_group.len();
+    if groups < 2 {
+        return;
     }
-    let mut fit = solved(&all, &grid, settings, (pass.seconds, pass.bytes));
     let t = Instant::now();
+    let mut all = per_group[0].clone();
+    for group in &per_group[1..] {
+        all.add(group);
+    }
     let zero = vec![vec![0.0f64; all.cells]; 3];
     // All replicates together within the fit's own time budget.
     let quick = FitSettings {
         time_limit: settings.time_limit / groups as u32,
         ..*settings
     };
-    fit.replicates = pass
-        .sums
+    fit.replicates = per_group
         .iter()
-        .filter_map(|per_grid| {
-            let ne = all.without(&per_grid[0]);
+        .filter_map(|group| {
+            let ne = all.without(group);
             let mut channels = new_channels();
-            let x = solve_all(&ne, &grid, &quick, &zero, Some(&mut channels));
+            let x = solve_all(&ne, grid, &quick, &zero, Some(&mut channels));
             let (radiance, non_finite) = radiance_of(&x);
             let converged = channels.iter().all(|c| c.converged);
             (converged && !non_finite)
@@ -499,17 +517,15 @@ fn fit_jackknife(
                 .flatten()
         })
         .collect();
-    // A replicate that failed or stopped short leaves no interval rather than a wrong one.
     if fit.replicates.len() != groups {
         fit.replicates.clear();
     }
     fit.solve_seconds += t.elapsed().as_secs_f64();
-    fit
 }
 
 /// The sums of an NNLS transport pass, and what the pass cost.
 pub struct Pass {
-    /// Normal equations by `[set][grid]` of the pass's [`Targets`].
+    /// Normal equations by `[grid][set]` of the pass's [`Targets`].
     pub sums: Vec<Vec<NormalEquations>>,
     /// The parts of its main pass (their seeds and cell sampling), to add more pixels to
     /// the same sums.
@@ -517,6 +533,17 @@ pub struct Pass {
     pub seconds: f64,
     /// Bytes the pass and a solve after it need at most ([`transport::pass_memory`]).
     pub bytes: usize,
+}
+
+impl Pass {
+    /// Grid `g`'s sums over every set of pixels.
+    fn total(&self, g: usize) -> NormalEquations {
+        let mut all = self.sums[g][0].clone();
+        for set in &self.sums[g][1..] {
+            all.add(set);
+        }
+        all
+    }
 }
 
 /// The NNLS estimator's transport. A pilot pass ([`in_pilot`] pixels of any set, one part, the
@@ -579,10 +606,9 @@ fn nnls_pass(
         TRANSPORT_STREAMS,
         progress,
     );
-    let cells: Vec<usize> = targets.grids.iter().map(|g| g.cell_count()).collect();
     Pass {
         sums,
-        bytes: transport::pass_memory(&cells, targets.sets, parts.len()),
+        bytes: transport::pass_memory(targets, parts.len()),
         parts,
         seconds: t0.elapsed().as_secs_f64(),
     }
@@ -636,8 +662,9 @@ pub struct Candidates {
 impl Candidates {
     /// Candidate `i` fitted on every pixel: its sums, plus the held-out pixels rendered by
     /// the same parts into its grid alone (a pixel's paths depend on its index and the
-    /// part's seed only, so these are the rows the pass would have added). `progress` as
-    /// for [`accumulate`]: [`FitSettings::refit_progress_units`].
+    /// part's seed only, so these are the rows the pass would have added), with its
+    /// jackknife replicates if the pass kept its sums per group. `progress` as for
+    /// [`accumulate`]: [`FitSettings::refit_progress_units`].
     #[allow(clippy::too_many_arguments)]
     pub fn refit(
         &self,
@@ -651,9 +678,13 @@ impl Candidates {
     ) -> Fit {
         let t0 = Instant::now();
         let grid = &self.grids[i];
-        let held_out = |p| is_held_out(p).then_some(0);
-        let targets = Targets::one(grid, &held_out);
-        let mut all = accumulate(
+        let groups = self.pass.sums[i].len();
+        let held_out = |p| is_held_out(p).then(|| jackknife_group(p, groups));
+        let targets = Targets {
+            sets: groups,
+            ..Targets::one(grid, &held_out)
+        };
+        let mut per_group = accumulate(
             renderer,
             cameras,
             masks,
@@ -663,11 +694,26 @@ impl Candidates {
             TRANSPORT_STREAMS,
             progress,
         )
-        .swap_remove(0)
         .swap_remove(0);
-        all.add(&self.pass.sums[0][i]);
+        for (sums, held_in) in per_group.iter_mut().zip(&self.pass.sums[i]) {
+            sums.add(held_in);
+        }
+        let mut all = per_group[0].clone();
+        for group in &per_group[1..] {
+            all.add(group);
+        }
         let seconds = self.pass.seconds + t0.elapsed().as_secs_f64();
-        solved(&all, grid, settings, (seconds, self.pass.bytes))
+        let mut fit = solved(&all, grid, settings, (seconds, self.pass.bytes));
+        add_replicates(&mut fit, &per_group, grid, settings);
+        fit
+    }
+
+    /// Candidate `i`'s hold-out fit, with its jackknife replicates if the pass kept its sums
+    /// per group.
+    pub fn held_in_fit(mut self, i: usize, settings: &FitSettings) -> Fit {
+        let mut fit = self.fits.swap_remove(i);
+        add_replicates(&mut fit, &self.pass.sums[i], &self.grids[i], settings);
+        fit
     }
 }
 
@@ -677,7 +723,9 @@ impl Candidates {
 /// grid: fine grids fit noticeably worse when sampled by a coarser estimate (scenario s30 at
 /// 27 rings: 8.85% steered by 15 rings, 8.35% by 27, 8.26% for its own fixed fit), coarse
 /// ones do not mind. One walk then serves all candidates, where fitting each on its own would walk the
-/// scene once per candidate. `template` gives everything but the ring count.
+/// scene once per candidate. With `template.jackknife`, grids of at most
+/// [`MAX_JACKKNIFE_CELLS`] keep their sums per jackknife group, for the chosen one's
+/// intervals. `template` gives everything but the ring count.
 pub fn fit_candidates(
     renderer: &Renderer,
     cameras: &[&Camera],
@@ -692,11 +740,17 @@ pub fn fit_candidates(
         .iter()
         .max_by_key(|g| g.cell_count())
         .expect("at least one candidate");
-    let held_in = |p| (!is_held_out(p)).then_some(0);
+    let groups = if template.jackknife >= 2 {
+        template.jackknife as usize
+    } else {
+        1
+    };
+    let held_in = |p| (!is_held_out(p)).then(|| jackknife_group(p, groups));
     let targets = Targets {
         grids: &grids,
-        sets: 1,
+        sets: groups,
         set_of: &held_in,
+        max_set_cells: MAX_JACKKNIFE_CELLS,
     };
     let pass = nnls_pass(
         renderer, cameras, references, masks, template, finest, &targets, progress,
@@ -709,7 +763,7 @@ pub fn fit_candidates(
                 rings: g.rings(),
                 ..*template
             };
-            solved(&pass.sums[0][i], g, &settings, (pass.seconds, pass.bytes))
+            solved(&pass.total(i), g, &settings, (pass.seconds, pass.bytes))
         })
         .collect();
     Candidates { grids, fits, pass }

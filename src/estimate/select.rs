@@ -358,7 +358,7 @@ pub fn select_rings(
             ..*template
         };
         if template.holdout {
-            c.fits.into_iter().nth(i).expect("a fit per candidate")
+            c.held_in_fit(i, &settings)
         } else {
             c.refit(i, &settings, renderer, views, references, masks, progress)
         }

@@ -497,28 +497,36 @@ fn tiles_per_chunk(cells: usize, parts: usize) -> usize {
 /// Bytes [`accumulate`] and the solve after it need at most for one grid of `cells` cells and
 /// `parts` parts ([`pass_memory`]).
 pub fn memory_needed(cells: usize, parts: usize) -> usize {
-    pass_memory(&[cells], 1, parts)
+    sums_memory(&[(cells, 1)], parts)
 }
 
-/// Bytes a pass into grids of `cells` cells, `sets` sets of pixels and `parts` parts needs at
-/// most, with a solve after it: the sums, one chunk (rendered rows, sparse at up to 16 bytes
-/// an entry per grid, and the largest grid's dense f64 copies), and one solve's dense Gram,
-/// its regularised copy and the positive semi-definite projection's eigenvectors (about
-/// 7 cells² f64 of the largest grid).
-pub fn pass_memory(cells: &[usize], sets: usize, parts: usize) -> usize {
+/// Bytes a pass into `targets` with `parts` parts needs at most, with a solve after it.
+pub fn pass_memory(targets: &Targets, parts: usize) -> usize {
+    let sums: Vec<(usize, usize)> = (0..targets.grids.len())
+        .map(|g| (targets.grids[g].cell_count(), targets.sets_of_grid(g)))
+        .collect();
+    sums_memory(&sums, parts)
+}
+
+/// [`pass_memory`] of grids of `(cells, sums kept)`: the sums, one chunk (rendered rows,
+/// sparse at up to 16 bytes an entry per grid, and the largest grid's dense f64 copies), and
+/// one solve's dense Gram, its regularised copy and the positive semi-definite projection's
+/// eigenvectors (about 7 cells² f64 of the largest grid).
+fn sums_memory(grids: &[(usize, usize)], parts: usize) -> usize {
     let px = (crate::render::TILE * crate::render::TILE) as usize;
-    let (total, largest) = (cells.iter().sum(), cells.iter().copied().max().unwrap_or(0));
+    let total: usize = grids.iter().map(|g| g.0).sum();
+    let largest = grids.iter().map(|g| g.0).max().unwrap_or(0);
     let chunk =
         tiles_per_chunk(total, parts) * px * (16 * parts * total + 8 * (parts + 1) * largest);
-    let sums: usize = cells
+    let sums: usize = grids
         .iter()
-        .map(|&c| NormalEquations::memory_needed(c))
+        .map(|&(cells, kept)| kept * NormalEquations::memory_needed(cells))
         .sum();
-    sets * sums + chunk + 7 * largest * largest * 8
+    sums + chunk + 7 * largest * largest * 8
 }
 
-/// What one transport pass accumulates: for each set of pixels, the normal equations of each
-/// grid.
+/// What one transport pass accumulates: for each grid, the normal equations of each set of
+/// pixels (or of all of them, for a grid too large to keep sets apart).
 pub struct Targets<'a> {
     /// The grids directions are binned into (any ring counts: the parts' sampling grid need
     /// not be among them).
@@ -528,6 +536,9 @@ pub struct Targets<'a> {
     /// The set a (view, pixel) belongs to, or `None` if the pass leaves it out. Only pixels
     /// the masks hold are asked about.
     pub set_of: &'a (dyn Fn((usize, u32)) -> Option<usize> + Sync),
+    /// Grids of more cells keep one sum for the pixels of every set: a sum per set costs
+    /// cells² each, and only grids this small are wanted per set.
+    pub max_set_cells: usize,
 }
 
 impl<'a> Targets<'a> {
@@ -540,13 +551,24 @@ impl<'a> Targets<'a> {
             grids: std::slice::from_ref(grid),
             sets: 1,
             set_of,
+            max_set_cells: usize::MAX,
+        }
+    }
+
+    /// The sums grid `g` keeps: one per set, or one for all sets.
+    pub fn sets_of_grid(&self, g: usize) -> usize {
+        if self.grids[g].cell_count() <= self.max_set_cells {
+            self.sets
+        } else {
+            1
         }
     }
 }
 
 /// Renders the transport of `parts` over the pixels of each camera that its mask holds and
 /// `targets` places in a set, and reduces it, per set and grid, to its [`NormalEquations`]
-/// against the references' values, chunk by chunk: `[set][grid]`. Tiles without such a pixel
+/// against the references' values, chunk by chunk: `[grid][set]`, with
+/// [`Targets::sets_of_grid`] sets per grid. Tiles without such a pixel
 /// are not rendered. `progress` is called with the rendered pixels of each tile and part:
 /// [`progress_units`] in all.
 #[allow(clippy::too_many_arguments)]
@@ -561,11 +583,12 @@ pub fn accumulate(
     progress: &(dyn Fn(u64) + Sync),
 ) -> Vec<Vec<NormalEquations>> {
     let grids = targets.grids;
-    let mut out: Vec<Vec<NormalEquations>> = (0..targets.sets)
-        .map(|_| {
-            grids
-                .iter()
-                .map(|g| NormalEquations::new(g.cell_count(), parts.len()))
+    let mut out: Vec<Vec<NormalEquations>> = grids
+        .iter()
+        .enumerate()
+        .map(|(g, grid)| {
+            (0..targets.sets_of_grid(g))
+                .map(|_| NormalEquations::new(grid.cell_count(), parts.len()))
                 .collect()
         })
         .collect();
@@ -629,8 +652,21 @@ pub fn accumulate(
                     .collect()
             })
             .collect();
-        for (set, per_grid) in out.iter_mut().enumerate() {
-            // The set's rows, in tile order: (tile in the chunk, index within the tile).
+        // Sets apart for the grids that keep them (all grids when there is one set), then
+        // every set at once for the others.
+        let apart = |g: usize| targets.sets_of_grid(g) == targets.sets;
+        let batches = (0..targets.sets)
+            .map(|set| (Some(set), (0..grids.len()).filter(|&g| apart(g)).collect()))
+            .chain(std::iter::once((
+                None,
+                (0..grids.len()).filter(|&g| !apart(g)).collect(),
+            )));
+        for (set, batch_grids) in batches {
+            let batch_grids: Vec<usize> = batch_grids;
+            if batch_grids.is_empty() {
+                continue;
+            }
+            // The batch's rows, in tile order: (tile in the chunk, index within the tile).
             let rows: Vec<(usize, usize)> = chunk
                 .iter()
                 .zip(&rendered)
@@ -639,7 +675,10 @@ pub fn accumulate(
                     per_part[0]
                         .iter()
                         .enumerate()
-                        .filter(move |(_, (index, _, _))| set_of((v, *index)) == Some(set))
+                        .filter(move |(_, (index, _, _))| {
+                            let s = set_of((v, *index));
+                            s.is_some() && (set.is_none() || s == set)
+                        })
                         .map(move |(k, _)| (t, k))
                 })
                 .collect();
@@ -654,8 +693,8 @@ pub fn accumulate(
                     references[v].rgb[index].as_dvec3()
                 })
                 .collect();
-            for (g, ne) in per_grid.iter_mut().enumerate() {
-                ne.add_rows(&y, |r, a| {
+            for g in batch_grids {
+                out[g][set.unwrap_or(0)].add_rows(&y, |r, a| {
                     let (t, k) = rows[r];
                     &rendered[t][a][k].1.rows[g]
                 });
