@@ -2023,4 +2023,18 @@ fn colour_together_with_the_gradient_solver_is_refused_before_any_work() {
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["colour"], "together");
+    // Its clusters' intervals were not calibrated (which cells are lit flips as a whole), so
+    // none is stated, and the summary says why.
+    let clusters = report["clusters"].as_array().unwrap();
+    assert!(!clusters.is_empty());
+    assert!(
+        clusters
+            .iter()
+            .all(|c| c["direction_sigma_degrees"].is_null())
+    );
+    let summary = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        summary.contains("no intervals") && summary.contains("--colour"),
+        "{summary}"
+    );
 }

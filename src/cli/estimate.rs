@@ -438,6 +438,16 @@ fn summary(r: &EstimateReport) -> Vec<String> {
             d[2]
         ));
     }
+    if r.clusters
+        .first()
+        .is_some_and(|c| c.direction_sigma_degrees.is_none())
+    {
+        lines.push(
+            "envmap clusters: no intervals (measured only with the NNLS solver, --colour \
+             per-channel and at most 17 rings)"
+                .into(),
+        );
+    }
     for (k, rec) in r.light_recovery.iter().enumerate() {
         lines.push(if rec.cluster_cells > 0 {
             format!(

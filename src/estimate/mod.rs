@@ -67,7 +67,8 @@ pub enum Colour {
     /// same in every channel, and a cell the data barely tell apart stays near grey. Not the
     /// default: which cells the grey fit lights is all or nothing in every channel, so a
     /// cluster's direction scatters more between seeds (a known 5-ring sky: 2.2° over 8 seeds
-    /// against 0.25° per channel) and its jackknife interval understates that (0.66°).
+    /// against 0.25° per channel), which its jackknife understated (0.66°): its clusters get
+    /// no interval.
     Together,
     /// Each channel fitted on its own (the paper's way): nearly collinear neighbouring cells
     /// let each channel pick its own, so a white light can come back as red, green and blue
