@@ -83,15 +83,32 @@ def scene_centre(binary, scene):
     return [(a + b) / 2 for a, b in zip(lo, hi)]
 
 
+def shown(s):
+    """A scene's path as the JSON records it: relative to the repository where inside it."""
+    p = pathlib.Path(s).resolve()
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(p)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--binary", default=str(ROOT / "target" / "release" / "lightprobe"))
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--out", default=str(ROOT / "docs" / "bench" / "coverage_spheres.json"))
+    ap.add_argument("--extend", action="store_true",
+                    help="add these trials to those already in --out (same scenes, other seeds)")
     ap.add_argument("scenes", nargs="*", default=[str(SCENE)])
     a = ap.parse_args()
     rows = []
+    if a.extend:
+        old = json.loads(pathlib.Path(a.out).read_text())
+        if old["scenes"] != [shown(s) for s in a.scenes]:
+            raise SystemExit(f"{a.out}: its trials are of {old['scenes']}, not these scenes")
+        rows = old["lights"]
+        taken = {r["seed"] for r in rows}
+        wanted = set(range(a.first_seed, a.first_seed + a.trials))
+        if taken & wanted:
+            raise SystemExit(f"{a.out}: already holds seeds {sorted(taken & wanted)}")
     with tempfile.TemporaryDirectory() as tmp:
         for scene in map(pathlib.Path, a.scenes):
             text = scene.read_text()
@@ -140,13 +157,23 @@ def main():
                     rows.append(row)
                 print(f"{scene.stem} seed {seed}: done", flush=True)
 
-    def coverage(name, inside, per_light=1):
+    rows.sort(key=lambda r: (r["scene"], r["seed"], r["light"]))
+
+    def coverage(name, inside, per_light=1, z=None):
         judged = [j for r in rows for j in (inside(r) or [None] * per_light)]
         judged = [j for j in judged if j is not None]
         n = len(judged)
-        return {"parameter": name, "judged": n, "of": per_light * len(rows),
-                "covered": sum(judged), "coverage": sum(judged) / n if n else None,
-                "wilson_95": wilson(sum(judged), n)}
+        out = {"parameter": name, "judged": n, "of": per_light * len(rows),
+               "covered": sum(judged), "coverage": sum(judged) / n if n else None,
+               "wilson_95": wilson(sum(judged), n)}
+        if z is not None:
+            # Bias in units of the stated σ: 0 for an unbiased estimate, ± 1/sqrt(n) by chance.
+            zs = [z(r) for r in rows if z(r) is not None]
+            out["mean_z"] = sum(zs) / len(zs) if zs else None
+        return out
+
+    def z_of(r, error, sigma):
+        return None if not r[sigma] else r[error] / r[sigma]
 
     def one(test):
         return lambda r: (lambda v: None if v is None else [v])(test(r))
@@ -155,30 +182,32 @@ def main():
         coverage("direction", one(lambda r: None if r["direction_sigma_degrees"] is None
                  else r["angle_degrees"] < 2.448 * r["direction_sigma_degrees"])),
         coverage("distance", one(lambda r: None if r["distance_sigma_m"] is None
-                 else abs(r["distance_error_m"]) < 1.96 * r["distance_sigma_m"])),
+                 else abs(r["distance_error_m"]) < 1.96 * r["distance_sigma_m"]),
+                 z=lambda r: z_of(r, "distance_error_m", "distance_sigma_m")),
         coverage("radius", one(lambda r: None if r["radius_sigma_relative"] is None
-                 else abs(r["ln_radius_error"]) < 1.96 * r["radius_sigma_relative"])),
+                 else abs(r["ln_radius_error"]) < 1.96 * r["radius_sigma_relative"]),
+                 z=lambda r: z_of(r, "ln_radius_error", "radius_sigma_relative")),
         coverage("power", one(lambda r: None if r["power_sigma_relative"] is None
-                 else abs(r["ln_power_error"]) < 1.96 * r["power_sigma_relative"])),
+                 else abs(r["ln_power_error"]) < 1.96 * r["power_sigma_relative"]),
+                 z=lambda r: z_of(r, "ln_power_error", "power_sigma_relative")),
         coverage("colour", lambda r: None if r["colour_sigma"] is None
                  else [abs(e) < 1.96 * s for e, s in zip(r["colour_error"], r["colour_sigma"])],
                  per_light=3),
     ]
     unidentified = sum(1 for r in rows if r["radius_identified"] is False)
-    def shown(s):
-        p = pathlib.Path(s).resolve()
-        return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else str(p)
-
+    seeds = sorted({r["seed"] for r in rows})
     out = {"scenes": [shown(s) for s in a.scenes],
-           "model": "spheres:K, K the scene's light count", "trials_per_scene": a.trials,
+           "model": "spheres:K, K the scene's light count", "trials_per_scene": len(seeds),
+           "seeds": seeds,
            "coverage": table, "radius_not_identified": unidentified, "lights": rows}
     pathlib.Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
-    print("| parameter | judged | truth inside its 95% interval | binomial 95% range |")
-    print("| --- | ---: | ---: | ---: |")
+    print("| parameter | judged | truth inside its 95% interval | binomial 95% range | mean error / σ |")
+    print("| --- | ---: | ---: | ---: | ---: |")
     for t in table:
         cov = "–" if t["coverage"] is None else f"{100 * t['coverage']:.0f}%"
         rng = "–" if t["wilson_95"] is None else "{:.0f}–{:.0f}%".format(*[100 * v for v in t["wilson_95"]])
-        print(f"| {t['parameter']} | {t['judged']} of {t['of']} | {cov} | {rng} |")
+        bias = "" if t.get("mean_z") is None else f"{t['mean_z']:+.2f}"
+        print(f"| {t['parameter']} | {t['judged']} of {t['of']} | {cov} | {rng} | {bias} |")
     print(f"radius reported as not identified: {unidentified} of {len(rows)} lights")
 
 
