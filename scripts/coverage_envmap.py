@@ -22,6 +22,8 @@ bundled geometry from infinity as Blender would (`render-reference --envmap ...
 in CI (about 10 s a trial on 2 cores).
 
     python3 scripts/coverage_envmap.py --trials 20
+    python3 scripts/coverage_envmap.py --trials 10 --rings-candidates 5,9,13 \
+        --out docs/bench/coverage_envmap_rings_auto.json
 """
 import argparse
 import glob
@@ -59,6 +61,9 @@ def main():
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=1)
     ap.add_argument("--rings", type=int, default=9)
+    ap.add_argument("--rings-candidates",
+                    help="fit each trial with --rings auto among these (comma-separated); its "
+                    "pseudo-truth is then the fixed fit at the ring count the trial chose")
     ap.add_argument("--spp", type=int, default=128, help="transport and reference spp of a trial")
     ap.add_argument("--worlds", nargs="*", default=["courtyard", "interior"],
                     help="bpy studio-light worlds to light the scene with (besides its own lights)")
@@ -79,13 +84,12 @@ def main():
         worlds[name] = str(found[0])
     text = SCENE.read_text()
     gltf = re.search(r'gltf:\s*"([^"]*)"', text).group(1)
-    grid = rg.RingGrid(a.rings)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
 
-        def run(case, seed, spp):
-            d = tmp / f"{case}_{seed}_{spp}"
+        def run(case, seed, spp, rings):
+            d = tmp / f"{case}_{seed}_{spp}_{rings}"
             d.mkdir()
             sidecar = re.sub(r"seed:\s*\d+", f"seed: {seed}", text)
             sidecar = sidecar.replace(f'"{gltf}"', json.dumps(str((SCENE.parent / gltf).resolve())))
@@ -94,18 +98,23 @@ def main():
                                                       "blender", "--no-sphere-lights"]
             subprocess.run([a.binary, "render-reference", d / "scene.ron", "--out", d / "refs",
                             "--spp", str(spp), "--quiet", *light], check=True, capture_output=True)
+            chosen = ["--rings", str(rings)] if rings else [
+                "--rings", "auto", "--rings-candidates", a.rings_candidates]
             subprocess.run([a.binary, "estimate", d / "scene.ron", "--reference", d / "refs",
-                            "--rings", str(a.rings), "--spp", str(spp), "--out", d / "out",
+                            *chosen, "--spp", str(spp), "--out", d / "out",
                             "--quiet"], check=True, capture_output=True)
             report = json.loads((d / "out" / "report.json").read_text())
-            rings, radiance = rg.read_envmap_ron(d / "out" / "envmap.ron")
-            assert rings == a.rings
-            return report, radiance
+            fitted, radiance = rg.read_envmap_ron(d / "out" / "envmap.ron")
+            assert rings in (None, fitted)
+            return report, fitted, radiance
 
         for case in ["own lights", *worlds]:
-            _, truth = run(case, 1_000_003, 16 * a.spp)
+            truths = {}
             for seed in range(a.first_seed, a.first_seed + a.trials):
-                report, own = run(case, seed, a.spp)
+                report, rings, own = run(case, seed, a.spp, None if a.rings_candidates else a.rings)
+                if rings not in truths:
+                    truths[rings] = run(case, 1_000_003, 16 * a.spp, rings)[2]
+                grid, truth = rg.RingGrid(rings), truths[rings]
                 for k, c in enumerate(report["clusters"][:3]):
                     d_true, p_true = cluster_of(grid, truth, c["cells"])
                     d = np.array(c["direction"])
@@ -115,7 +124,8 @@ def main():
                     assert abs(p_own / c["power"] - 1) < 1e-4, (p_own, c["power"])
                     angle = math.degrees(math.acos(max(-1.0, min(1.0, float(d @ d_true)))))
                     rows.append({
-                        "case": case, "seed": seed, "cluster": k, "cells": len(c["cells"]),
+                        "case": case, "seed": seed, "rings": rings, "cluster": k,
+                        "cells": len(c["cells"]),
                         "angle_degrees": angle,
                         "direction_sigma_degrees": c["direction_sigma_degrees"],
                         "power_error_relative": c["power"] / p_true - 1.0 if p_true > 0 else None,
@@ -143,7 +153,9 @@ def main():
         sel = [r for r in rows if case == "all" or r["case"] == case]
         table += [dict(coverage("direction", sel, direction), case=case),
                   dict(coverage("power", sel, power), case=case)]
-    out = {"scene": str(SCENE.relative_to(ROOT)), "rings": a.rings, "spp": a.spp,
+    out = {"scene": str(SCENE.relative_to(ROOT)),
+           "rings": f"auto among {a.rings_candidates}" if a.rings_candidates else a.rings,
+           "spp": a.spp,
            "pseudo_truth_spp": 16 * a.spp, "trials_per_case": a.trials,
            "expected_coverage_of_perfect_intervals": {"power": 0.943, "direction": 0.940}, "coverage": table, "clusters": rows}
     pathlib.Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
