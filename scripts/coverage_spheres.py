@@ -16,9 +16,10 @@ the truth lies inside the stated 95% interval of:
 Each coverage is given with its Wilson 95% interval, the binomial error of so many trials.
 
 Writes a JSON file (docs/bench/coverage_spheres.json by default) and prints a table. Not run
-in CI (about 25 s per trial on 2 cores).
+in CI (about 15 s per trial of the bundled scene on 2 cores). `--extend` adds other seeds'
+trials to those already in the output.
 
-    python3 scripts/coverage_spheres.py --trials 20
+    python3 scripts/coverage_spheres.py --trials 60
     python3 scripts/coverage_spheres.py --trials 2 --out docs/bench/coverage_spheres_study.json \
         scenes/tabletop/scenarios/s{01,02,03,05,12,13,23,25,31,35,36,44,49,50,51}.ron
 """
