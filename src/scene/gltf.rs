@@ -707,19 +707,14 @@ fn load_primitive(
         check_sparse(path, what, a, buffers)?;
     }
     let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
-    let positions: Vec<Vec3> = reader
-        .read_positions()
-        .ok_or_else(|| {
-            Error::file(
-                path,
-                format!(
-                    "{what} has no readable POSITION attribute (missing, or its buffer view is missing or out of range)"
-                ),
-            )
-        })?
-        .map(Vec3::from)
-        .collect();
-    let n = positions.len();
+    let no_positions = || {
+        Error::file(
+            path,
+            format!(
+                "{what} has no readable POSITION attribute (missing, or its buffer view is missing or out of range)"
+            ),
+        )
+    };
     // The reader stops at the end of a buffer view; an accessor that claims more is broken.
     let short = |what: &str, accessor: Option<gltf::Accessor>, got: usize| match accessor {
         Some(a) if a.count() != got => Err(Error::file(
@@ -732,62 +727,169 @@ fn load_primitive(
         )),
         _ => Ok(()),
     };
-    short("POSITION", prim.get(&gltf::Semantic::Positions), n)?;
-    if positions.iter().any(|p| !p.is_finite()) {
-        return Err(Error::file(
-            path,
-            format!("{what} has non-finite vertex positions"),
-        ));
-    }
-    let indices: Vec<u32> = match reader.read_indices() {
-        Some(ix) => ix.into_u32().collect(),
-        None => (0..n as u32).collect(),
-    };
-    short(
-        "index",
-        prim.indices(),
-        if prim.indices().is_some() {
-            indices.len()
+    let non_finite = || Error::file(path, format!("{what} has non-finite vertex positions"));
+    let to_world = |p: Vec3| world.transform_point3(p);
+    let normal_from_local = Mat3::from_mat4(world).inverse().transpose();
+    let normal_to_world = |nl: Vec3| {
+        let nw = normal_from_local * nl;
+        if nw.is_finite() {
+            nw.normalize_or_zero()
         } else {
-            0
-        },
-    )?;
-    if !indices.len().is_multiple_of(3) {
+            Vec3::ZERO
+        }
+    };
+    let Some(normals) = reader.read_normals() else {
+        // Flat shading: every triangle gets its own corners, so the shared vertices are read
+        // first (the rare case: scans and exporters write normals).
+        let positions: Vec<Vec3> = reader
+            .read_positions()
+            .ok_or_else(no_positions)?
+            .map(Vec3::from)
+            .collect();
+        short(
+            "POSITION",
+            prim.get(&gltf::Semantic::Positions),
+            positions.len(),
+        )?;
+        if positions.iter().any(|p| !p.is_finite()) {
+            return Err(non_finite());
+        }
+        let n = positions.len();
+        let indices: Vec<u32> = match reader.read_indices() {
+            Some(ix) => ix.into_u32().collect(),
+            None => (0..n as u32).collect(),
+        };
+        check_indices(path, what, prim, n, indices.len(), indices.iter().copied())?;
+        let (mut uvs, mut colors) = (Vec::new(), Vec::new());
+        let has_uvs = read_uvs(path, what, &reader, (texcoord_set, mat), n, &mut uvs)?;
+        let has_colors = read_colors(path, what, &reader, n, &mut colors)?;
+        let world_positions: Vec<Vec3> = positions.into_iter().map(to_world).collect();
+        mesh.push_colored(
+            &world_positions,
+            None,
+            has_uvs.then_some(&uvs[..]),
+            has_colors.then_some(&colors[..]),
+            &indices,
+            material,
+        );
+        return Ok(());
+    };
+    // Smooth shading: each attribute goes straight from the buffer into the mesh, checked
+    // there (a scan's attributes are tens of MB each: no copy of them is made on the way).
+    let base = mesh.positions.len();
+    mesh.positions.extend(
+        reader
+            .read_positions()
+            .ok_or_else(no_positions)?
+            .map(Vec3::from),
+    );
+    let n = mesh.positions.len() - base;
+    short("POSITION", prim.get(&gltf::Semantic::Positions), n)?;
+    let placed = &mut mesh.positions[base..];
+    if placed.iter().any(|p| !p.is_finite()) {
+        return Err(non_finite());
+    }
+    placed.iter_mut().for_each(|p| *p = to_world(*p));
+    mesh.normals
+        .extend(normals.map(|nl| normal_to_world(Vec3::from(nl))));
+    if mesh.normals.len() - base != n {
         return Err(Error::file(
             path,
-            format!("{what} has {} indices, not a multiple of 3", indices.len()),
+            format!(
+                "{what} has {} normals for {n} vertices",
+                mesh.normals.len() - base
+            ),
         ));
     }
-    if let Some(&bad) = indices.iter().find(|&&i| i as usize >= n) {
+    let first_triangle = mesh.triangles.len();
+    let count = match reader.read_indices() {
+        Some(ix) => {
+            let mut count = 0;
+            let mut corners = ix.into_u32().inspect(|_| count += 1);
+            while let (Some(a), Some(b), Some(c)) = (corners.next(), corners.next(), corners.next())
+            {
+                mesh.triangles.push([a, b, c]);
+            }
+            // A trailing partial triangle's indices were counted and are refused below.
+            count
+        }
+        None => {
+            mesh.triangles
+                .extend((0..n as u32 / 3).map(|t| [3 * t, 3 * t + 1, 3 * t + 2]));
+            n
+        }
+    };
+    let corners = mesh.triangles[first_triangle..].iter().flatten().copied();
+    check_indices(path, what, prim, n, count, corners)?;
+    let offset = base as u32;
+    mesh.triangles[first_triangle..]
+        .iter_mut()
+        .flatten()
+        .for_each(|i| *i += offset);
+    let triangles = mesh.triangles.len() - first_triangle;
+    mesh.triangle_material
+        .extend(std::iter::repeat_n(material, triangles));
+    if !read_uvs(path, what, &reader, (texcoord_set, mat), n, &mut mesh.uvs)? {
+        mesh.uvs.extend(std::iter::repeat_n(Vec2::ZERO, n));
+    }
+    if !read_colors(path, what, &reader, n, &mut mesh.colors)? {
+        mesh.colors.extend(std::iter::repeat_n(Vec3::ONE, n));
+    }
+    Ok(())
+}
+
+/// Checks a primitive's `count` indices (`corners`, those it read) against its `n`
+/// vertices: as many as its accessor claims, whole triangles, each naming a vertex.
+fn check_indices(
+    path: &Path,
+    what: &str,
+    prim: &gltf::Primitive,
+    n: usize,
+    count: usize,
+    mut corners: impl Iterator<Item = u32>,
+) -> Result<()> {
+    if let Some(a) = prim.indices()
+        && a.count() != count
+    {
+        return Err(Error::file(
+            path,
+            format!(
+                "index accessor #{} claims {} elements but its buffer view holds {count}",
+                a.index(),
+                a.count()
+            ),
+        ));
+    }
+    if !count.is_multiple_of(3) {
+        return Err(Error::file(
+            path,
+            format!("{what} has {count} indices, not a multiple of 3"),
+        ));
+    }
+    if let Some(bad) = corners.find(|&i| i as usize >= n) {
         return Err(Error::file(
             path,
             format!("{what} has index {bad} but only {n} vertices"),
         ));
     }
-    let normals: Option<Vec<Vec3>> = reader.read_normals().map(|it| it.map(Vec3::from).collect());
-    if let Some(ns) = &normals
-        && ns.len() != n
-    {
-        return Err(Error::file(
-            path,
-            format!("{what} has {} normals for {n} vertices", ns.len()),
-        ));
-    }
-    let needs_uv = matches!(mat.albedo, Albedo::Texture { .. });
-    let uvs: Option<Vec<Vec2>> = reader
-        .read_tex_coords(texcoord_set)
-        .map(|t| t.into_f32().map(Vec2::from).collect());
-    match &uvs {
-        Some(u) if u.len() != n => {
-            return Err(Error::file(
-                path,
-                format!(
-                    "{what} has {} texture coordinates for {n} vertices",
-                    u.len()
-                ),
-            ));
-        }
-        None if needs_uv => {
+    Ok(())
+}
+
+/// Appends the primitive's texture coordinates of set `texcoord_set` to `into`, checked to be
+/// `n`; false if it has none (an error if `mat` is textured).
+fn read_uvs<'a, 's, F>(
+    path: &Path,
+    what: &str,
+    reader: &gltf::mesh::Reader<'a, 's, F>,
+    (texcoord_set, mat): (u32, &Material),
+    n: usize,
+    into: &mut Vec<Vec2>,
+) -> Result<bool>
+where
+    F: Clone + Fn(gltf::Buffer<'a>) -> Option<&'s [u8]>,
+{
+    let Some(uvs) = reader.read_tex_coords(texcoord_set) else {
+        if matches!(mat.albedo, Albedo::Texture { .. }) {
             return Err(Error::file(
                 path,
                 format!(
@@ -796,59 +898,56 @@ fn load_primitive(
                 ),
             ));
         }
-        _ => {}
+        return Ok(false);
+    };
+    let start = into.len();
+    into.extend(uvs.into_f32().map(Vec2::from));
+    if into.len() - start != n {
+        return Err(Error::file(
+            path,
+            format!(
+                "{what} has {} texture coordinates for {n} vertices",
+                into.len() - start
+            ),
+        ));
     }
+    Ok(true)
+}
 
-    // COLOR_0 is linear RGB(A); alpha plays no part in a Lambertian albedo.
-    let colors: Option<Vec<Vec3>> = reader
-        .read_colors(0)
-        .map(|c| c.into_rgb_f32().map(Vec3::from).collect());
-    if let Some(c) = &colors {
-        if c.len() != n {
-            return Err(Error::file(
-                path,
-                format!("{what} has {} COLOR_0 values for {n} vertices", c.len()),
-            ));
-        }
-        if let Some(bad) = c.iter().find(|v| !v.is_finite()) {
-            return Err(Error::file(
-                path,
-                format!("{what} has a non-finite COLOR_0 value {bad}"),
-            ));
-        }
+/// Appends the primitive's `COLOR_0` to `into`, checked to be `n` finite values and clamped to
+/// [0, 1]; false if it has none. COLOR_0 is linear RGB(A); alpha plays no part in a Lambertian
+/// albedo.
+fn read_colors<'a, 's, F>(
+    path: &Path,
+    what: &str,
+    reader: &gltf::mesh::Reader<'a, 's, F>,
+    n: usize,
+    into: &mut Vec<Vec3>,
+) -> Result<bool>
+where
+    F: Clone + Fn(gltf::Buffer<'a>) -> Option<&'s [u8]>,
+{
+    let Some(colors) = reader.read_colors(0) else {
+        return Ok(false);
+    };
+    let start = into.len();
+    into.extend(colors.into_rgb_f32().map(Vec3::from));
+    let read = &mut into[start..];
+    if read.len() != n {
+        return Err(Error::file(
+            path,
+            format!("{what} has {} COLOR_0 values for {n} vertices", read.len()),
+        ));
     }
-    let colors = colors.map(|c| {
-        c.into_iter()
-            .map(|v| v.clamp(Vec3::ZERO, Vec3::ONE))
-            .collect::<Vec<_>>()
-    });
-
-    let world_positions: Vec<Vec3> = positions
-        .iter()
-        .map(|&p| world.transform_point3(p))
-        .collect();
-    let normal_from_local = Mat3::from_mat4(world).inverse().transpose();
-    let world_normals = normals.map(|ns| {
-        ns.iter()
-            .map(|&nl| {
-                let nw = normal_from_local * nl;
-                if nw.is_finite() {
-                    nw.normalize_or_zero()
-                } else {
-                    Vec3::ZERO
-                }
-            })
-            .collect::<Vec<_>>()
-    });
-    mesh.push_colored(
-        &world_positions,
-        world_normals.as_deref(),
-        uvs.as_deref(),
-        colors.as_deref(),
-        &indices,
-        material,
-    );
-    Ok(())
+    if let Some(bad) = read.iter().find(|v| !v.is_finite()) {
+        return Err(Error::file(
+            path,
+            format!("{what} has a non-finite COLOR_0 value {bad}"),
+        ));
+    }
+    read.iter_mut()
+        .for_each(|v| *v = v.clamp(Vec3::ZERO, Vec3::ONE));
+    Ok(true)
 }
 
 /// Checks that each attribute's accessor has the type the spec requires before reading it
