@@ -2024,17 +2024,35 @@ fn colour_together_with_the_gradient_solver_is_refused_before_any_work() {
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(report["colour"], "together");
     // Its clusters' intervals were not calibrated (which cells are lit flips as a whole), so
-    // none is stated, and the summary says why.
-    let clusters = report["clusters"].as_array().unwrap();
-    assert!(!clusters.is_empty());
-    assert!(
-        clusters
-            .iter()
-            .all(|c| c["direction_sigma_degrees"].is_null())
-    );
-    let summary = String::from_utf8_lossy(&o.stdout);
-    assert!(
-        summary.contains("no intervals") && summary.contains("--colour"),
-        "{summary}"
-    );
+    // none is stated, and the summary says why; the same run per channel states them.
+    for (colour, stated) in [("together", false), ("per-channel", true)] {
+        let o = run(&[
+            "estimate",
+            scene.to_str().unwrap(),
+            "--colour",
+            colour,
+            "--fit-only",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap())
+                .unwrap();
+        let clusters = report["clusters"].as_array().unwrap();
+        assert!(!clusters.is_empty());
+        for c in clusters {
+            assert_eq!(
+                !c["direction_sigma_degrees"].is_null(),
+                stated,
+                "{colour}: {c}"
+            );
+        }
+        let summary = String::from_utf8_lossy(&o.stdout);
+        assert_eq!(
+            summary.contains("no intervals"),
+            !stated,
+            "{colour}: {summary}"
+        );
+    }
 }

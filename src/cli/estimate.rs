@@ -444,7 +444,7 @@ fn summary(r: &EstimateReport) -> Vec<String> {
     {
         lines.push(
             "envmap clusters: no intervals (measured only with the NNLS solver, --colour \
-             per-channel and at most 17 rings)"
+             per-channel and at most 17 rings, and when every jackknife replicate converged)"
                 .into(),
         );
     }

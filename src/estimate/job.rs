@@ -267,23 +267,40 @@ impl EstimateSettings {
         Ok(())
     }
 
-    /// The bytes the largest envmap fit needs at `pixels` pixels over all views: the
-    /// streamed transport's sums and chunk (independent of the pixels,
-    /// [`super::transport::memory_needed`]), and per pixel the references and the images the
+    /// The bytes the envmap fit needs at `pixels` pixels over all views: the streamed
+    /// transport's sums (every candidate's, each grid of at most
+    /// [`super::MAX_JACKKNIFE_CELLS`] once per jackknife group) and chunk, independent of the
+    /// pixels ([`super::transport::memory_needed`]), and per pixel the references and the images the
     /// job renders beside them (estimate, noise floor, representation limit, a candidate's
     /// validation), 16 bytes each; with sphere lights, the walked camera paths they keep
     /// ([`super::spheres::PathCache`]: up to `max_bounces` vertices of 64 bytes for each of
     /// 80 samples per pixel), which grow with the pixels.
     pub fn memory_needed(&self, pixels: u64, max_bounces: u32) -> u64 {
-        let rings = self.ring_counts().iter().copied().max().unwrap_or(1);
-        let n = crate::envmap::RingGrid::new(rings).cell_count();
+        let groups = if self.diagnose && self.colour == Colour::PerChannel {
+            JACKKNIFE_GROUPS as usize
+        } else {
+            1
+        };
+        let grids: Vec<(usize, usize)> = self
+            .ring_counts()
+            .iter()
+            .map(|&r| {
+                let cells = crate::envmap::RingGrid::new(r).cell_count();
+                let kept = if cells <= super::MAX_JACKKNIFE_CELLS {
+                    groups
+                } else {
+                    1
+                };
+                (cells, kept)
+            })
+            .collect();
         let parts = self.rounds.max(1) as usize;
         let paths = if self.model.max_lights() > 0 {
             pixels * 80 * (max_bounces as u64 * 64 + 8)
         } else {
             0
         };
-        super::transport::memory_needed(n, parts) as u64 + pixels * 16 * 5 + paths
+        super::transport::memory_needed(&grids, parts) as u64 + pixels * 16 * 5 + paths
     }
 }
 

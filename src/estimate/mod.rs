@@ -67,8 +67,8 @@ pub enum Colour {
     /// same in every channel, and a cell the data barely tell apart stays near grey. Not the
     /// default: which cells the grey fit lights is all or nothing in every channel, so a
     /// cluster's direction scatters more between seeds (a known 5-ring sky: 2.2° over 8 seeds
-    /// against 0.25° per channel), which its jackknife understated (0.66°): its clusters get
-    /// no interval.
+    /// against 0.25° per channel), which its jackknife understated (0.66°): an estimate in
+    /// this mode states no interval for its clusters.
     Together,
     /// Each channel fitted on its own (the paper's way): nearly collinear neighbouring cells
     /// let each channel pick its own, so a white light can come back as red, green and blue
@@ -475,18 +475,20 @@ fn fit_jackknife(
     let pass = nnls_pass(
         renderer, cameras, references, masks, settings, &grid, &targets, progress,
     );
-    let mut fit = solved(&pass.total(0), &grid, settings, (pass.seconds, pass.bytes));
-    add_replicates(&mut fit, &pass.sums[0], &grid, settings);
+    let all = pass.total(0);
+    let mut fit = solved(&all, &grid, settings, (pass.seconds, pass.bytes));
+    add_replicates(&mut fit, &pass.sums[0], &all, &grid, settings);
     fit
 }
 
-/// Adds to `fit` (of `grid`, on the sums of every group in `per_group`) its delete-a-group
-/// jackknife replicates, each solved on the sums of the other groups. With fewer than two
-/// groups, none; a replicate that fails or stops short leaves none rather than a wrong
-/// interval.
+/// Adds to `fit` (of `grid`, on `all`, the sums of every group in `per_group`) its
+/// delete-a-group jackknife replicates, each solved on the sums of the other groups. With
+/// fewer than two groups, none; a replicate that fails or stops short leaves none rather than
+/// a wrong interval.
 fn add_replicates(
     fit: &mut Fit,
     per_group: &[NormalEquations],
+    all: &NormalEquations,
     grid: &RingGrid,
     settings: &FitSettings,
 ) {
@@ -495,10 +497,6 @@ fn add_replicates(
         return;
     }
     let t = Instant::now();
-    let mut all = per_group[0].clone();
-    for group in &per_group[1..] {
-        all.add(group);
-    }
     let zero = vec![vec![0.0f64; all.cells]; 3];
     // All replicates together within the fit's own time budget.
     let quick = FitSettings {
@@ -704,16 +702,20 @@ impl Candidates {
             all.add(group);
         }
         let seconds = self.pass.seconds + t0.elapsed().as_secs_f64();
-        let mut fit = solved(&all, grid, settings, (seconds, self.pass.bytes));
-        add_replicates(&mut fit, &per_group, grid, settings);
+        // Beside the pass: the held-out pixels' sums per group, their total and a replicate's.
+        let bytes = self.pass.bytes
+            + (per_group.len() + 2) * NormalEquations::memory_needed(grid.cell_count());
+        let mut fit = solved(&all, grid, settings, (seconds, bytes));
+        add_replicates(&mut fit, &per_group, &all, grid, settings);
         fit
     }
 
     /// Candidate `i`'s hold-out fit, with its jackknife replicates if the pass kept its sums
     /// per group.
     pub fn held_in_fit(mut self, i: usize, settings: &FitSettings) -> Fit {
+        let all = self.pass.total(i);
         let mut fit = self.fits.swap_remove(i);
-        add_replicates(&mut fit, &self.pass.sums[i], &self.grids[i], settings);
+        add_replicates(&mut fit, &self.pass.sums[i], &all, &self.grids[i], settings);
         fit
     }
 }
@@ -825,7 +827,7 @@ fn fit_gradient(
         channels,
         transport_seconds,
         solve_seconds,
-        transport_bytes: transport::memory_needed(n, 1),
+        transport_bytes: transport::memory_needed(&[(n, 1)], 1),
         non_finite,
         replicates: Vec::new(),
     }

@@ -494,25 +494,20 @@ fn tiles_per_chunk(cells: usize, parts: usize) -> usize {
     (CHUNK_BYTES / per_tile.max(1)).clamp(16, 4096)
 }
 
-/// Bytes [`accumulate`] and the solve after it need at most for one grid of `cells` cells and
-/// `parts` parts ([`pass_memory`]).
-pub fn memory_needed(cells: usize, parts: usize) -> usize {
-    sums_memory(&[(cells, 1)], parts)
-}
-
 /// Bytes a pass into `targets` with `parts` parts needs at most, with a solve after it.
 pub fn pass_memory(targets: &Targets, parts: usize) -> usize {
     let sums: Vec<(usize, usize)> = (0..targets.grids.len())
         .map(|g| (targets.grids[g].cell_count(), targets.sets_of_grid(g)))
         .collect();
-    sums_memory(&sums, parts)
+    memory_needed(&sums, parts)
 }
 
-/// [`pass_memory`] of grids of `(cells, sums kept)`: the sums, one chunk (rendered rows,
+/// Bytes [`accumulate`] and the solve after it need at most for grids of `(cells, sums kept)`
+/// and `parts` parts ([`pass_memory`]): the sums, one chunk (rendered rows,
 /// sparse at up to 16 bytes an entry per grid, and the largest grid's dense f64 copies), and
 /// one solve's dense Gram, its regularised copy and the positive semi-definite projection's
 /// eigenvectors (about 7 cells² f64 of the largest grid).
-fn sums_memory(grids: &[(usize, usize)], parts: usize) -> usize {
+pub fn memory_needed(grids: &[(usize, usize)], parts: usize) -> usize {
     let px = (crate::render::TILE * crate::render::TILE) as usize;
     let total: usize = grids.iter().map(|g| g.0).sum();
     let largest = grids.iter().map(|g| g.0).max().unwrap_or(0);
