@@ -20,7 +20,7 @@ in CI (about 15 s per trial of the bundled scene on 2 cores). `--extend` adds ot
 trials to those already in the output.
 
     python3 scripts/coverage_spheres.py --trials 60
-    python3 scripts/coverage_spheres.py --trials 2 --out docs/bench/coverage_spheres_study.json \
+    python3 scripts/coverage_spheres.py --trials 4 --out docs/bench/coverage_spheres_study.json \
         scenes/tabletop/scenarios/s{01,02,03,05,12,13,23,25,31,35,36,44,49,50,51}.ron
 """
 import argparse
@@ -100,12 +100,12 @@ def main():
                     help="add these trials to those already in --out (same scenes, other seeds)")
     ap.add_argument("scenes", nargs="*", default=[str(SCENE)])
     a = ap.parse_args()
-    rows = []
+    rows, skipped = [], []
     if a.extend:
         old = json.loads(pathlib.Path(a.out).read_text())
         if old["scenes"] != [shown(s) for s in a.scenes]:
             raise SystemExit(f"{a.out}: its trials are of {old['scenes']}, not these scenes")
-        rows = old["lights"]
+        rows, skipped = old["lights"], old.get("not_judged", [])
         taken = {r["seed"] for r in rows}
         wanted = set(range(a.first_seed, a.first_seed + a.trials))
         if taken & wanted:
@@ -130,6 +130,11 @@ def main():
                 report = json.loads((d / "out" / "report.json").read_text())
                 for f in report["spheres"]["lights"]:
                     light = f["light"]
+                    # A light the fit reports as lighting nothing, or as merged into a
+                    # brighter one, is not a recovered light: it states no interval to judge.
+                    if f["status"] in ("no_contribution", "merged"):
+                        skipped.append({"scene": scene.stem, "seed": seed, "status": f["status"]})
+                        continue
                     c = light["center"]
                     k = min(range(len(truth)), key=lambda j: norm(sub(truth[j][0], c)))
                     tc, tr, tl = truth[k]
@@ -200,7 +205,8 @@ def main():
     out = {"scenes": [shown(s) for s in a.scenes],
            "model": "spheres:K, K the scene's light count", "trials_per_scene": len(seeds),
            "seeds": seeds,
-           "coverage": table, "radius_not_identified": unidentified, "lights": rows}
+           "coverage": table, "radius_not_identified": unidentified, "lights": rows,
+           "not_judged": skipped}
     pathlib.Path(a.out).write_text(json.dumps(out, indent=1) + "\n")
     print("| parameter | judged | truth inside its 95% interval | binomial 95% range | mean error / σ |")
     print("| --- | ---: | ---: | ---: | ---: |")
@@ -210,6 +216,8 @@ def main():
         bias = "" if t.get("mean_z") is None else f"{t['mean_z']:+.2f}"
         print(f"| {t['parameter']} | {t['judged']} of {t['of']} | {cov} | {rng} | {bias} |")
     print(f"radius reported as not identified: {unidentified} of {len(rows)} lights")
+    if skipped:
+        print(f"not judged (no contribution, or merged into a brighter light): {len(skipped)} lights")
 
 
 if __name__ == "__main__":

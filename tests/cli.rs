@@ -2054,5 +2054,7 @@ fn colour_together_with_the_gradient_solver_is_refused_before_any_work() {
             !stated,
             "{colour}: {summary}"
         );
+        let page = std::fs::read_to_string(out.join("index.html")).unwrap();
+        assert_eq!(page.contains("No σ"), !stated, "{colour}");
     }
 }

@@ -524,6 +524,13 @@ fn envmap_section(
             );
         }
         h.push_str("</table>\n");
+        if r["clusters"][0]["direction_sigma_degrees"].is_null() {
+            h.push_str(
+                "<p class=\"note\">No σ: the clusters' intervals are measured only with the \
+                 NNLS solver, --colour per-channel and at most 17 rings, and when every \
+                 jackknife replicate converged.</p>\n",
+            );
+        }
     }
     if !recovery.is_empty() {
         let _ = writeln!(
