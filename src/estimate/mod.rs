@@ -537,12 +537,17 @@ pub struct Pass {
 impl Pass {
     /// Grid `g`'s sums over every set of pixels.
     fn total(&self, g: usize) -> NormalEquations {
-        let mut all = self.sums[g][0].clone();
-        for set in &self.sums[g][1..] {
-            all.add(set);
-        }
-        all
+        sum_of(&self.sums[g])
     }
+}
+
+/// The sums of several sets of pixels (at least one) rendered by the same parts, added.
+fn sum_of(sets: &[NormalEquations]) -> NormalEquations {
+    let mut all = sets[0].clone();
+    for set in &sets[1..] {
+        all.add(set);
+    }
+    all
 }
 
 /// The NNLS estimator's transport. A pilot pass ([`in_pilot`] pixels of any set, one part, the
@@ -697,10 +702,7 @@ impl Candidates {
         for (sums, held_in) in per_group.iter_mut().zip(&self.pass.sums[i]) {
             sums.add(held_in);
         }
-        let mut all = per_group[0].clone();
-        for group in &per_group[1..] {
-            all.add(group);
-        }
+        let all = sum_of(&per_group);
         let seconds = self.pass.seconds + t0.elapsed().as_secs_f64();
         // Beside the pass: the held-out pixels' sums per group, their total and a replicate's.
         let bytes = self.pass.bytes

@@ -715,18 +715,6 @@ fn load_primitive(
             ),
         )
     };
-    // The reader stops at the end of a buffer view; an accessor that claims more is broken.
-    let short = |what: &str, accessor: Option<gltf::Accessor>, got: usize| match accessor {
-        Some(a) if a.count() != got => Err(Error::file(
-            path,
-            format!(
-                "{what} accessor #{} claims {} elements but its buffer view holds {got}",
-                a.index(),
-                a.count()
-            ),
-        )),
-        _ => Ok(()),
-    };
     let non_finite = || Error::file(path, format!("{what} has non-finite vertex positions"));
     let to_world = |p: Vec3| world.transform_point3(p);
     let normal_from_local = Mat3::from_mat4(world).inverse().transpose();
@@ -746,7 +734,8 @@ fn load_primitive(
             .ok_or_else(no_positions)?
             .map(Vec3::from)
             .collect();
-        short(
+        check_count(
+            path,
             "POSITION",
             prim.get(&gltf::Semantic::Positions),
             positions.len(),
@@ -784,7 +773,7 @@ fn load_primitive(
             .map(Vec3::from),
     );
     let n = mesh.positions.len() - base;
-    short("POSITION", prim.get(&gltf::Semantic::Positions), n)?;
+    check_count(path, "POSITION", prim.get(&gltf::Semantic::Positions), n)?;
     let placed = &mut mesh.positions[base..];
     if placed.iter().any(|p| !p.is_finite()) {
         return Err(non_finite());
@@ -838,6 +827,27 @@ fn load_primitive(
     Ok(())
 }
 
+/// Checks that `accessor` (named `what` in the error) holds the `got` elements read from it:
+/// the reader stops at the end of a buffer view, and an accessor that claims more is broken.
+fn check_count(
+    path: &Path,
+    what: &str,
+    accessor: Option<gltf::Accessor>,
+    got: usize,
+) -> Result<()> {
+    match accessor {
+        Some(a) if a.count() != got => Err(Error::file(
+            path,
+            format!(
+                "{what} accessor #{} claims {} elements but its buffer view holds {got}",
+                a.index(),
+                a.count()
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Checks a primitive's `count` indices (`corners`, those it read) against its `n`
 /// vertices: as many as its accessor claims, whole triangles, each naming a vertex.
 fn check_indices(
@@ -848,18 +858,7 @@ fn check_indices(
     count: usize,
     mut corners: impl Iterator<Item = u32>,
 ) -> Result<()> {
-    if let Some(a) = prim.indices()
-        && a.count() != count
-    {
-        return Err(Error::file(
-            path,
-            format!(
-                "index accessor #{} claims {} elements but its buffer view holds {count}",
-                a.index(),
-                a.count()
-            ),
-        ));
-    }
+    check_count(path, "index", prim.indices(), count)?;
     if !count.is_multiple_of(3) {
         return Err(Error::file(
             path,
