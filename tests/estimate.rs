@@ -1220,7 +1220,7 @@ fn per_view_exposures_are_recovered_and_the_lighting_is_in_their_geometric_mean(
     assert!(((e[0] * e[1]).sqrt() - 1.0).abs() < 1e-9, "{e:?}");
     // Converged: the fit with every sample asks for less than the tolerance's change.
     assert!(
-        report.fits < job::MAX_EXPOSURE_FITS && report.last_change < job::EXPOSURE_TOLERANCE,
+        report.fits < job::MAX_ALTERNATION_FITS && report.last_change < job::EXPOSURE_TOLERANCE,
         "{report:?}"
     );
     let mean = (applied[0] * applied[1]).sqrt();
@@ -1413,9 +1413,16 @@ fn a_radius_the_images_cannot_see_is_not_identified_and_the_intervals_hold_the_t
     );
     let dir = tempfile::tempdir().unwrap();
     let glb = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/tabletop/tabletop.glb");
-    let written =
-        export::write_with_lights(Path::new(glb), dir.path(), &fit.lights(), &doubts, None)
-            .unwrap();
+    let written = export::write_with_lights(
+        Path::new(glb),
+        dir.path(),
+        &fit.lights(),
+        &doubts,
+        None,
+        None,
+    )
+    .unwrap()
+    .0;
     let bytes = std::fs::read(&written).unwrap();
     let text = String::from_utf8_lossy(&bytes);
     assert_eq!(text.matches("\"radius_identified\":false").count(), doubted);

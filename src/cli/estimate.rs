@@ -15,7 +15,10 @@ use lightprobe::output;
 use lightprobe::render::{Lights, RenderSettings, Renderer};
 use lightprobe::scene::{Scene, sidecar};
 
-use super::{Bars, ColourArg, SceneArgs, SolverArg, check_memory, outln, prepare_out_dir, say};
+use super::{
+    Bars, ColourArg, FitAlbedoArg, SceneArgs, SolverArg, check_memory, outln, prepare_out_dir, say,
+};
+use lightprobe::estimate::albedo::{AlbedoReport, MaterialStatus};
 
 /// `--model`: the envmap, K sphere lights (None: 1 to 3, chosen on held-out pixels), or
 /// chosen from the data.
@@ -93,6 +96,19 @@ pub struct Args {
     /// then in (photographs cannot tell the overall scale).
     #[arg(long, value_enum, default_value_t = ExposureArg::Shared)]
     exposure: ExposureArg,
+    /// Fit the albedo beside the lighting, by alternating fits (3–7): `materials` corrects
+    /// each material's albedo by an RGB multiplier (of its constant, or of its texture's
+    /// factor), from the pixels that see it alone. Materials seen by fewer than 64 such
+    /// pixels, or lit only by light no other material sees, are kept as given and reported
+    /// so. report.json's "albedo" lists every material's given and fitted albedo; the written
+    /// glTF, Blender and Mitsuba scenes carry the fitted one.
+    #[arg(long, value_enum)]
+    fit_albedo: Option<FitAlbedoArg>,
+    /// Materials whose albedo is known (comma-separated glTF material names): kept as given,
+    /// they fix the scale between albedo and light that images cannot tell (default: the
+    /// fitted materials' mean albedo is kept).
+    #[arg(long, value_delimiter = ',', requires = "fit_albedo")]
+    trust_albedo: Vec<String>,
     /// Rings of the envmap (default: the sidecar's), or `auto`: fit each of
     /// --rings-candidates on three quarters of the pixels and take the smallest whose error
     /// on the held-out quarter is within one standard error of the best.
@@ -195,6 +211,8 @@ impl Args {
                 ExposureArg::PerView => Exposure::PerView,
             },
             diagnose: true,
+            fit_albedo: self.fit_albedo.map(Into::into),
+            trust_albedo: self.trust_albedo.clone(),
         }
     }
 
@@ -209,6 +227,11 @@ impl Args {
             if self.fit_only && matches!(self.exposure, ExposureArg::PerView) {
                 return anyhow::anyhow!(
                     "--exposure per-view compares each view's re-render with its reference; it cannot be used with --fit-only"
+                );
+            }
+            if self.fit_only && self.fit_albedo.is_some() {
+                return anyhow::anyhow!(
+                    "--fit-albedo compares each material's re-rendered pixels with the references'; it cannot be used with --fit-only"
                 );
             }
             if self.fit_only && self.model.chooses() {
@@ -322,6 +345,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                 a.time_limit
             ));
         }
+    }
+    if let Some(a) = report.albedo.as_ref().filter(|a| !a.converged) {
+        say(&format!(
+            "lightprobe: warning: the albedo did not converge in {} fits (the last still moved one by {:.2}%): the model may fit the images too poorly to tell albedo from lighting",
+            a.fits,
+            100.0 * a.last_change
+        ));
     }
     if let Some(e) = report.exposure.as_ref().filter(|e| !e.converged) {
         say(&format!(
@@ -518,10 +548,54 @@ fn summary(r: &EstimateReport) -> Vec<String> {
                 .join(", ")
         ));
     }
+    if let Some(a) = &r.albedo {
+        lines.extend(albedo_summary(a));
+    }
     lines.push(format!(
         "envmap fit {:.2} s (transport {:.2} s, solve {:.2} s)",
         r.timings.fit_seconds, r.timings.transport_seconds, r.timings.solve_seconds
     ));
+    lines
+}
+
+/// The fitted albedo, a line per material.
+fn albedo_summary(a: &AlbedoReport) -> Vec<String> {
+    let rgb = |v: [f32; 3]| format!("{:.3} {:.3} {:.3}", v[0], v[1], v[2]);
+    let mut lines = vec![format!(
+        "albedo fitted per material, {} fits, last change {:.2}%; scale: {}",
+        a.fits,
+        100.0 * a.last_change,
+        if a.trusted.is_empty() {
+            "the fitted materials' mean kept".to_string()
+        } else {
+            format!("trusted {}", a.trusted.join(", "))
+        }
+    )];
+    for m in a
+        .materials
+        .iter()
+        .filter(|m| m.pixels > 0 || m.status == MaterialStatus::Trusted)
+    {
+        let status = match m.status {
+            MaterialStatus::Fitted if m.at_bound => "fitted (at albedo 1)",
+            MaterialStatus::Fitted => "fitted",
+            MaterialStatus::Trusted => "trusted",
+            MaterialStatus::Unseen => "kept: too few pixels see it alone",
+            MaterialStatus::Unconstrained => "kept: lit only by light no other material sees",
+        };
+        let obs = m
+            .observability
+            .map(|o| format!(", observability {o:.2}"))
+            .unwrap_or_default();
+        lines.push(format!(
+            "  {:<14} given {}  fitted {}  ({}; {} px{obs})",
+            m.name,
+            rgb(m.given),
+            rgb(m.fitted),
+            status,
+            m.pixels
+        ));
+    }
     lines
 }
 

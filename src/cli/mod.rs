@@ -17,6 +17,7 @@ use std::sync::Mutex;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use lightprobe::envmap::latlong::{Filter, Target};
+use lightprobe::estimate::albedo::FitAlbedo;
 use lightprobe::estimate::job::Progress;
 use lightprobe::estimate::{Colour, Solver};
 use lightprobe::render::Strategy;
@@ -56,6 +57,10 @@ cli_enum!(ColourArg => Colour {
     /// Each channel fitted on its own (the paper's way); can split a white light into red,
     /// green and blue cells.
     PerChannel,
+});
+cli_enum!(FitAlbedoArg => FitAlbedo {
+    /// One RGB multiplier per material, of its constant albedo or its texture's factor.
+    Materials,
 });
 cli_enum!(TargetArg => Target {
     /// Mitsuba 3's envmap: +Y up, poles on the first and last rows.

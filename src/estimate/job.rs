@@ -28,6 +28,9 @@ use glam::Vec3;
 use schemars::JsonSchema;
 use serde::Serialize;
 
+use super::albedo::{
+    self, AlbedoReport, FitAlbedo, MaterialAlbedo, MaterialPixels, MaterialStatus,
+};
 use super::pipeline::{self, EstimateOptions, Outcome, SeenViews, SphereOutcome};
 use super::recovery::{self, ClusterEstimate, LightRecovery, SphereRecovery};
 use super::select::{self, ModelSelection, Selection};
@@ -115,6 +118,12 @@ pub struct EstimateSettings {
     /// quarter of the samples to tell whether the bounce count is the cause
     /// ([`bounce_probe`]).
     pub diagnose: bool,
+    /// Fit the albedo beside the lighting ([`super::albedo`]); `None`: the scene's albedo is
+    /// taken as known.
+    pub fit_albedo: Option<FitAlbedo>,
+    /// Materials whose albedo is known: kept as given, they fix the scale between albedo and
+    /// light. Empty: the fitted materials' mean multiplier is kept at 1.
+    pub trust_albedo: Vec<String>,
 }
 
 /// How the references' exposures relate.
@@ -146,7 +155,7 @@ pub struct ExposureReport {
     pub converged: bool,
     /// Largest relative change of an exposure the last fit (the one with every sample) asks
     /// for: how far the exposures reported are from converged. The alternation stops below
-    /// [`EXPOSURE_TOLERANCE`] or after [`MAX_EXPOSURE_FITS`] fits.
+    /// [`EXPOSURE_TOLERANCE`] or after [`MAX_ALTERNATION_FITS`] fits.
     pub last_change: f64,
 }
 
@@ -159,8 +168,8 @@ pub struct ViewExposure {
 
 /// Relative change of every exposure below which the alternation stops.
 pub const EXPOSURE_TOLERANCE: f64 = 1e-3;
-/// Most fits the alternation makes, the last one with every sample included.
-pub const MAX_EXPOSURE_FITS: usize = 7;
+/// Most fits the alternation ([`run`]) makes, the last one with every sample included.
+pub const MAX_ALTERNATION_FITS: usize = 8;
 
 impl EstimateSettings {
     /// The sidecar's rings and samples, the NNLS solver with its default rounds, the envmap
@@ -181,6 +190,8 @@ impl EstimateSettings {
             oracle: false,
             exposure: Exposure::Shared,
             diagnose: true,
+            fit_albedo: None,
+            trust_albedo: Vec::new(),
         }
     }
 
@@ -254,6 +265,20 @@ impl EstimateSettings {
             return Err(Error::Invalid(
                 "choosing the light model compares the models' re-renders, so it needs the \
                  evaluation (it cannot be fit-only)"
+                    .into(),
+            ));
+        }
+        if self.fit_albedo.is_some() && !self.evaluate {
+            return Err(Error::Invalid(
+                "fitting the albedo compares each material's re-rendered pixels with the \
+                 references', so it needs the evaluation (it cannot be fit-only)"
+                    .into(),
+            ));
+        }
+        if self.fit_albedo.is_none() && !self.trust_albedo.is_empty() {
+            return Err(Error::Invalid(
+                "trusted albedo names the materials that fix the scale of a fitted albedo; \
+                 without fitting the albedo every material is trusted"
                     .into(),
             ));
         }
@@ -442,6 +467,8 @@ pub struct Estimate {
     /// The chosen sphere-light model, if any.
     pub spheres: Option<SphereOutcome>,
     pub report: EstimateReport,
+    /// The scene's materials with the fitted albedo (`--fit-albedo`), in the scene's order.
+    pub materials: Option<Vec<crate::scene::Material>>,
 }
 
 /// `report.json`: everything an estimate measured. Figures that are not finite (a view whose
@@ -501,6 +528,8 @@ pub struct EstimateReport {
     /// The fitted relative exposures (`--exposure per-view`); null when the references share
     /// one exposure.
     pub exposure: Option<ExposureReport>,
+    /// The albedo fitted beside the lighting (`--fit-albedo`); null when taken as known.
+    pub albedo: Option<AlbedoReport>,
     /// The sphere-light model's estimate (with `--model spheres` or `auto`).
     pub spheres: Option<SpheresReport>,
     /// Every sphere model compared, when the model was chosen from the data.
@@ -652,17 +681,27 @@ pub enum FitStatus {
     NotConverged,
 }
 
-/// Runs the job. With [`Exposure::PerView`] it alternates: fit the lighting to the references
-/// divided by the current exposures, then set each view's exposure to the ratio of its
-/// reference's sum to its re-render's (over the view's mask, all channels), normalised to a
-/// geometric mean of 1, accelerated ([`anderson_step`]); until no exposure moves by
-/// [`EXPOSURE_TOLERANCE`]. These fits take a quarter of the samples (a sum over a view's pixels
-/// hardly sees the noise; the transport's products stay unbiased) and keep the ring count the
-/// first chose; one fit with every sample at the exposures found ends the job, and its own
-/// step is reported as the last change. The ratio of sums, not a least-squares slope, because
-/// the re-render's noise would bias a slope low.
+/// Runs the job. With [`Exposure::PerView`] or [`EstimateSettings::fit_albedo`] it
+/// alternates: fit the lighting to the references divided by the current exposures, in the
+/// scene with the current albedo; render that lighting there; set each view's exposure to the
+/// ratio of its reference's sum to the render's (over the view's mask, all channels),
+/// normalised to a geometric mean of 1, and move each material's albedo by the ratio over its
+/// pixels ([`albedo`]), relative to the anchors'; accelerated ([`anderson_step`], over the
+/// logarithms); until no exposure moves by [`EXPOSURE_TOLERANCE`] and no albedo by
+/// [`albedo::ALBEDO_TOLERANCE`]. These fits take a quarter of the samples (a sum over many
+/// pixels hardly sees the noise; the transport's products stay unbiased) and keep the ring
+/// count the first chose; then fits with every sample go on until one's own step is within
+/// the tolerances (the fit's noise moves a material's ratio by about 1.5% between a quarter
+/// and all of the samples on the bundled scene), and that fit ends the job, its step
+/// reported as the last change; at most [`MAX_ALTERNATION_FITS`] fits in all. Ratios of sums,
+/// not least-squares slopes: the render's noise would bias a slope low.
+///
+/// A fitted albedo is judged in its own scene too when the job judges in the scene it fits
+/// in (`fit` and `truth` share a scene: a user's estimate); a sweep trial's truth keeps its
+/// true albedo, so its errors measure the lighting alone.
 pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
-    if job.settings.exposure == Exposure::Shared {
+    let per_view = job.settings.exposure == Exposure::PerView;
+    if !per_view && job.settings.fit_albedo.is_none() {
         return run_once(job, progress);
     }
     job.settings.check()?;
@@ -680,37 +719,108 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         spp: quarter(job.render.spp, 16),
         ..*job.render
     };
-    let mut last = false;
-    // Natural logarithms of the exposures: the alternation's map is close to linear in them.
-    let mut log_e = vec![0.0f64; original.views.len()];
+    let mut fitting = match job.settings.fit_albedo {
+        Some(_) => Some(AlbedoFit::new(job, progress)?),
+        None => None,
+    };
+    // The scene the lighting is fitted in, its materials set to the current albedo each fit.
+    let mut scene = fitting.as_ref().map(|_| job.fit.scene.clone());
+    let judged_in_fit = std::ptr::eq(job.fit.scene, job.truth.scene);
+    let n_views = if per_view { original.views.len() } else { 0 };
+    let materials = job.fit.scene.materials.len();
+    // Fitting with every sample (once the quarter-sample fits converged), and the fit that
+    // must end the loop.
+    let (mut full, mut last) = (false, false);
+    // Natural logarithms of the exposures, then of each material's multiplier per channel:
+    // the alternation's map is close to linear in them.
+    let mut x = vec![0.0f64; n_views + 3 * materials * fitting.is_some() as usize];
     let mut history: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
+    let pixels: u64 = original
+        .views
+        .iter()
+        .map(|c| (c.width * c.height) as u64)
+        .sum();
     for fits in 1.. {
-        let exposures: Vec<f64> = log_e.iter().map(|l| l.exp()).collect();
-        let seen = original.with_exposures(&exposures);
+        let exposures: Vec<f64> = x[..n_views].iter().map(|l| l.exp()).collect();
+        let multipliers: Vec<glam::DVec3> = x[n_views..]
+            .chunks_exact(3)
+            .map(|k| glam::DVec3::new(k[0].exp(), k[1].exp(), k[2].exp()))
+            .collect();
+        let scaled;
+        let seen = if per_view {
+            scaled = original.with_exposures(&exposures);
+            &scaled
+        } else {
+            original
+        };
+        if let Some(scene) = scene.as_mut() {
+            scene.materials = albedo::scaled_materials(&job.fit.scene.materials, &multipliers);
+        }
+        let in_scene = scene.as_ref().map(|s| {
+            let fit = job.fit.with_scene(s, job.fit.lights);
+            let truth = match judged_in_fit {
+                true => job.truth.with_scene(s, job.truth.lights),
+                false => job.truth.with_lights(job.truth.lights),
+            };
+            (fit, truth)
+        });
+        let (fit, truth) = match &in_scene {
+            Some((f, t)) => (f, t),
+            None => (job.fit, job.truth),
+        };
         let mut estimate = run_once(
             &Job {
-                seen: &seen,
+                fit,
+                truth,
+                seen,
                 settings: &settings,
                 render: &render,
                 ..*job
             },
             progress,
         )?;
-        let renders = match &estimate.spheres {
-            Some(so) => &so.renders,
-            None => &estimate.envmap.renders,
+        // The lighting rendered in the scene it was fitted in: what the steps compare.
+        let fitted_renders;
+        let renders = match &fitting {
+            Some(f) => {
+                if f.observability.is_none() {
+                    let obs = f.measure(fit, seen, &estimate, &settings, &render, progress);
+                    fitting.as_mut().expect("fitting").observability = Some(obs);
+                }
+                progress.phase("albedo render", pixels);
+                let lights = final_lights(&estimate.envmap, estimate.spheres.as_ref());
+                fitted_renders =
+                    fit.with_lights(&lights)
+                        .render_views(&original.views, &render, &|k| progress.advance(k));
+                &fitted_renders
+            }
+            None => match &estimate.spheres {
+                Some(so) => &so.renders,
+                None => &estimate.envmap.renders,
+            },
         };
-        let step: Vec<f64> = fitted_exposures(original, renders)?
-            .iter()
-            .zip(&log_e)
-            .map(|(n, l)| n.ln() - l)
-            .collect();
-        let change = step
-            .iter()
-            .fold(0.0f64, |m, d| m.max(d.abs().exp_m1().abs()));
-        if last {
+        let mut step: Vec<f64> = Vec::with_capacity(x.len());
+        if per_view {
+            step.extend(
+                fitted_exposures(original, renders)?
+                    .iter()
+                    .zip(&x)
+                    .map(|(n, l)| n.ln() - l),
+            );
+        }
+        let change_of = |s: &[f64]| s.iter().fold(0.0f64, |m, d| m.max(d.abs().exp_m1().abs()));
+        let exposure_change = change_of(&step);
+        let mut albedo_change = 0.0;
+        if let Some(f) = &fitting {
+            let a = f.step(&seen.references, renders);
+            step.extend(a.iter().flat_map(|v| v.to_array()));
+            albedo_change = change_of(&step[n_views..]);
+        }
+        let converged =
+            exposure_change < EXPOSURE_TOLERANCE && albedo_change < albedo::ALBEDO_TOLERANCE;
+        if last || (full && converged) {
             let report = &mut estimate.report;
-            report.exposure = Some(ExposureReport {
+            report.exposure = per_view.then(|| ExposureReport {
                 relative: original
                     .views
                     .iter()
@@ -721,29 +831,270 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                     })
                     .collect(),
                 fits,
-                last_change: change,
-                converged: change < EXPOSURE_TOLERANCE,
+                last_change: exposure_change,
+                converged: exposure_change < EXPOSURE_TOLERANCE,
             });
+            if let Some(f) = &fitting {
+                report.albedo = Some(f.report(job, &multipliers, fits, albedo_change));
+                estimate.materials = scene.take().map(|s| s.materials);
+            }
             report.timings.total_seconds = original.seconds + t_all.elapsed().as_secs_f64();
             return Ok(estimate);
         }
-        let next = anderson_step(&log_e, &step, &history);
-        history.push((log_e, step));
+        let mut next = anderson_step(&x, &step, &history);
+        history.push((x, step));
         if history.len() > ANDERSON_MEMORY {
             history.remove(0);
         }
-        log_e = next;
+        if let Some(f) = &fitting {
+            f.bound(&mut next[n_views..]);
+        }
+        x = next;
         settings.rings = Rings::Fixed(estimate.report.rings);
-        if change < EXPOSURE_TOLERANCE || fits + 1 == MAX_EXPOSURE_FITS {
-            last = true;
+        if !full && (converged || fits + 2 >= MAX_ALTERNATION_FITS) {
+            full = true;
             settings = EstimateSettings {
                 rings: settings.rings.clone(),
                 ..job.settings.clone()
             };
             render = *job.render;
         }
+        last = fits + 1 == MAX_ALTERNATION_FITS;
     }
     unreachable!("the loop returns by its last fit")
+}
+
+/// The lights an estimate ends with: its chosen sphere model (with any envmap behind it),
+/// else its envmap.
+fn final_lights(envmap: &Outcome, spheres: Option<&SphereOutcome>) -> Lights {
+    match spheres {
+        Some(so) => Lights {
+            spheres: so.fit.lights(),
+            env: so.fit.background.clone(),
+            alone: None,
+        },
+        None => Lights::env(envmap.fit.envmap.clone()),
+    }
+}
+
+/// The albedo the alternation fits ([`run`]): which materials, where they are seen, and
+/// what fixes the scale.
+struct AlbedoFit {
+    pixels: MaterialPixels,
+    trusted: Vec<bool>,
+    /// Materials seen by enough pixels and not trusted (those found unconstrained after the
+    /// first fit are taken out).
+    free: Vec<bool>,
+    /// Measured after the first fit, on its lighting ([`albedo::observability`]).
+    observability: Option<Vec<Option<f64>>>,
+    /// Per material, the largest log-multiplier that keeps its mean albedo at most 1.
+    upper: Vec<glam::DVec3>,
+}
+
+/// Smallest multiplier the alternation may set (a material 100× darker than given is not a
+/// correction of its albedo but a sign of the wrong model).
+const MIN_MULTIPLIER_LOG: f64 = -4.605_170_185_988_091; // ln 0.01
+
+impl AlbedoFit {
+    fn new(job: &Job, progress: &dyn Progress) -> Result<Self> {
+        let materials = &job.fit.scene.materials;
+        let mut trusted = vec![false; materials.len()];
+        for name in &job.settings.trust_albedo {
+            match materials.iter().position(|m| &m.name == name) {
+                Some(i) => trusted[i] = true,
+                None => {
+                    let names: Vec<&str> = materials
+                        .iter()
+                        .map(|m| m.name.as_str())
+                        .filter(|n| !n.is_empty())
+                        .collect();
+                    return Err(Error::Invalid(format!(
+                        "trusted albedo names material {name:?}, which the scene does not \
+                         have (it has {})",
+                        names.join(", ")
+                    )));
+                }
+            }
+        }
+        let seen = job.seen;
+        let units: u64 = seen.views.iter().map(|c| (c.width * c.height) as u64).sum();
+        progress.phase("material maps", units);
+        let pixels = MaterialPixels::new(job.fit, &seen.views, &seen.masks);
+        progress.advance(units);
+        let enough = |m: usize| pixels.counts[m] >= albedo::MIN_MATERIAL_PIXELS;
+        if let Some(m) = (0..materials.len()).find(|&m| trusted[m] && !enough(m)) {
+            return Err(Error::Invalid(format!(
+                "trusted albedo: material {:?} is seen alone by {} pixels (at least {} are \
+                 needed for it to fix the scale)",
+                materials[m].name,
+                pixels.counts[m],
+                albedo::MIN_MATERIAL_PIXELS
+            )));
+        }
+        let free: Vec<bool> = (0..materials.len())
+            .map(|m| !trusted[m] && enough(m))
+            .collect();
+        if !free.contains(&true) {
+            return Err(Error::Invalid(format!(
+                "fitting the albedo: no material is both untrusted and seen alone by at least \
+                 {} pixels",
+                albedo::MIN_MATERIAL_PIXELS
+            )));
+        }
+        Ok(AlbedoFit {
+            upper: materials
+                .iter()
+                .map(|m| albedo::upper_bound(m.mean_albedo()))
+                .collect(),
+            pixels,
+            trusted,
+            free,
+            observability: None,
+        })
+    }
+
+    /// Each free material's observability under the estimate's envmap.
+    fn measure(
+        &self,
+        fit: &Renderer,
+        seen: &SeenViews,
+        estimate: &Estimate,
+        settings: &EstimateSettings,
+        render: &RenderSettings,
+        progress: &dyn Progress,
+    ) -> Vec<Option<f64>> {
+        // Every material that constrains the lighting: the free ones and the trusted.
+        let wanted: Vec<bool> = (0..self.free.len())
+            .map(|m| self.free[m] || self.trusted[m])
+            .collect();
+        let keep = |p| self.pixels.of(p).is_some_and(|m| wanted[m]);
+        progress.phase(
+            "albedo observability",
+            super::transport::progress_units(&seen.masks, &keep, 2),
+        );
+        let envmap = &estimate.envmap.fit.envmap;
+        let fit_settings = super::FitSettings::new(
+            render,
+            envmap.grid.rings(),
+            settings.solver,
+            settings.spp,
+            settings.rounds,
+        );
+        albedo::observability(
+            fit,
+            &seen.views,
+            &seen.references,
+            &seen.masks,
+            &self.pixels,
+            &wanted,
+            envmap,
+            &fit_settings,
+            &|k| progress.advance(k),
+        )
+    }
+
+    /// The materials fitted: free and, once measured, observable.
+    fn fitted(&self) -> Vec<bool> {
+        (0..self.free.len())
+            .map(|m| {
+                self.free[m]
+                    && self
+                        .observability
+                        .as_ref()
+                        .is_none_or(|o| o[m].is_some_and(|v| v >= albedo::MIN_OBSERVABILITY))
+            })
+            .collect()
+    }
+
+    /// The step of every material's log-multiplier from the references and the renders.
+    fn step(&self, references: &[Image], renders: &[Image]) -> Vec<glam::DVec3> {
+        let ratios = albedo::log_ratios(&self.pixels, references, renders);
+        let fitted = self.fitted();
+        let anchors = if self.trusted.contains(&true) {
+            &self.trusted
+        } else {
+            &fitted
+        };
+        albedo::gauged_step(&ratios, &fitted, anchors, &self.pixels.counts)
+    }
+
+    /// Keeps log-multipliers within their bounds, and those not fitted at 0.
+    fn bound(&self, x: &mut [f64]) {
+        let fitted = self.fitted();
+        for (m, k) in x.chunks_exact_mut(3).enumerate() {
+            for (c, v) in k.iter_mut().enumerate() {
+                *v = if fitted[m] {
+                    v.clamp(MIN_MULTIPLIER_LOG, self.upper[m][c].max(MIN_MULTIPLIER_LOG))
+                } else {
+                    0.0
+                };
+            }
+        }
+    }
+
+    fn report(
+        &self,
+        job: &Job,
+        multipliers: &[glam::DVec3],
+        fits: usize,
+        last_change: f64,
+    ) -> AlbedoReport {
+        let fitted = self.fitted();
+        let materials = &job.fit.scene.materials;
+        let trusted: Vec<String> = job.settings.trust_albedo.clone();
+        AlbedoReport {
+            fit: job.settings.fit_albedo.unwrap_or(FitAlbedo::Materials),
+            gauge: if trusted.is_empty() {
+                "no material is trusted: the fitted materials' mean multiplier (geometric, \
+                 weighted by their pixels) is kept at 1 per channel, and the lighting takes \
+                 the rest of the scale"
+                    .into()
+            } else {
+                format!(
+                    "the trusted materials ({}) keep their albedo as given; the lighting and \
+                     the other materials take the scale from them",
+                    trusted.join(", ")
+                )
+            },
+            trusted,
+            fits,
+            last_change,
+            converged: last_change < albedo::ALBEDO_TOLERANCE,
+            materials: materials
+                .iter()
+                .enumerate()
+                .map(|(m, mat)| {
+                    let given = mat.mean_albedo();
+                    let k = multipliers[m];
+                    let status = if self.trusted[m] {
+                        MaterialStatus::Trusted
+                    } else if !self.free[m] {
+                        MaterialStatus::Unseen
+                    } else if fitted[m] {
+                        MaterialStatus::Fitted
+                    } else {
+                        MaterialStatus::Unconstrained
+                    };
+                    let log_k = glam::DVec3::new(k.x.ln(), k.y.ln(), k.z.ln());
+                    MaterialAlbedo {
+                        name: mat.name.clone(),
+                        status,
+                        pixels: self.pixels.counts[m],
+                        views: self.pixels.views[m],
+                        observability: self
+                            .observability
+                            .as_ref()
+                            .and_then(|o| o[m])
+                            .filter(|_| self.free[m]),
+                        given: given.to_array(),
+                        fitted: mat.scaled(k.as_vec3()).mean_albedo().to_array(),
+                        multiplier: k.as_vec3().to_array(),
+                        at_bound: fitted[m] && (0..3).any(|c| log_k[c] >= self.upper[m][c] - 1e-9),
+                    }
+                })
+                .collect(),
+        }
+    }
 }
 
 /// Iterates kept by [`anderson_step`]: with n views the exposures have n − 1 free directions,
@@ -1087,6 +1438,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         model,
         model_selection,
         exposure: None,
+        albedo: None,
         spheres: spheres.as_ref().map(spheres_report),
         sphere_candidates: sphere_reports,
         timings: Timings {
@@ -1118,6 +1470,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         envmap,
         spheres,
         report,
+        materials: None,
     })
 }
 
@@ -1144,14 +1497,7 @@ fn render_again(
     spheres: Option<&SphereOutcome>,
     progress: &(dyn Fn(u64) + Sync),
 ) -> Vec<Image> {
-    let lights = match spheres {
-        Some(so) => Lights {
-            spheres: so.fit.lights(),
-            env: so.fit.background.clone(),
-            alone: None,
-        },
-        None => Lights::env(envmap.fit.envmap.clone()),
-    };
+    let lights = final_lights(envmap, spheres);
     let first = pipeline::evaluation_settings(job.render);
     let settings = RenderSettings {
         seed: first.seed.wrapping_add(RENDER_AGAIN_SEED),

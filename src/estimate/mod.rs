@@ -10,6 +10,7 @@
 //!   search, re-estimating T between rounds with importance sampling from the current estimate
 //!   (sequential Monte Carlo).
 
+pub mod albedo;
 pub mod job;
 pub mod nnls;
 pub mod pipeline;

@@ -9,7 +9,7 @@ pub mod sweep;
 use glam::Vec3;
 
 use crate::sampling::{Rng, mix64};
-use crate::scene::{Albedo, Scene};
+use crate::scene::Scene;
 
 /// `scene` with every material's albedo scaled per channel by a random factor in
 /// [1 − `fraction`, 1 + `fraction`] (clamped to [0, 1]), deterministic in `seed`: the
@@ -20,13 +20,7 @@ pub fn with_albedo_error(scene: &Scene, fraction: f32, seed: u64) -> Scene {
         let mut rng = Rng::new(mix64(seed ^ (i as u64).wrapping_mul(0x9E37_79B9)));
         let k = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32())
             .map(|u| 1.0 + fraction * (2.0 * u - 1.0));
-        m.albedo = match &m.albedo {
-            Albedo::Constant(c) => Albedo::Constant((*c * k).clamp(Vec3::ZERO, Vec3::ONE)),
-            Albedo::Texture { texture, factor } => Albedo::Texture {
-                texture: texture.clone(),
-                factor: (*factor * k).max(Vec3::ZERO),
-            },
-        };
+        *m = m.scaled(k);
     }
     s
 }

@@ -904,6 +904,8 @@ fn trial_settings(
         exposure: crate::estimate::job::Exposure::Shared,
         // A trial's record has no place for the diagnosis; it would cost a fit per misfit.
         diagnose: false,
+        fit_albedo: None,
+        trust_albedo: Vec::new(),
     }
 }
 

@@ -91,6 +91,7 @@ pub fn write_estimate(
         notes.extend(write_scene(
             dir,
             scene,
+            estimate.materials.as_deref(),
             &[],
             &[],
             Some(env),
@@ -117,6 +118,7 @@ pub fn write_estimate(
             notes.extend(write_scene(
                 &spheres,
                 scene,
+                estimate.materials.as_deref(),
                 &lights,
                 &doubts,
                 background,
@@ -214,23 +216,32 @@ fn remove_stale(dir: &Path, views: &[&str], spheres: bool, references: bool) -> 
 }
 
 /// The scene with `lights` and `envmap` written into `dir` for other tools: its glTF, a
-/// Mitsuba scene (`mitsuba/`) and a Blender script. Returns what the exports leave out.
+/// Mitsuba scene (`mitsuba/`) and a Blender script, with the fitted `albedo` (the scene's
+/// materials) where given. Returns what the exports leave out.
+#[allow(clippy::too_many_arguments)]
 fn write_scene(
     dir: &Path,
     scene: &Scene,
+    albedo: Option<&[crate::scene::Material]>,
     lights: &[crate::scene::SphereLight],
     doubts: export::RadiusDoubts,
     envmap: Option<&Envmap>,
     note: Option<&export::EnvmapNote>,
     render: &crate::render::RenderSettings,
 ) -> Result<Vec<String>> {
-    let gltf = export::write_with_lights(&scene.gltf, dir, lights, doubts, note)?;
+    let fitted = albedo.map(|m| Scene {
+        materials: m.to_vec(),
+        ..scene.clone()
+    });
+    let scene = fitted.as_ref().unwrap_or(scene);
+    let (gltf, mut notes) =
+        export::write_with_lights(&scene.gltf, dir, lights, doubts, note, albedo)?;
     let name = gltf
         .file_name()
         .and_then(|n| n.to_str())
         .unwrap_or("scene.glb");
     export::blender::write(dir, name, scene, envmap, render.spp, render.max_bounces)?;
-    export::mitsuba::write(
+    notes.extend(export::mitsuba::write(
         &dir.join("mitsuba"),
         scene,
         lights,
@@ -240,7 +251,8 @@ fn write_scene(
             spp: render.spp,
             max_bounces: render.max_bounces,
         },
-    )
+    )?);
+    Ok(notes)
 }
 
 /// `lights.usda` in `dir`: the lights, and a dome of the envmap `(name, env)` written beside it

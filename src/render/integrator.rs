@@ -606,4 +606,15 @@ impl Tracer<'_> {
         let sp = surface_point(self.scene, &hit, dir);
         Some((hit.t, sp.ns, sp.albedo))
     }
+
+    /// The material of the first surface the ray meets (as [`Tracer::first_hit`] finds it),
+    /// or `None` if it sees no scene geometry.
+    pub fn first_material(&self, origin: Vec3, dir: Vec3) -> Option<u32> {
+        let t_light = self
+            .lights
+            .intersect(origin, dir, 0.0, f32::INFINITY)
+            .map_or(f32::INFINITY, |h| h.0);
+        let hit = self.accel.intersect(origin, dir, t_light)?;
+        Some(self.scene.mesh.triangle_material[hit.triangle as usize])
+    }
 }

@@ -511,7 +511,41 @@ impl<'a> Renderer<'a> {
             albedo: make(&|h| h.2),
         }
     }
+
+    /// Each pixel's material (row-major, an index into the scene's materials): the one its
+    /// centre and four points half-way to its corners all see, else [`NO_MATERIAL`]. A pixel
+    /// on an edge between materials averages both, so it is left out rather than given to
+    /// either.
+    pub fn material_ids(&self, camera: &Camera) -> Vec<u32> {
+        let settings = RenderSettings::preview();
+        let tracer = self.tracer(&settings);
+        let w = camera.width;
+        const POINTS: [(f32, f32); 5] = [
+            (0.5, 0.5),
+            (0.25, 0.25),
+            (0.75, 0.25),
+            (0.25, 0.75),
+            (0.75, 0.75),
+        ];
+        (0..w * camera.height)
+            .into_par_iter()
+            .map(|i| {
+                let (x, y) = ((i % w) as f32, (i / w) as f32);
+                let mut seen = POINTS.iter().map(|(dx, dy)| {
+                    tracer.first_material(camera.origin_world, camera.ray_dir_world(x + dx, y + dy))
+                });
+                let first = seen.next().flatten();
+                match first {
+                    Some(m) if seen.all(|s| s == Some(m)) => m,
+                    _ => NO_MATERIAL,
+                }
+            })
+            .collect()
+    }
 }
+
+/// Where a pixel's material is not known: it sees no geometry, or more than one material.
+pub const NO_MATERIAL: u32 = u32::MAX;
 
 /// Camera paths of one view, walked once ([`Renderer::trace_paths`]) to be lit many times.
 pub struct Paths {

@@ -119,6 +119,30 @@ impl Material {
             }
         }
     }
+
+    /// The material with its albedo multiplied per channel by `k` (≥ 0): a constant clamped to
+    /// [0, 1], a texture's factor multiplied (lookups are clamped).
+    pub fn scaled(&self, k: Vec3) -> Material {
+        Material {
+            name: self.name.clone(),
+            albedo: match &self.albedo {
+                Albedo::Constant(c) => Albedo::Constant((*c * k).clamp(Vec3::ZERO, Vec3::ONE)),
+                Albedo::Texture { texture, factor } => Albedo::Texture {
+                    texture: texture.clone(),
+                    factor: (*factor * k).max(Vec3::ZERO),
+                },
+            },
+        }
+    }
+
+    /// The mean albedo: the constant, or the texture's mean texel × its factor (vertex colours
+    /// not included).
+    pub fn mean_albedo(&self) -> Vec3 {
+        match &self.albedo {
+            Albedo::Constant(c) => *c,
+            Albedo::Texture { texture, factor } => texture.mean() * *factor,
+        }
+    }
 }
 
 /// A spherical area light emitting uniform radiance from its whole surface, or with radius 0

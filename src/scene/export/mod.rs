@@ -83,15 +83,17 @@ pub fn radius_doubt_words(r: f32, factor: f64) -> String {
 }
 
 /// Writes `source` (a `.glb` or `.gltf`) into `dir` as `scene.glb` or `scene.gltf` (with
-/// copies of the files it refers to) with `lights` and `envmap` in it. Returns the path
-/// written.
+/// copies of the files it refers to) with `lights` and `envmap` in it, and with `albedo`
+/// (the scene's materials, fitted) as its materials' baseColorFactor. Returns the path
+/// written and what the file could not hold.
 pub fn write_with_lights(
     source: &Path,
     dir: &Path,
     lights: &[SphereLight],
     doubts: RadiusDoubts,
     envmap: Option<&EnvmapNote>,
-) -> Result<PathBuf> {
+    albedo: Option<&[super::Material]>,
+) -> Result<(PathBuf, Vec<String>)> {
     let bytes = crate::memory::read_input(source)?;
     let bad = |why: String| Error::file(source, format!("cannot be written back: {why}"));
     let glb_source = bytes.starts_with(b"glTF");
@@ -102,6 +104,10 @@ pub fn write_with_lights(
     };
     let mut doc: Value = serde_json::from_slice(json).map_err(|e| bad(e.to_string()))?;
     put_lights(&mut doc, lights, doubts, envmap).map_err(bad)?;
+    let notes = match albedo {
+        Some(m) => put_albedo(&mut doc, m).map_err(bad)?,
+        None => Vec::new(),
+    };
     // Files the source refers to go beside the copy (a GLB may refer to some too). The loader
     // refused URIs that leave the source's folder, so they stay inside `dir`.
     let from = source.parent().unwrap_or(Path::new(""));
@@ -121,7 +127,62 @@ pub fn write_with_lights(
         let text = serde_json::to_string_pretty(&doc).map_err(|e| bad(e.to_string()))?;
         crate::imageio::write_bytes(&out, text.as_bytes())?;
     }
-    Ok(out)
+    Ok((out, notes))
+}
+
+/// Sets each glTF material's baseColorFactor (RGB; alpha kept) to `materials`' albedo: the
+/// constant, or the texture's factor. `materials[0]` is glTF's default material, which the
+/// file cannot name; `materials[i]` is the file's material i − 1. Returns what did not fit:
+/// glTF's factors end at 1, so a texture's factor above 1 is written as 1.
+fn put_albedo(
+    doc: &mut Value,
+    materials: &[super::Material],
+) -> std::result::Result<Vec<String>, String> {
+    let mut notes = Vec::new();
+    let list = doc.get_mut("materials").and_then(Value::as_array_mut);
+    let list = match list {
+        Some(l) => l,
+        None if materials.len() <= 1 => return Ok(notes),
+        None => return Err("it has no materials to write the albedo into".into()),
+    };
+    if list.len() + 1 != materials.len() {
+        return Err(format!(
+            "it has {} materials, the fitted albedo {}",
+            list.len(),
+            materials.len() - 1
+        ));
+    }
+    for (m, gm) in materials[1..].iter().zip(list.iter_mut()) {
+        let factor = match &m.albedo {
+            super::Albedo::Constant(c) => *c,
+            super::Albedo::Texture { factor, .. } => *factor,
+        };
+        if factor.max_element() > 1.0 {
+            notes.push(format!(
+                "material {:?}: its fitted texture factor {:.3} {:.3} {:.3} is above glTF's 1, \
+                 written as 1 (the texture itself would have to be brightened)",
+                m.name, factor.x, factor.y, factor.z
+            ));
+        }
+        let f = factor.clamp(glam::Vec3::ZERO, glam::Vec3::ONE);
+        let gm = gm.as_object_mut().ok_or("a material is not an object")?;
+        let pbr = gm
+            .entry("pbrMetallicRoughness")
+            .or_insert_with(|| json!({}));
+        let pbr = pbr
+            .as_object_mut()
+            .ok_or("a material's pbrMetallicRoughness is not an object")?;
+        let alpha = pbr
+            .get("baseColorFactor")
+            .and_then(|v| v.get(3))
+            .and_then(Value::as_f64)
+            .unwrap_or(1.0);
+        pbr.insert(
+            "baseColorFactor".into(),
+            json!([f.x as f64, f.y as f64, f.z as f64, alpha]),
+        );
+    }
+    Ok(notes)
 }
 
 /// The name [`write_with_lights`] gives the copy of `source`: `scene.glb` for binary glTF,
