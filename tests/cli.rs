@@ -804,6 +804,39 @@ fn cases() -> Vec<Case> {
             "would need about",
         ),
         c(
+            "estimate trusting the albedo of a material the scene lacks",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--fit-albedo",
+                "materials",
+                "--trust-albedo",
+                "table,marble",
+                "--quiet",
+            ]
+            .to_vec(),
+            "scene.ron: --trust-albedo names material \"marble\", which the scene does not have",
+        ),
+        c(
+            "estimate fitting the albedo without the evaluation",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--fit-albedo",
+                "materials",
+                "--fit-only",
+                "--quiet",
+            ]
+            .to_vec(),
+            "--fit-albedo compares each material's re-rendered pixels",
+        ),
+        c(
             "estimate reference of the wrong size",
             vec![
                 ("scene.ron", sidecar("  views: [\"cam_front\"],\n", LIGHT)),
@@ -1370,6 +1403,78 @@ fn check_results_page(out: &Path) {
     for must in ["rel_mae", "noise_floor_rel_mae", "views.1.estimate.rel_mae"] {
         assert!(html.contains(&format!("data-json=\"{must}\"")), "{must}");
     }
+}
+
+#[test]
+fn estimate_fits_the_albedo_and_writes_it_back() {
+    // References rendered from the scene itself: the fitted albedo must stay near the given
+    // one, be reported per material, and go into the written glTF and the page.
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tmp.path().join("scene.ron");
+    std::fs::write(
+        &scene,
+        format!(
+            "Scene(\n    gltf: {:?},\n    image: (width: 96, height: 72),\n    lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))],\n    render: (spp: 32, max_bounces: 2, seed: 1),\n)\n",
+            bundled_glb()
+        ),
+    )
+    .unwrap();
+    let out = tmp.path().join("out");
+    let o = run(&[
+        "estimate",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--rings",
+        "5",
+        "--spp",
+        "32",
+        "--fit-albedo",
+        "materials",
+        "--trust-albedo",
+        "table",
+        "--quiet",
+    ]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(stdout.contains("albedo fitted per material"), "{stdout}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let albedo = &report["albedo"];
+    assert_eq!(albedo["method"], "joint");
+    assert_eq!(albedo["trusted"][0], "table");
+    let materials = albedo["materials"].as_array().unwrap();
+    let named = |n: &str| materials.iter().find(|m| m["name"] == n).unwrap();
+    assert_eq!(named("table")["status"], "trusted");
+    assert_eq!(named("torus")["status"], "fitted");
+    // The glTF written beside the estimate carries the fitted albedo.
+    let glb = std::fs::read(out.join("scene.glb")).unwrap();
+    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let doc: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let written = doc["materials"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == "torus")
+        .unwrap()["pbrMetallicRoughness"]["baseColorFactor"]
+        .clone();
+    for c in 0..3 {
+        let fitted = named("torus")["fitted"][c].as_f64().unwrap();
+        let given = named("torus")["given"][c].as_f64().unwrap();
+        assert!(
+            (written[c].as_f64().unwrap() - fitted).abs() < 1e-6,
+            "{written}"
+        );
+        // A 5-ring envmap cannot place the scene's near light: the albedo takes some of
+        // that misfit, but not a gross error.
+        assert!(
+            (fitted / given - 1.0).abs() < 0.3,
+            "{fitted} against {given}"
+        );
+    }
+    let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+    assert!(html.contains("Albedo (--fit-albedo)"));
+    check_results_page(&out);
 }
 
 #[test]

@@ -1183,6 +1183,91 @@ fn progress_declares_exactly_the_work_it_reports() {
 }
 
 #[test]
+fn per_material_albedo_is_recovered_beside_the_lighting() {
+    // The fit's scene has two of three materials' albedo off by up to 20% per channel; the
+    // references are rendered with the true albedo under a 3-ring sky (a model the fit can
+    // match exactly). Trusting the table, the fitted albedo must come back to the truth and
+    // the lighting to the exact-albedo fit's error; without a trusted material, the ratios
+    // between materials must.
+    use lightprobe::estimate::albedo::{FitAlbedo, MaterialStatus};
+    use lightprobe::estimate::job::{self, EstimateSettings, Job, References, Rings};
+    let sc = scene(vec![]);
+    let lights = Lights::env(three_ring_sky());
+    let truth = Renderer::new(&sc, &lights);
+    let render = settings(256, 1);
+    let (refs, _) = render_all(&truth, &sc, 256, 1);
+    let seen = job::observe(&truth, &render, References::Images(refs), &()).unwrap();
+    let off = [
+        Vec3::ONE,
+        Vec3::new(0.85, 1.15, 0.9),
+        Vec3::new(1.2, 0.8, 1.1),
+    ];
+    let mut wrong = sc.clone();
+    for (m, k) in wrong.materials.iter_mut().zip(off) {
+        *m = m.scaled(k);
+    }
+    let fit = truth.with_scene(&wrong, &lights);
+    let run = |fit_albedo, trust: &[&str], fit: &Renderer| {
+        let settings = EstimateSettings {
+            rings: Rings::Fixed(3),
+            spp: 256,
+            noise_floor: false,
+            fit_albedo,
+            trust_albedo: trust.iter().map(|s| s.to_string()).collect(),
+            ..EstimateSettings::new(&sc.settings)
+        };
+        let job = Job {
+            fit,
+            ..Job::new(&truth, &seen, &render, &settings)
+        };
+        job::run(&job, &()).unwrap()
+    };
+    let exact = run(None, &[], &truth).report.rel_mae.unwrap();
+    let wrong_albedo = run(None, &[], &fit).report.rel_mae.unwrap();
+    let trusted = run(Some(FitAlbedo::Materials), &["table"], &fit);
+    let report = trusted.report.albedo.as_ref().unwrap();
+    let statuses: Vec<MaterialStatus> = report.materials.iter().map(|m| m.status).collect();
+    assert_eq!(
+        statuses,
+        [
+            MaterialStatus::Trusted,
+            MaterialStatus::Fitted,
+            MaterialStatus::Fitted
+        ]
+    );
+    assert!(report.converged, "{report:?}");
+    for (m, truth_m) in report.materials.iter().zip(&sc.materials) {
+        let want = truth_m.mean_albedo();
+        for c in 0..3 {
+            let err = m.fitted[c] / want[c] - 1.0;
+            assert!(
+                err.abs() < 0.02,
+                "{}: fitted {:?}, true {want}",
+                m.name,
+                m.fitted
+            );
+        }
+        assert!(m.observability.is_none_or(|o| o > 0.1), "{m:?}");
+    }
+    // Judged in the true scene, the lighting is as good as with the albedo known.
+    let fitted = trusted.report.rel_mae.unwrap();
+    assert!(
+        fitted < 1.1 * exact && wrong_albedo > 1.25 * exact,
+        "relMAE exact albedo {exact}, fitted {fitted}, wrong {wrong_albedo}"
+    );
+    // The materials the fit returns are those of the report.
+    let materials = trusted.materials.as_ref().unwrap();
+    assert!((materials[1].mean_albedo() - sc.materials[1].mean_albedo()).length() < 0.03);
+    // Nothing trusted: the scale is the fitted materials' mean, their ratios the truth's.
+    let free = run(Some(FitAlbedo::Materials), &[], &fit);
+    let report = free.report.albedo.as_ref().unwrap();
+    let f = |m: usize| Vec3::from_array(report.materials[m].fitted);
+    let ratio = (f(1) / f(2)) / (sc.materials[1].mean_albedo() / sc.materials[2].mean_albedo());
+    assert!((ratio - Vec3::ONE).abs().max_element() < 0.02, "{ratio}");
+    assert_eq!(report.materials[0].status, MaterialStatus::Fitted);
+}
+
+#[test]
 fn per_view_exposures_are_recovered_and_the_lighting_is_in_their_geometric_mean() {
     // Photographs of one lighting at exposures 2 and 0.6: the fitted exposures must come back
     // in that ratio, and the lighting must be the truth times their geometric mean (the unit

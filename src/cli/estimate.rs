@@ -265,6 +265,23 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     let settings = a.settings(&scene);
     settings.check().map_err(|e| a.flag_error(e))?;
+    if let Some(name) = a
+        .trust_albedo
+        .iter()
+        .find(|n| !scene.materials.iter().any(|m| &m.name == *n))
+    {
+        let names: Vec<&str> = scene
+            .materials
+            .iter()
+            .map(|m| m.name.as_str())
+            .filter(|n| !n.is_empty())
+            .collect();
+        anyhow::bail!(
+            "{}: --trust-albedo names material {name:?}, which the scene does not have (it has {})",
+            path.display(),
+            names.join(", ")
+        );
+    }
     anyhow::ensure!(
         a.reference.is_some() || !scene.lights.is_empty(),
         "{}: has no sphere or point lights to render references from; pass --reference DIR",
@@ -374,6 +391,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     // Said once the outputs are written: a run that fails says only why it failed.
     if let Some(t) = report.fit_test.as_ref().filter(|t| t.misfit) {
         say(&misfit_warning(t));
+        if report.albedo.is_some() {
+            say(
+                "lightprobe: warning: the albedo was fitted beside a light model that does not explain the images, so it has taken up part of the misfit: trust the fitted albedo only once the fit test passes (try --model auto)",
+            );
+        }
     }
     if a.json {
         super::print(&output::report_json(report).map_err(anyhow::Error::msg)?)?;

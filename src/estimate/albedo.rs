@@ -53,8 +53,35 @@ pub const MIN_MATERIAL_PIXELS: usize = 64;
 /// as given.
 pub const MIN_OBSERVABILITY: f64 = 0.01;
 
-/// Relative change of every multiplier below which the alternation stops.
+/// Relative change of every multiplier below which the alternation stops: the lighting fit's
+/// own noise moves a material's ratio by about 1.5% between fits (bundled scene).
 pub const ALBEDO_TOLERANCE: f64 = 0.02;
+
+/// Relative change of every multiplier below which the joint passes stop: what a pass at the
+/// albedo found changes is the light between surfaces, which the one-bounce joint fit leaves
+/// out, and the transport's noise.
+pub const JOINT_TOLERANCE: f64 = 0.005;
+
+/// Ridge of the joint fit (relative to the mean diagonal of TᵀT), far below the envmap fit's:
+/// a ridge shrinks the cells few pixels see, and with the albedo free the materials that see
+/// them take up the shrinkage (at the fit's 0.001, a ball and a box lit from below came out
+/// 2.5% bright; at 1e-5 and 0, 0.2%). Only numerical safety is wanted here.
+pub const JOINT_RIDGE: f64 = 1e-6;
+
+/// Most transport passes of the joint fit.
+pub const MAX_JOINT_PASSES: usize = 4;
+
+/// How the albedo was fitted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, JsonSchema)]
+#[serde(rename_all = "kebab-case")]
+pub enum AlbedoMethod {
+    /// The envmap model: multipliers and envmap fitted jointly on the transport kept per
+    /// material ([`MaterialSums::joint`]), a pass again at the albedo found until it holds.
+    Joint,
+    /// Sphere models or per-view exposures: alternating fits of the lighting and ratio steps
+    /// of the albedo ([`super::job::run`]).
+    Alternation,
+}
 
 /// What became of a material's albedo.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, JsonSchema)]
@@ -98,15 +125,18 @@ pub struct MaterialAlbedo {
 #[derive(Debug, Clone, Serialize, JsonSchema)]
 pub struct AlbedoReport {
     pub fit: FitAlbedo,
+    pub method: AlbedoMethod,
     /// What fixes the overall scale between albedo and light, in words.
     pub gauge: String,
     /// The materials `--trust-albedo` named.
     pub trusted: Vec<String>,
-    /// Lighting fits the alternation made, the last with every sample.
+    /// Alternation: lighting fits made, the last with every sample. Joint: transport passes
+    /// kept per material.
     pub fits: usize,
-    /// The largest relative change of a multiplier at the last step.
+    /// The largest relative change of a multiplier at the last fit or pass.
     pub last_change: f64,
-    /// Whether the last change was below [`ALBEDO_TOLERANCE`].
+    /// Whether the last change was below [`ALBEDO_TOLERANCE`] (alternation) or
+    /// [`JOINT_TOLERANCE`] (joint).
     pub converged: bool,
     pub materials: Vec<MaterialAlbedo>,
 }
@@ -241,19 +271,19 @@ pub fn scaled_materials(given: &[Material], k: &[DVec3]) -> Vec<Material> {
 
 /// Bytes above which [`observability`] takes a coarser grid than the fit's: its sums are kept
 /// per material.
-const OBSERVABILITY_BYTES: usize = 256 << 20;
+const MATERIAL_SUMS_BYTES: usize = 256 << 20;
 
 /// The grid [`observability`] measures on for a fit of `rings` rings and `sets` materials: the
-/// fit's, or the finest coarser one whose per-material sums fit in [`OBSERVABILITY_BYTES`]
+/// fit's, or the finest coarser one whose per-material sums fit in [`MATERIAL_SUMS_BYTES`]
 /// and whose cells are at most [`super::MAX_JACKKNIFE_CELLS`].
-pub fn observability_grid(rings: u32, sets: usize) -> RingGrid {
+pub fn material_grid(rings: u32, sets: usize) -> RingGrid {
     (1..=rings)
         .rev()
         .map(RingGrid::new)
         .find(|g| {
             g.cell_count() <= super::MAX_JACKKNIFE_CELLS
                 && sets.max(1) * NormalEquations::memory_needed(g.cell_count())
-                    <= OBSERVABILITY_BYTES
+                    <= MATERIAL_SUMS_BYTES
         })
         .unwrap_or_else(|| RingGrid::new(1))
 }
@@ -278,12 +308,21 @@ fn resampled(envmap: &Envmap, grid: &RingGrid) -> Vec<DVec3> {
         .collect()
 }
 
-/// Each material's observability (the module doc) under the fitted `envmap`, for the materials
-/// `wanted` marks (the others get `None`): one transport pass of two parts at the fit's
-/// samples, its sums kept per material, over [`observability_grid`]. `progress` gets
-/// [`transport::progress_units`] of the wanted materials' pixels and two parts.
+/// The transport's normal equations kept per material ([`material_sums`]).
+pub struct MaterialSums {
+    pub grid: RingGrid,
+    /// The material of each set.
+    pub materials: Vec<usize>,
+    /// Per set.
+    pub sums: Vec<NormalEquations>,
+}
+
+/// One transport pass whose normal equations are kept per material, for the materials `wanted`
+/// marks: `settings.rounds` parts (at least 2, for unbiased Grams) of the fit's samples per
+/// part, their cells sampled by `envmap`, over [`material_grid`]. `progress` gets
+/// [`transport::progress_units`] of the wanted materials' pixels and the parts.
 #[allow(clippy::too_many_arguments)]
-pub fn observability(
+pub fn material_sums(
     renderer: &Renderer,
     views: &[&Camera],
     references: &[Image],
@@ -293,32 +332,35 @@ pub fn observability(
     envmap: &Envmap,
     settings: &FitSettings,
     progress: &(dyn Fn(u64) + Sync),
-) -> Vec<Option<f64>> {
-    let sets: Vec<usize> = (0..wanted.len()).filter(|&m| wanted[m]).collect();
-    let mut out = vec![None; wanted.len()];
-    if sets.is_empty() {
-        return out;
-    }
+) -> MaterialSums {
+    let materials: Vec<usize> = (0..wanted.len()).filter(|&m| wanted[m]).collect();
     let mut set_of_material = vec![None; wanted.len()];
-    for (s, &m) in sets.iter().enumerate() {
+    for (s, &m) in materials.iter().enumerate() {
         set_of_material[m] = Some(s);
     }
-    let grid = observability_grid(envmap.grid.rings(), sets.len());
+    let grid = material_grid(envmap.grid.rings(), materials.len());
+    if materials.is_empty() {
+        return MaterialSums {
+            grid,
+            materials,
+            sums: Vec::new(),
+        };
+    }
     let set_of = |p: (usize, u32)| pixels.of(p).and_then(|m| set_of_material[m]);
     let targets = Targets {
         grids: std::slice::from_ref(&grid),
-        sets: sets.len(),
+        sets: materials.len(),
         set_of: &set_of,
         max_set_cells: usize::MAX,
     };
     let sampling = super::steering(envmap.grid.rings(), envmap.radiance());
-    let parts: Vec<Part> = (0..2)
+    let parts: Vec<Part> = (0..settings.rounds.max(2))
         .map(|k| Part {
             sampling: sampling.clone(),
-            settings: super::part_seed(settings, OBSERVABILITY_PARTS + k),
+            settings: super::part_seed(settings, MATERIAL_PARTS + k),
         })
         .collect();
-    let sums = transport::accumulate(
+    let mut sums = transport::accumulate(
         renderer,
         views,
         masks,
@@ -328,22 +370,265 @@ pub fn observability(
         super::TRANSPORT_STREAMS,
         progress,
     );
-    let lambda = resampled(envmap, &grid);
-    let per_channel: Vec<Vec<Option<f64>>> = (0..3)
-        .map(|ch| {
-            let grams: Vec<Vec<f64>> = sums[0].iter().map(|s| s.gram(ch)).collect();
-            let l: Vec<f64> = lambda.iter().map(|v| v[ch]).collect();
-            observability_of(&grams, &l)
-        })
-        .collect();
-    for (s, &m) in sets.iter().enumerate() {
-        // The least observable channel (a channel with no light says nothing).
-        out[m] = per_channel
-            .iter()
-            .filter_map(|c| c[s])
-            .fold(None, |a: Option<f64>, r| Some(a.map_or(r, |a| a.min(r))));
+    MaterialSums {
+        grid,
+        materials,
+        sums: sums.swap_remove(0),
     }
-    out
+}
+
+/// The parts [`material_sums`] renders.
+pub fn material_parts(settings: &FitSettings) -> usize {
+    settings.rounds.max(2) as usize
+}
+
+impl MaterialSums {
+    /// Each material's observability (the module doc) under `envmap`, per material of the
+    /// scene (`None` for those not in a set, or unlit): the least of its channels'.
+    pub fn observability(&self, envmap: &Envmap, materials: usize) -> Vec<Option<f64>> {
+        let mut out = vec![None; materials];
+        if self.sums.is_empty() {
+            return out;
+        }
+        let lambda = resampled(envmap, &self.grid);
+        let per_channel: Vec<Vec<Option<f64>>> = (0..3)
+            .map(|ch| {
+                let grams: Vec<Vec<f64>> = self.sums.iter().map(|s| s.gram(ch)).collect();
+                let l: Vec<f64> = lambda.iter().map(|v| v[ch]).collect();
+                observability_of(&grams, &l)
+            })
+            .collect();
+        for (s, &m) in self.materials.iter().enumerate() {
+            // A channel with no light says nothing.
+            out[m] = per_channel
+                .iter()
+                .filter_map(|c| c[s])
+                .fold(None, |a: Option<f64>, r| Some(a.map_or(r, |a| a.min(r))));
+        }
+        out
+    }
+
+    /// The joint fit ([`joint_channel`] per channel) over the sets of the `free` materials
+    /// and the `held` ones (kept as they are: they fix the scale): per material of the scene,
+    /// the multiplier of its albedo relative to the albedo the sums were rendered at (1 for
+    /// materials not free), and the envmap fitted with them. `weights` (per material) fix the
+    /// scale when none is held; `upper` bounds each material's multiplier.
+    pub fn joint(
+        &self,
+        free: &[bool],
+        held: &[bool],
+        weights: &[f64],
+        upper: &[DVec3],
+        ridge: f64,
+        time_limit: std::time::Duration,
+    ) -> (Vec<DVec3>, Envmap) {
+        // The sets the fit uses: the free materials' and the held ones'.
+        let used: Vec<usize> = (0..self.materials.len())
+            .filter(|&s| free[self.materials[s]] || held[self.materials[s]])
+            .collect();
+        let n_sets = used.len();
+        let material = |s: usize| self.materials[used[s]];
+        let set_free: Vec<bool> = (0..n_sets).map(|s| free[material(s)]).collect();
+        let set_weights: Vec<f64> = (0..n_sets).map(|s| weights[material(s)]).collect();
+        let mut k = vec![DVec3::ONE; free.len()];
+        let mut radiance = vec![Vec3::ZERO; self.grid.cell_count()];
+        for ch in 0..3 {
+            let grams: Vec<Vec<f64>> = used.iter().map(|&s| self.sums[s].gram(ch)).collect();
+            let tb: Vec<Vec<f64>> = used.iter().map(|&s| self.sums[s].tb(ch)).collect();
+            let set_upper: Vec<f64> = (0..n_sets).map(|s| upper[material(s)][ch]).collect();
+            let fit = joint_channel(
+                &grams,
+                &tb,
+                &set_free,
+                &set_weights,
+                &set_upper,
+                ridge,
+                time_limit,
+            );
+            for s in 0..n_sets {
+                k[material(s)][ch] = fit.k[s];
+            }
+            for (r, l) in radiance.iter_mut().zip(&fit.lambda) {
+                r[ch] = (*l as f32).clamp(0.0, crate::imageio::MAX_RADIANCE);
+            }
+        }
+        let envmap = Envmap::new(self.grid.rings(), radiance).expect("finite and non-negative");
+        (k, envmap)
+    }
+}
+
+/// One channel's joint fit of the albedo multipliers and the lighting.
+#[derive(Debug, Clone)]
+pub struct JointChannel {
+    /// Per set.
+    pub k: Vec<f64>,
+    /// Per cell, ≥ 0.
+    pub lambda: Vec<f64>,
+    /// Gauss–Newton steps taken.
+    pub iterations: usize,
+}
+
+/// Most Gauss–Newton steps of [`joint_channel`].
+const MAX_JOINT_STEPS: usize = 40;
+
+/// One channel of the joint fit, from the transport of each set of pixels rendered at the
+/// current albedo (its Gram `grams[s]`, cells × cells, and `tb[s]`): multipliers `k` (1 for
+/// sets not `free`) and radiance `λ ≥ 0` minimising `Σ_s ‖k_s T_s λ − y_s‖² + r‖λ‖²` (r
+/// `ridge` times the mean diagonal of Σ G_s), by Gauss–Newton on k over the profile λ(k)
+/// (variable projection: each k's λ is the exact NNLS, so the steps follow the valley the
+/// alternation of [`super::job::run`] crawls along). With no set held, the pixel-weighted
+/// geometric mean of the free sets' k is kept at 1. Each k_s stays within
+/// `[0.01, upper_s]`.
+pub fn joint_channel(
+    grams: &[Vec<f64>],
+    tb: &[Vec<f64>],
+    free: &[bool],
+    weights: &[f64],
+    upper: &[f64],
+    ridge: f64,
+    time_limit: std::time::Duration,
+) -> JointChannel {
+    let sets = grams.len();
+    let n = tb.first().map_or(0, Vec::len);
+    let mut k = vec![1.0f64; sets];
+    let held = free.iter().any(|f| !f);
+    let mean_diag = (0..n)
+        .map(|i| grams.iter().map(|g| g[i * n + i]).sum::<f64>())
+        .sum::<f64>()
+        / n.max(1) as f64;
+    let r = ridge * mean_diag;
+    if n == 0 || mean_diag.is_nan() || mean_diag <= 0.0 {
+        return JointChannel {
+            k,
+            lambda: vec![0.0; n],
+            iterations: 0,
+        };
+    }
+    // λ(k) by NNLS and the objective ½λᵀAλ − cᵀλ there.
+    let profile = |k: &[f64]| -> (Vec<f64>, f64) {
+        let mut a = vec![0.0; n * n];
+        let mut c = vec![0.0; n];
+        for s in 0..sets {
+            let k2 = k[s] * k[s];
+            a.iter_mut().zip(&grams[s]).for_each(|(a, g)| *a += k2 * g);
+            c.iter_mut().zip(&tb[s]).for_each(|(c, b)| *c += k[s] * b);
+        }
+        for i in 0..n {
+            a[i * n + i] += r;
+        }
+        let sol = super::nnls::nnls(&a, &c, 1e-9, 20 * n + 100, time_limit);
+        let f = super::nnls::objective(&a, &c, &sol.x);
+        (sol.x, f)
+    };
+    let gauge = |k: &mut [f64]| {
+        if held {
+            return;
+        }
+        let (mut sum, mut w) = (0.0, 0.0);
+        for s in 0..sets {
+            if free[s] {
+                sum += weights[s] * k[s].ln();
+                w += weights[s];
+            }
+        }
+        if w > 0.0 {
+            let c = (-sum / w).exp();
+            k.iter_mut()
+                .zip(free)
+                .filter(|(_, f)| **f)
+                .for_each(|(k, _)| *k *= c);
+        }
+    };
+    let (mut lambda, mut f) = profile(&k);
+    let mut iterations = 0;
+    let idx: Vec<usize> = (0..sets).filter(|&s| free[s]).collect();
+    let m = idx.len();
+    while iterations < MAX_JOINT_STEPS && m > 0 {
+        iterations += 1;
+        // Per set: G_s λ, its energy λᵀG_sλ and λᵀb_s.
+        let gl: Vec<Vec<f64>> = grams
+            .iter()
+            .map(|g| g.chunks_exact(n).map(|row| dot(row, &lambda)).collect())
+            .collect();
+        let energy: Vec<f64> = gl.iter().map(|v| dot(v, &lambda)).collect();
+        let beta: Vec<f64> = tb.iter().map(|b| dot(b, &lambda)).collect();
+        // Gauss–Newton on (k, λ_active), λ eliminated: H = D − Cᵀ A⁻¹ C, D = diag(energy),
+        // C_s = k_s G_s λ on the lit cells, A = Σ k² G + r I there.
+        let active: Vec<usize> = (0..n).filter(|&i| lambda[i] > 0.0).collect();
+        let na = active.len();
+        let a = faer::Mat::<f64>::from_fn(na, na, |i, j| {
+            let (p, q) = (active[i], active[j]);
+            let v: f64 = (0..sets).map(|s| k[s] * k[s] * grams[s][p * n + q]).sum();
+            v + if i == j { r } else { 0.0 }
+        });
+        let cmat = faer::Mat::<f64>::from_fn(na, m, |i, j| k[idx[j]] * gl[idx[j]][active[i]]);
+        let Ok(llt) = a.llt(faer::Side::Lower) else {
+            break;
+        };
+        let ainv_c = llt.solve(&cmat);
+        let mut h = faer::Mat::<f64>::from_fn(m, m, |p, q| {
+            let d = if p == q { energy[idx[p]] } else { 0.0 };
+            d - (0..na).map(|i| cmat[(i, p)] * ainv_c[(i, q)]).sum::<f64>()
+        });
+        let scale = (0..m).map(|p| h[(p, p)].abs()).fold(0.0, f64::max);
+        if scale.is_nan() || scale <= 0.0 {
+            break;
+        }
+        // No set held: the common scale of k is the lighting's; pin it (in log k).
+        if !held {
+            let v: Vec<f64> = idx.iter().map(|&s| weights[s] / k[s]).collect();
+            let vv: f64 = v.iter().map(|x| x * x).sum();
+            for p in 0..m {
+                for q in 0..m {
+                    h[(p, q)] += scale * v[p] * v[q] / vv;
+                }
+            }
+        }
+        for p in 0..m {
+            h[(p, p)] += 1e-12 * scale;
+        }
+        let grad = faer::Mat::<f64>::from_fn(m, 1, |p, _| {
+            let s = idx[p];
+            beta[s] - k[s] * energy[s]
+        });
+        let Ok(hl) = h.llt(faer::Side::Lower) else {
+            break;
+        };
+        let dk = hl.solve(&grad);
+        let mut alpha = 1.0;
+        let mut accepted = false;
+        let mut largest = 0.0f64;
+        for _ in 0..10 {
+            let mut next = k.clone();
+            for p in 0..m {
+                let s = idx[p];
+                next[s] = (k[s] + alpha * dk[(p, 0)]).clamp(0.01, upper[s].max(0.01));
+            }
+            gauge(&mut next);
+            let (l2, f2) = profile(&next);
+            if f2 <= f {
+                largest = (0..sets).fold(0.0f64, |a, s| a.max((next[s] / k[s]).ln().abs()));
+                k = next;
+                lambda = l2;
+                f = f2;
+                accepted = true;
+                break;
+            }
+            alpha *= 0.5;
+        }
+        if !accepted || largest < 1e-6 {
+            break;
+        }
+    }
+    JointChannel {
+        k,
+        lambda,
+        iterations,
+    }
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
 /// The observability (the module doc) of each set of pixels from one channel's Gram matrices
@@ -401,8 +686,8 @@ pub fn observability_of(grams: &[Vec<f64>], lambda: &[f64]) -> Vec<Option<f64>> 
         .collect()
 }
 
-/// Part seeds of [`observability`]'s pass, apart from the fit's.
-const OBSERVABILITY_PARTS: u32 = 7_919;
+/// Part seeds of [`material_sums`]'s pass, apart from the fit's.
+const MATERIAL_PARTS: u32 = 7_919;
 
 #[cfg(test)]
 mod tests {
@@ -482,11 +767,11 @@ mod tests {
     }
 
     #[test]
-    fn the_observability_grid_bounds_the_sums() {
-        assert_eq!(observability_grid(9, 8).rings(), 9);
-        let g = observability_grid(27, 8);
+    fn the_material_grid_bounds_the_sums() {
+        assert_eq!(material_grid(9, 8).rings(), 9);
+        let g = material_grid(27, 8);
         assert!(g.cell_count() <= super::super::MAX_JACKKNIFE_CELLS);
-        let many = observability_grid(17, 2000);
-        assert!(2000 * NormalEquations::memory_needed(many.cell_count()) <= OBSERVABILITY_BYTES);
+        let many = material_grid(17, 2000);
+        assert!(2000 * NormalEquations::memory_needed(many.cell_count()) <= MATERIAL_SUMS_BYTES);
     }
 }

@@ -704,6 +704,9 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     if !per_view && job.settings.fit_albedo.is_none() {
         return run_once(job, progress);
     }
+    if !per_view && job.settings.model == LightModel::Envmap {
+        return run_joint(job, progress);
+    }
     job.settings.check()?;
     let t_all = Instant::now();
     let original = job.seen;
@@ -784,8 +787,9 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         let renders = match &fitting {
             Some(f) => {
                 if f.observability.is_none() {
-                    let obs = f.measure(fit, seen, &estimate, &settings, &render, progress);
-                    fitting.as_mut().expect("fitting").observability = Some(obs);
+                    let envmap = &estimate.envmap.fit.envmap;
+                    let f = fitting.as_mut().expect("fitting");
+                    f.pass(fit, seen, envmap, &settings, &render, progress);
                 }
                 progress.phase("albedo render", pixels);
                 let lights = final_lights(&estimate.envmap, estimate.spheres.as_ref());
@@ -835,7 +839,12 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                 converged: exposure_change < EXPOSURE_TOLERANCE,
             });
             if let Some(f) = &fitting {
-                report.albedo = Some(f.report(job, &multipliers, fits, albedo_change));
+                report.albedo = Some(f.report(
+                    job,
+                    &multipliers,
+                    (albedo::AlbedoMethod::Alternation, fits),
+                    albedo_change,
+                ));
                 estimate.materials = scene.take().map(|s| s.materials);
             }
             report.timings.total_seconds = original.seconds + t_all.elapsed().as_secs_f64();
@@ -862,6 +871,111 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         last = fits + 1 == MAX_ALTERNATION_FITS;
     }
     unreachable!("the loop returns by its last fit")
+}
+
+/// [`run`] fitting the albedo with the envmap model: a first fit at the given albedo (a
+/// quarter of the samples) chooses the rings and steers the passes; each pass renders the
+/// transport kept per material in the scene at the albedo so far, and the multipliers and
+/// the envmap are fitted jointly on it ([`albedo::MaterialSums::joint`]); passes go on until
+/// one changes no multiplier by [`albedo::JOINT_TOLERANCE`] (what it still changes is light
+/// between surfaces, which the joint fit takes as fixed); then one fit with every sample at
+/// the albedo found.
+fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
+    job.settings.check()?;
+    let t_all = Instant::now();
+    let mut fitting = AlbedoFit::new(job, progress)?;
+    let quarter = |n: u32, least: u32| (n / 4).max(least).min(n);
+    let mut settings = EstimateSettings {
+        spp: quarter(job.settings.spp, job.settings.rounds),
+        noise_floor: false,
+        oracle: false,
+        diagnose: false,
+        ..job.settings.clone()
+    };
+    let render = RenderSettings {
+        spp: quarter(job.render.spp, 16),
+        ..*job.render
+    };
+    let given = &job.fit.scene.materials;
+    let judged_in_fit = std::ptr::eq(job.fit.scene, job.truth.scene);
+    let mut scene = job.fit.scene.clone();
+    let mut multipliers = vec![glam::DVec3::ONE; given.len()];
+    // The job in `scene` with `settings` and `render`.
+    let fit_in = |scene: &crate::scene::Scene,
+                  settings: &EstimateSettings,
+                  render: &RenderSettings|
+     -> Result<Estimate> {
+        let fit = job.fit.with_scene(scene, job.fit.lights);
+        let truth = match judged_in_fit {
+            true => job.truth.with_scene(scene, job.truth.lights),
+            false => job.truth.with_lights(job.truth.lights),
+        };
+        run_once(
+            &Job {
+                fit: &fit,
+                truth: &truth,
+                settings,
+                render,
+                ..*job
+            },
+            progress,
+        )
+    };
+    let first = fit_in(&scene, &settings, &render)?;
+    settings.rings = Rings::Fixed(first.report.rings);
+    let mut steer = first.envmap.fit.envmap.clone();
+    let (mut passes, mut change) = (0, f64::INFINITY);
+    while passes < albedo::MAX_JOINT_PASSES && change >= albedo::JOINT_TOLERANCE {
+        passes += 1;
+        scene.materials = albedo::scaled_materials(given, &multipliers);
+        let fit = job.fit.with_scene(&scene, job.fit.lights);
+        let sums = fitting.pass(&fit, job.seen, &steer, &settings, &render, progress);
+        let fitted = fitting.fitted();
+        let upper: Vec<glam::DVec3> = fitting
+            .upper
+            .iter()
+            .zip(&multipliers)
+            .map(|(u, k)| {
+                let room = *u - glam::DVec3::new(k.x.ln(), k.y.ln(), k.z.ln());
+                glam::DVec3::new(room.x.exp(), room.y.exp(), room.z.exp())
+            })
+            .collect();
+        let weights: Vec<f64> = fitting.pixels.counts.iter().map(|&c| c as f64).collect();
+        let (k, envmap) = sums.joint(
+            &fitted,
+            &fitting.trusted,
+            &weights,
+            &upper,
+            albedo::JOINT_RIDGE,
+            settings.time_limit,
+        );
+        change = k
+            .iter()
+            .flat_map(|v| v.to_array())
+            .fold(0.0f64, |m, v| m.max(v.ln().abs().exp_m1()));
+        for (m, k) in multipliers.iter_mut().zip(&k) {
+            *m *= *k;
+        }
+        if envmap.grid.rings() == steer.grid.rings() {
+            steer = envmap;
+        }
+    }
+    scene.materials = albedo::scaled_materials(given, &multipliers);
+    let settings = EstimateSettings {
+        rings: settings.rings,
+        ..job.settings.clone()
+    };
+    let mut estimate = fit_in(&scene, &settings, job.render)?;
+    let report = &mut estimate.report;
+    report.albedo = Some(fitting.report(
+        job,
+        &multipliers,
+        (albedo::AlbedoMethod::Joint, passes),
+        change,
+    ));
+    report.timings.total_seconds = job.seen.seconds + t_all.elapsed().as_secs_f64();
+    estimate.materials = Some(scene.materials);
+    Ok(estimate)
 }
 
 /// The lights an estimate ends with: its chosen sphere model (with any envmap behind it),
@@ -953,26 +1067,27 @@ impl AlbedoFit {
         })
     }
 
-    /// Each free material's observability under the estimate's envmap.
-    fn measure(
-        &self,
+    /// The materials a pass keeps sums for: the free (until found unconstrained) and the
+    /// trusted.
+    fn wanted(&self) -> Vec<bool> {
+        let fitted = self.fitted();
+        (0..self.free.len())
+            .map(|m| fitted[m] || self.trusted[m])
+            .collect()
+    }
+
+    /// A transport pass kept per material ([`albedo::material_sums`]) in `fit`'s scene,
+    /// sampled by `envmap`; the first measures the observability.
+    fn pass(
+        &mut self,
         fit: &Renderer,
         seen: &SeenViews,
-        estimate: &Estimate,
+        envmap: &crate::envmap::Envmap,
         settings: &EstimateSettings,
         render: &RenderSettings,
         progress: &dyn Progress,
-    ) -> Vec<Option<f64>> {
-        // Every material that constrains the lighting: the free ones and the trusted.
-        let wanted: Vec<bool> = (0..self.free.len())
-            .map(|m| self.free[m] || self.trusted[m])
-            .collect();
-        let keep = |p| self.pixels.of(p).is_some_and(|m| wanted[m]);
-        progress.phase(
-            "albedo observability",
-            super::transport::progress_units(&seen.masks, &keep, 2),
-        );
-        let envmap = &estimate.envmap.fit.envmap;
+    ) -> albedo::MaterialSums {
+        let wanted = self.wanted();
         let fit_settings = super::FitSettings::new(
             render,
             envmap.grid.rings(),
@@ -980,7 +1095,16 @@ impl AlbedoFit {
             settings.spp,
             settings.rounds,
         );
-        albedo::observability(
+        let keep = |p| self.pixels.of(p).is_some_and(|m| wanted[m]);
+        progress.phase(
+            "albedo transport",
+            super::transport::progress_units(
+                &seen.masks,
+                &keep,
+                albedo::material_parts(&fit_settings),
+            ),
+        );
+        let sums = albedo::material_sums(
             fit,
             &seen.views,
             &seen.references,
@@ -990,7 +1114,11 @@ impl AlbedoFit {
             envmap,
             &fit_settings,
             &|k| progress.advance(k),
-        )
+        );
+        if self.observability.is_none() {
+            self.observability = Some(sums.observability(envmap, self.free.len()));
+        }
+        sums
     }
 
     /// The materials fitted: free and, once measured, observable.
@@ -1036,7 +1164,7 @@ impl AlbedoFit {
         &self,
         job: &Job,
         multipliers: &[glam::DVec3],
-        fits: usize,
+        (method, fits): (albedo::AlbedoMethod, usize),
         last_change: f64,
     ) -> AlbedoReport {
         let fitted = self.fitted();
@@ -1057,9 +1185,14 @@ impl AlbedoFit {
                 )
             },
             trusted,
+            method,
             fits,
             last_change,
-            converged: last_change < albedo::ALBEDO_TOLERANCE,
+            converged: last_change
+                < match method {
+                    albedo::AlbedoMethod::Joint => albedo::JOINT_TOLERANCE,
+                    albedo::AlbedoMethod::Alternation => albedo::ALBEDO_TOLERANCE,
+                },
             materials: materials
                 .iter()
                 .enumerate()
@@ -1803,7 +1936,14 @@ fn misfit_causes(job: &Job, model: &str) -> Vec<String> {
          is missing",
         job.render.max_bounces
     ));
-    causes.push("the albedo (the glTF's baseColor, or the sidecar's albedo)".to_string());
+    causes.push(match job.settings.fit_albedo {
+        None => "the albedo (the glTF's baseColor, or the sidecar's albedo): try --fit-albedo \
+                 materials"
+            .to_string(),
+        Some(_) => "the albedo within a material (--fit-albedo materials fits one colour per \
+                    material)"
+            .to_string(),
+    });
     let ignored = &job.truth.scene.ignored;
     if !ignored.is_empty() {
         causes.push(format!(

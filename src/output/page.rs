@@ -228,6 +228,7 @@ pub fn write(
     spheres_section(&mut h, report, &kept, truth_word(rendered_references));
     selection_sections(&mut h, report);
     exposure_section(&mut h, report);
+    albedo_section(&mut h, report);
     h.push_str(
         "<h2>Files</h2><ul><li><a href=\"report.json\">report.json</a>: every figure \
          (its JSON Schema: <code>lightprobe schema --report</code>)</li><li><a href=\"envmap.ron\">envmap.ron</a>, \
@@ -583,6 +584,78 @@ fn exposure_section(h: &mut String, r: &Value) {
             "<tr><td>{}</td>{}</tr>",
             escape(v["view"].as_str().unwrap_or("")),
             cell(r, &format!("exposure.relative.{i}.exposure"), Format::Ratio),
+        );
+    }
+    h.push_str("</table>\n");
+}
+
+/// `--fit-albedo`: each material's given and fitted albedo, with swatches.
+fn albedo_section(h: &mut String, r: &Value) {
+    let Some(materials) = r["albedo"]["materials"].as_array() else {
+        return;
+    };
+    let _ = writeln!(
+        h,
+        "<h2>Albedo (--fit-albedo)</h2><p class=\"note\">{}; {} {}, {}. A material is fitted \
+         from the pixels that see it alone; observability is the share of its image only its \
+         albedo explains (0: lit by light no other material sees, and kept as given). Where \
+         the fit test says the model does not explain the images, the albedo has taken up \
+         part of the misfit.</p><table><tr><th>material</th><th>status</th><th>pixels</th>\
+         <th>observability</th><th>given (linear RGB)</th><th>fitted</th><th></th></tr>",
+        escape(r["albedo"]["gauge"].as_str().unwrap_or("")),
+        span(r, "albedo.fits", Format::Integer),
+        if r["albedo"]["method"].as_str() == Some("joint") {
+            "joint passes"
+        } else {
+            "alternating fits"
+        },
+        if r["albedo"]["converged"].as_bool() == Some(true) {
+            "converged"
+        } else {
+            "<b>not converged</b>"
+        }
+    );
+    let swatch = |v: &Value| -> String {
+        let c = |i: usize| {
+            let x = v[i].as_f64().unwrap_or(0.0) as f32;
+            (crate::imageio::linear_to_srgb(x.clamp(0.0, 1.0)) * 255.0).round() as u8
+        };
+        format!(
+            "<span style=\"display:inline-block;width:1.2em;height:1.2em;\
+             background:rgb({},{},{});border:1px solid #888\"></span>",
+            c(0),
+            c(1),
+            c(2)
+        )
+    };
+    for (i, m) in materials.iter().enumerate() {
+        let rgb = |what: &str| {
+            (0..3)
+                .map(|c| {
+                    span(
+                        r,
+                        &format!("albedo.materials.{i}.{what}.{c}"),
+                        Format::Significant,
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td>{}</td>{}{}<td>{}</td><td>{}</td><td>{} {}</td></tr>",
+            escape(m["name"].as_str().unwrap_or("")),
+            escape(m["status"].as_str().unwrap_or("")),
+            cell(r, &format!("albedo.materials.{i}.pixels"), Format::Integer),
+            cell(
+                r,
+                &format!("albedo.materials.{i}.observability"),
+                Format::Significant
+            ),
+            rgb("given"),
+            rgb("fitted"),
+            swatch(&m["given"]),
+            swatch(&m["fitted"]),
         );
     }
     h.push_str("</table>\n");
