@@ -472,12 +472,12 @@ fn rings_auto_reports_its_choice_and_the_sweep_charts_it() {
 #[test]
 fn albedo_error_perturbs_every_material_within_bounds_and_is_swept() {
     let scene = Scene::load(&root().join("scenes/tabletop/tabletop.ron")).unwrap();
-    let p = lightprobe::experiment::with_albedo_error(&scene, 0.1, 7);
+    let p = lightprobe::experiment::with_albedo_error(&scene, 0.1, 7, &[]);
     assert_eq!(
         format!("{:?}", p.materials),
         format!(
             "{:?}",
-            lightprobe::experiment::with_albedo_error(&scene, 0.1, 7).materials
+            lightprobe::experiment::with_albedo_error(&scene, 0.1, 7, &[]).materials
         )
     );
     let uv = glam::Vec2::new(0.3, 0.6);
@@ -522,6 +522,62 @@ fn albedo_error_perturbs_every_material_within_bounds_and_is_swept() {
     );
     let o = sweep(&[&a], &out, &["--albedo-error", "1.5"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("--albedo-error"));
+
+    // --fit-albedo: beside the perturbed trial, one fitting the albedo (the table left exact
+    // and trusted), with the fitted albedo's error against the truth in its record and in the
+    // report's table.
+    std::fs::write(
+        &a,
+        text.replace("spp: 8,", "spp: 64,")
+            .replace("width: 32, height: 24", "width: 96, height: 72"),
+    )
+    .unwrap();
+    let out = tmp.path().join("fitted");
+    ok(&sweep(
+        &[&a],
+        &out,
+        &[
+            "--rings",
+            "9",
+            "--spp",
+            "64",
+            "--albedo-error",
+            "0,0.2",
+            "--fit-albedo",
+            "materials",
+            "--trust-albedo",
+            "table",
+        ],
+    ));
+    let recs = read_records(&out).unwrap();
+    let ids: Vec<&str> = recs.iter().map(|r| r.id.as_str()).collect();
+    assert_eq!(recs.len(), 3, "{ids:?}");
+    let fitted = recs
+        .iter()
+        .find(|r| r.id == "a/spp64/rings9/nnls/albedo20/fitalbedo")
+        .unwrap();
+    assert!(
+        fitted.fit_albedo && fitted.status == Status::Ok,
+        "{fitted:?}"
+    );
+    // A 9-ring envmap cannot place the near light: the albedo takes up part of that misfit.
+    let worst = fitted.albedo_max_error.unwrap();
+    assert!(
+        worst < 0.5 && fitted.albedo_mean_error.unwrap() <= worst,
+        "{fitted:?}"
+    );
+    assert!(
+        recs.iter()
+            .filter(|r| !r.fit_albedo)
+            .all(|r| r.albedo_max_error.is_none())
+    );
+    let o = run(&["report", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(
+        md.contains("fitted albedo error") && md.contains("albedo ±20%, fitted"),
+        "{md}"
+    );
 }
 
 #[test]

@@ -11,7 +11,7 @@ use lightprobe::experiment::scenarios;
 use lightprobe::imageio;
 use lightprobe::scene::Scene;
 
-use super::{ColourArg, SolverArg, flag_error, outln, prepare_out_dir, say};
+use super::{ColourArg, FitAlbedoArg, SolverArg, flag_error, outln, prepare_out_dir, say};
 
 #[derive(clap::Args)]
 pub struct ScenariosArgs {
@@ -78,6 +78,14 @@ pub struct SweepArgs {
     /// in the true scene. 0 = the true albedos.
     #[arg(long, value_delimiter = ',', default_value = "0")]
     albedo_error: Vec<f32>,
+    /// Beside every trial with an albedo error, one that fits the albedo (as `estimate
+    /// --fit-albedo materials`); its records give the fitted albedo's error against the truth.
+    #[arg(long, value_enum)]
+    fit_albedo: Option<FitAlbedoArg>,
+    /// Materials the albedo error leaves exact and the albedo fits trust (as `estimate
+    /// --trust-albedo`).
+    #[arg(long, value_delimiter = ',')]
+    trust_albedo: Vec<String>,
     /// Exit 0 even when some trials failed (they are recorded either way).
     #[arg(long)]
     allow_failures: bool,
@@ -182,6 +190,8 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         auto: a.auto,
         albedo_errors: a.albedo_error.clone(),
         spheres: a.spheres,
+        fit_albedo: a.fit_albedo.is_some(),
+        trust_albedo: a.trust_albedo.clone(),
     };
 
     let files = sidecar_files(&a.scenarios)?;

@@ -29,6 +29,8 @@ pub struct SeriesKey {
     pub spp: u32,
     /// The fit's albedo error, percent (0 = true albedos).
     pub albedo_error_percent: u32,
+    /// The albedo was fitted beside the lighting.
+    pub fit_albedo: bool,
 }
 
 /// Solver, ordered and printable.
@@ -54,16 +56,18 @@ impl SeriesKey {
             solver: r.solver.into(),
             spp: r.spp,
             albedo_error_percent: (r.albedo_error * 100.0).round() as u32,
+            fit_albedo: r.fit_albedo,
         }
     }
 
     fn label(&self) -> String {
         if self.albedo_error_percent > 0 {
             return format!(
-                "{} {} spp, albedo ±{}%",
+                "{} {} spp, albedo ±{}%{}",
                 format!("{:?}", self.solver).to_lowercase(),
                 self.spp,
-                self.albedo_error_percent
+                self.albedo_error_percent,
+                if self.fit_albedo { ", fitted" } else { "" }
             );
         }
         format!(
@@ -86,6 +90,10 @@ pub struct Cell {
     /// Mean stand-alone fit time, seconds.
     pub fit_seconds_mean: f64,
     pub on_pareto_front: bool,
+    /// Series that fit the albedo: the mean over trials of each trial's mean relative error
+    /// of the fitted albedo, and the largest over trials and materials.
+    pub albedo_error_mean: Option<f64>,
+    pub albedo_error_max: Option<f64>,
 }
 
 /// What `report` found.
@@ -265,19 +273,14 @@ fn mean_std(v: &[f64]) -> (f64, f64) {
     (m, var.sqrt())
 }
 
-/// Colour of series `s` among `series`: its samples per pixel and albedo error ranked along
-/// viridis (the solver is told by the marker, not the colour).
+/// Colour of series `s` among `series`: its samples per pixel, albedo error and whether it
+/// fitted the albedo ranked along viridis (the solver is told by the marker, not the colour).
 fn series_colour(series: &[SeriesKey], s: &SeriesKey) -> RGBColor {
-    let mut keys: Vec<(u32, u32)> = series
-        .iter()
-        .map(|k| (k.spp, k.albedo_error_percent))
-        .collect();
+    let key = |k: &SeriesKey| (k.spp, k.albedo_error_percent, k.fit_albedo);
+    let mut keys: Vec<(u32, u32, bool)> = series.iter().map(key).collect();
     keys.sort_unstable();
     keys.dedup();
-    let i = keys
-        .iter()
-        .position(|k| *k == (s.spp, s.albedo_error_percent))
-        .unwrap_or(0);
+    let i = keys.iter().position(|k| *k == key(s)).unwrap_or(0);
     figure::series_colour(i, keys.len())
 }
 
@@ -559,7 +562,13 @@ fn aggregate(ok: &[&TrialRecord]) -> Vec<Cell> {
             let (m, s) = mean_std(&errs);
             let nf: Vec<f64> = rs.iter().filter_map(|r| r.noise_floor_rel_mae).collect();
             let fit: Vec<f64> = rs.iter().map(|r| r.timings.fit_seconds).collect();
+            let albedo: Vec<f64> = rs.iter().filter_map(|r| r.albedo_mean_error).collect();
             Cell {
+                albedo_error_mean: (!albedo.is_empty()).then(|| mean_std(&albedo).0),
+                albedo_error_max: rs
+                    .iter()
+                    .filter_map(|r| r.albedo_max_error)
+                    .reduce(f64::max),
                 series: *series,
                 rings: *rings,
                 scenarios: rs.len(),
@@ -1032,10 +1041,16 @@ fn markdown(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
     if drawn("error_vs_rings.png") {
         md += "![error against rings](error_vs_rings.png)\n\n";
     }
-    md += "| series | rings | scenarios | relMAE mean | std | noise floor | fit (s) | Pareto |\n|---|---:|---:|---:|---:|---:|---:|:-:|\n";
+    let albedo = s.cells.iter().any(|c| c.albedo_error_mean.is_some());
+    md += "| series | rings | scenarios | relMAE mean | std | noise floor | fit (s) | Pareto |";
+    md += if albedo {
+        " fitted albedo error, mean / max |\n|---|---:|---:|---:|---:|---:|---:|:-:|---:|\n"
+    } else {
+        "\n|---|---:|---:|---:|---:|---:|---:|:-:|\n"
+    };
     for c in &s.cells {
         md += &format!(
-            "| {} | {} | {} | {:.2}% | {:.2}% | {:.2}% | {:.2} | {} |\n",
+            "| {} | {} | {} | {:.2}% | {:.2}% | {:.2}% | {:.2} | {} |",
             c.series.label(),
             c.rings,
             c.scenarios,
@@ -1045,6 +1060,13 @@ fn markdown(s: &Summary, best: &BTreeMap<&str, &TrialRecord>) -> String {
             c.fit_seconds_mean,
             if c.on_pareto_front { "●" } else { "" }
         );
+        if albedo {
+            md += &match (c.albedo_error_mean, c.albedo_error_max) {
+                (Some(m), Some(x)) => format!(" {:.2}% / {:.2}% |", 100.0 * m, 100.0 * x),
+                _ => " |".to_string(),
+            };
+        }
+        md += "\n";
     }
     md += "\n";
     if drawn("speed_vs_accuracy.png") {

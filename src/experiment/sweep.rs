@@ -94,6 +94,12 @@ pub struct SweepSettings {
     /// Also run the sphere-light model per scenario (`estimate --model spheres`), started
     /// from an envmap estimate with this many rings.
     pub spheres: Option<u32>,
+    /// Beside every trial with an albedo error, one that fits the albedo
+    /// (`estimate --fit-albedo materials`).
+    pub fit_albedo: bool,
+    /// Materials whose albedo the perturbation leaves exact and the albedo fits trust
+    /// (`--trust-albedo`).
+    pub trust_albedo: Vec<String>,
 }
 
 /// How a trial ended.
@@ -184,6 +190,15 @@ pub struct TrialRecord {
     /// The albedo error the fit lived with (0 = true albedos).
     #[serde(default)]
     pub albedo_error: f32,
+    /// The trial fitted the albedo (`--fit-albedo materials`).
+    #[serde(default)]
+    pub fit_albedo: bool,
+    /// With `fit_albedo`: the largest and the mean relative error, over the fitted materials
+    /// and channels, of the fitted albedo against the true one.
+    #[serde(default)]
+    pub albedo_max_error: Option<f64>,
+    #[serde(default)]
+    pub albedo_mean_error: Option<f64>,
     /// The scenario and settings the trial ran with; resuming refuses a mismatch.
     #[serde(default)]
     pub fingerprint: String,
@@ -227,6 +242,7 @@ pub fn trial_id(
     solver: Solver,
     albedo_error: f32,
     spheres: bool,
+    fit_albedo: bool,
 ) -> String {
     let r = rings.map_or("auto".to_string(), |r| format!("rings{r}"));
     let r = if spheres {
@@ -239,7 +255,8 @@ pub fn trial_id(
     } else {
         String::new()
     };
-    format!("{scenario}/spp{spp}/{r}/{solver:?}{a}").to_lowercase()
+    let f = if fit_albedo { "/fitalbedo" } else { "" };
+    format!("{scenario}/spp{spp}/{r}/{solver:?}{a}{f}").to_lowercase()
 }
 
 /// Seed of the albedo perturbation (the same for every scenario).
@@ -374,6 +391,12 @@ pub fn run(
             (Solver::Nnls, crate::estimate::Colour::Together) => " colour=together",
             _ => "",
         };
+        // The materials left exact change every perturbed trial's scene.
+        let colour = if settings.trust_albedo.is_empty() {
+            colour.to_string()
+        } else {
+            format!("{colour} exact_albedo={}", settings.trust_albedo.join(","))
+        };
         format!(
             // The transport method: a sweep started by another cannot be resumed into this one.
             "{} smooth={} ridge={}{colour} time_limit={}s rounds={} transport=streamed-pilot-parts",
@@ -392,6 +415,7 @@ pub fn run(
             t.solver,
             axes.albedo_errors[t.albedo],
             t.spheres,
+            t.fit_albedo,
         )
     };
     let (todo, failed_before, not_converged_before) = pending(&plan, out, &id, &fingerprint)?;
@@ -442,9 +466,9 @@ pub fn run(
             axes.albedo_errors
                 .iter()
                 .map(|&e| {
-                    s.as_ref()
-                        .filter(|_| e > 0.0)
-                        .map(|s| super::with_albedo_error(s, e, ALBEDO_SEED))
+                    s.as_ref().filter(|_| e > 0.0).map(|s| {
+                        super::with_albedo_error(s, e, ALBEDO_SEED, &settings.trust_albedo)
+                    })
                 })
                 .collect()
         })
@@ -644,7 +668,7 @@ impl Axes {
         for &solver in &settings.solvers {
             let spp = settings.spp.first().copied().unwrap_or(1);
             let rings = Rings::Auto(settings.rings.clone());
-            trial_settings(settings, solver, spp, rings, false).check()?;
+            trial_settings(settings, solver, spp, rings, false, settings.fit_albedo).check()?;
         }
         Ok(Axes {
             rings: dedup(&settings.rings),
@@ -667,17 +691,25 @@ fn plan(scenarios: &[ScenarioFile], axes: &Axes, settings: &SweepSettings) -> Ve
             let fixed = axes.rings.iter().map(|&r| (Some(r), false));
             let auto = settings.auto.then_some((None, false));
             let spheres = settings.spheres.map(|r| (Some(r), true));
+            let fits: &[bool] = if settings.fit_albedo && axes.albedo_errors[a] > 0.0 {
+                &[false, true]
+            } else {
+                &[false]
+            };
             for (rings, spheres) in fixed.chain(auto).chain(spheres) {
-                for &solver in &axes.solvers {
-                    for &s in &mine {
-                        plan.push(Trial {
-                            scenario: s,
-                            spp,
-                            rings,
-                            solver,
-                            albedo: a,
-                            spheres,
-                        });
+                for &fit_albedo in fits {
+                    for &solver in &axes.solvers {
+                        for &s in &mine {
+                            plan.push(Trial {
+                                scenario: s,
+                                spp,
+                                rings,
+                                solver,
+                                albedo: a,
+                                spheres,
+                                fit_albedo,
+                            });
+                        }
                     }
                 }
             }
@@ -723,6 +755,7 @@ fn run_trial<'a>(
         solver,
         albedo: a,
         spheres,
+        fit_albedo,
     } = trial;
     let (settings, out) = (ctx.settings, ctx.out);
     let sf = &ctx.scenarios[s];
@@ -758,7 +791,7 @@ fn run_trial<'a>(
         Some(r) => Rings::Fixed(r),
         None => Rings::Auto(ctx.axes.rings.clone()),
     };
-    let estimate = trial_settings(settings, solver, spp, rings, spheres);
+    let estimate = trial_settings(settings, solver, spp, rings, spheres, fit_albedo);
     let id = trial_id(
         &sf.name,
         spp,
@@ -766,6 +799,7 @@ fn run_trial<'a>(
         solver,
         ctx.axes.albedo_errors[a],
         spheres,
+        fit_albedo,
     );
     phase(&id);
     let (lo, hi) = scene.mesh.bounds();
@@ -793,14 +827,44 @@ fn run_trial<'a>(
             record.status = Status::Failed;
             record.error = Some(e.to_string());
         }
-        Ok(est) => fill_record(
-            &mut record,
-            est.report,
-            &obs.noise_floor,
-            (&sf.lights, job.center),
-        ),
+        Ok(est) => {
+            if let Some(a) = &est.report.albedo {
+                (record.albedo_max_error, record.albedo_mean_error) =
+                    albedo_errors(a, &scene.materials);
+            }
+            fill_record(
+                &mut record,
+                est.report,
+                &obs.noise_floor,
+                (&sf.lights, job.center),
+            )
+        }
     }
     Ok(record)
+}
+
+/// The largest and the mean relative error, over the fitted materials and their channels, of
+/// the fitted albedo against the true `materials`' (`None` without a fitted material).
+fn albedo_errors(
+    report: &crate::estimate::albedo::AlbedoReport,
+    materials: &[crate::scene::Material],
+) -> (Option<f64>, Option<f64>) {
+    use crate::estimate::albedo::MaterialStatus;
+    let errors: Vec<f64> = report
+        .materials
+        .iter()
+        .zip(materials)
+        .filter(|(m, _)| m.status == MaterialStatus::Fitted)
+        .flat_map(|(m, t)| {
+            let truth = t.mean_albedo();
+            (0..3)
+                .filter(move |&c| truth[c] > 0.0)
+                .map(move |c| (m.fitted[c] as f64 / truth[c] as f64 - 1.0).abs())
+        })
+        .collect();
+    let max = errors.iter().copied().reduce(f64::max);
+    let mean = (!errors.is_empty()).then(|| errors.iter().sum::<f64>() / errors.len() as f64);
+    (max, mean)
 }
 
 /// A trial's record before its estimate: what it is, its scenario's figures, no results yet.
@@ -837,6 +901,9 @@ fn blank_record(
         spheres: None,
         colour: None,
         albedo_error,
+        fit_albedo: trial.fit_albedo,
+        albedo_max_error: None,
+        albedo_mean_error: None,
         fingerprint: String::new(),
         transport_bytes: 0,
         peak_bytes: 0,
@@ -866,7 +933,7 @@ fn check_memory(
             Some(r) => Rings::Fixed(r),
             None => Rings::Auto(axes.rings.clone()),
         };
-        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres)
+        let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres, t.fit_albedo)
             .memory_needed(pixels, scene.settings.max_bounces);
         crate::memory::reserve(need, || format!("trial {}", id(t)))?;
     }
@@ -879,6 +946,7 @@ fn trial_settings(
     spp: u32,
     rings: Rings,
     spheres: bool,
+    fit_albedo: bool,
 ) -> EstimateSettings {
     EstimateSettings {
         rings,
@@ -904,8 +972,12 @@ fn trial_settings(
         exposure: crate::estimate::job::Exposure::Shared,
         // A trial's record has no place for the diagnosis; it would cost a fit per misfit.
         diagnose: false,
-        fit_albedo: None,
-        trust_albedo: Vec::new(),
+        fit_albedo: fit_albedo.then_some(crate::estimate::albedo::FitAlbedo::Materials),
+        trust_albedo: if fit_albedo {
+            settings.trust_albedo.clone()
+        } else {
+            Vec::new()
+        },
     }
 }
 
@@ -922,6 +994,8 @@ struct Trial {
     albedo: usize,
     /// The sphere-light model, started from an envmap of `rings`.
     spheres: bool,
+    /// Fits the albedo beside the lighting.
+    fit_albedo: bool,
 }
 
 /// The true lights as seen from the scene's `center` (`size`: its larger horizontal extent),
