@@ -1261,10 +1261,24 @@ fn per_material_albedo_is_recovered_beside_the_lighting() {
     // Nothing trusted: the scale is the fitted materials' mean, their ratios the truth's.
     let free = run(Some(FitAlbedo::Materials), &[], &fit);
     let report = free.report.albedo.as_ref().unwrap();
+    assert!(report.converged, "{report:?}");
     let f = |m: usize| Vec3::from_array(report.materials[m].fitted);
     let ratio = (f(1) / f(2)) / (sc.materials[1].mean_albedo() / sc.materials[2].mean_albedo());
     assert!((ratio - Vec3::ONE).abs().max_element() < 0.02, "{ratio}");
-    assert_eq!(report.materials[0].status, MaterialStatus::Fitted);
+    assert!(
+        report
+            .materials
+            .iter()
+            .all(|m| m.status == MaterialStatus::Fitted)
+    );
+    // The gauge: the pixel-weighted geometric mean of the multipliers stays 1 per channel.
+    let (mut log_sum, mut weight) = (glam::DVec3::ZERO, 0.0);
+    for m in &report.materials {
+        let k = Vec3::from_array(m.multiplier).as_dvec3();
+        log_sum += glam::DVec3::new(k.x.ln(), k.y.ln(), k.z.ln()) * m.pixels as f64;
+        weight += m.pixels as f64;
+    }
+    assert!((log_sum / weight).abs().max_element() < 1e-3, "{report:?}");
 }
 
 #[test]

@@ -560,12 +560,11 @@ fn albedo_error_perturbs_every_material_within_bounds_and_is_swept() {
         fitted.fit_albedo && fitted.status == Status::Ok,
         "{fitted:?}"
     );
-    // A 9-ring envmap cannot place the near light: the albedo takes up part of that misfit.
+    // A 9-ring envmap cannot place the near light: the albedo takes up part of that misfit
+    // (measured: mean 10.9%, worst 17.8% off, against the ±20% it was given).
     let worst = fitted.albedo_max_error.unwrap();
-    assert!(
-        worst < 0.5 && fitted.albedo_mean_error.unwrap() <= worst,
-        "{fitted:?}"
-    );
+    let mean = fitted.albedo_mean_error.unwrap();
+    assert!(worst < 0.27 && mean < 0.16 && mean <= worst, "{fitted:?}");
     assert!(
         recs.iter()
             .filter(|r| !r.fit_albedo)

@@ -18,7 +18,7 @@ use lightprobe::scene::{Scene, sidecar};
 use super::{
     Bars, ColourArg, FitAlbedoArg, SceneArgs, SolverArg, check_memory, outln, prepare_out_dir, say,
 };
-use lightprobe::estimate::albedo::{AlbedoReport, MaterialStatus};
+use lightprobe::estimate::albedo::{AlbedoMethod, AlbedoReport, MaterialStatus};
 
 /// `--model`: the envmap, K sphere lights (None: 1 to 3, chosen on held-out pixels), or
 /// chosen from the data.
@@ -96,12 +96,14 @@ pub struct Args {
     /// then in (photographs cannot tell the overall scale).
     #[arg(long, value_enum, default_value_t = ExposureArg::Shared)]
     exposure: ExposureArg,
-    /// Fit the albedo beside the lighting, by alternating fits (3–7): `materials` corrects
-    /// each material's albedo by an RGB multiplier (of its constant, or of its texture's
-    /// factor), from the pixels that see it alone. Materials seen by fewer than 64 such
-    /// pixels, or lit only by light no other material sees, are kept as given and reported
-    /// so. report.json's "albedo" lists every material's given and fitted albedo; the written
-    /// glTF, Blender and Mitsuba scenes carry the fitted one.
+    /// Fit the albedo beside the lighting: `materials` corrects each material's albedo by an
+    /// RGB multiplier (of its constant, or of its texture's factor), from the pixels that see
+    /// it alone; with the envmap, jointly with it (2–4 transport passes, then the fit), with
+    /// sphere models by alternating fits (2–8). Materials seen by fewer than 64 such pixels,
+    /// or lit only by light no other material sees, are kept as given and reported so.
+    /// report.json's "albedo" lists every material's given and fitted albedo; the written
+    /// glTF, Blender and Mitsuba scenes carry the fitted one. With --exposure per-view it
+    /// needs a sphere model.
     #[arg(long, value_enum)]
     fit_albedo: Option<FitAlbedoArg>,
     /// Materials whose albedo is known (comma-separated glTF material names): kept as given,
@@ -268,7 +270,17 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if let Some(name) = a
         .trust_albedo
         .iter()
-        .find(|n| !scene.materials.iter().any(|m| &m.name == *n))
+        .find(|n| scene.materials.iter().filter(|m| &m.name == *n).count() > 1)
+    {
+        anyhow::bail!(
+            "{}: --trust-albedo names material {name:?}, which names several of the scene's materials",
+            path.display()
+        );
+    }
+    if let Some(name) = a
+        .trust_albedo
+        .iter()
+        .find(|n| !n.is_empty() && !scene.materials.iter().any(|m| &m.name == *n))
     {
         let names: Vec<&str> = scene
             .materials
@@ -296,7 +308,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let rings = settings.ring_counts().iter().copied().max().unwrap_or(1);
     let spheres = settings.model.max_lights() > 0;
     check_memory(
-        settings.memory_needed(pixels, scene.settings.max_bounces),
+        settings.memory_needed(pixels, scene.settings.max_bounces, scene.materials.len()),
         || match spheres {
             true => format!("sphere lights and {rings} rings at {size}"),
             false => format!("{rings} rings at {size}"),
@@ -571,7 +583,7 @@ fn summary(r: &EstimateReport) -> Vec<String> {
         ));
     }
     if let Some(a) = &r.albedo {
-        lines.extend(albedo_summary(a));
+        lines.extend(albedo_summary(a, r.timings.alternation_seconds));
     }
     lines.push(format!(
         "envmap fit {:.2} s (transport {:.2} s, solve {:.2} s)",
@@ -581,11 +593,15 @@ fn summary(r: &EstimateReport) -> Vec<String> {
 }
 
 /// The fitted albedo, a line per material.
-fn albedo_summary(a: &AlbedoReport) -> Vec<String> {
+fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
     let rgb = |v: [f32; 3]| format!("{:.3} {:.3} {:.3}", v[0], v[1], v[2]);
     let mut lines = vec![format!(
-        "albedo fitted per material, {} fits, last change {:.2}%; scale: {}",
+        "albedo fitted per material, {} {} ({seconds:.1} s before the last fit), last change {:.2}%; scale: {}",
         a.fits,
+        match a.method {
+            AlbedoMethod::Joint => "joint passes",
+            AlbedoMethod::Alternation => "fits",
+        },
         100.0 * a.last_change,
         if a.trusted.is_empty() {
             "the fitted materials' mean kept".to_string()

@@ -14,14 +14,17 @@
 //! geometric mean of the fitted materials' multipliers at 1: each step is taken relative to
 //! the anchors' mean step, and the next lighting fit absorbs the rest.
 //!
-//! **Observability** ([`observability`]). A material is constrained only if light that lights
-//! it also lights other materials: a material lit by cells no other material sees trades its
-//! albedo for those cells' radiance freely. The measure is the share of a material's image
-//! that no change of the lighting can produce, `F/E` with `E = λᵀG_mλ` (its pixels' energy)
-//! and `F = E − (G_mλ)ᵀG⁻¹(G_mλ)` (the part of it left when the lighting is refitted over all
-//! pixels: a Schur complement), G_m the transport's TᵀT over the material's pixels, G over
-//! every material's, λ the fitted radiance. 0: unconstrained; 1: the lighting cannot mimic any
-//! of it.
+//! **Observability** ([`MaterialSums::observability`]). A material is constrained only if
+//! light that lights it also lights other materials: a material (or a group of materials) lit
+//! by cells no other material sees trades its albedo for those cells' radiance freely. From
+//! the transport's TᵀT kept per material (G_m) and the fitted radiance λ, per channel: the
+//! information on a material's multiplier once the lighting and the other free multipliers
+//! are refitted, `1/(H⁻¹)_mm` with H the profile's Gauss–Newton matrix ([`observability_of`]),
+//! relative to its value were the other materials lit exactly as this one. 0: unconstrained;
+//! 1: the lighting cannot mimic any of it.
+//!
+//! **The envmap: a joint fit** ([`joint_channel`]); sphere models and per-view exposures
+//! alternate ([`super::job::run`]).
 
 use faer::linalg::solvers::Solve;
 use glam::{DVec3, Vec2, Vec3};
@@ -48,9 +51,8 @@ pub enum FitAlbedo {
 /// [`MaterialStatus::Unseen`] and kept as given.
 pub const MIN_MATERIAL_PIXELS: usize = 64;
 
-/// Least [`observability`] of a fitted material: below it, less than 1% of its image is what
-/// only its albedo can explain, and it is reported [`MaterialStatus::Unconstrained`] and kept
-/// as given.
+/// Least observability of a fitted material ([`observability_of`]): below it, it is reported
+/// [`MaterialStatus::Unconstrained`] and kept as given.
 pub const MIN_OBSERVABILITY: f64 = 0.01;
 
 /// Relative change of every multiplier below which the alternation stops: the lighting fit's
@@ -59,8 +61,9 @@ pub const ALBEDO_TOLERANCE: f64 = 0.02;
 
 /// Relative change of every multiplier below which the joint passes stop: what a pass at the
 /// albedo found changes is the light between surfaces, which the one-bounce joint fit leaves
-/// out, and the transport's noise.
-pub const JOINT_TOLERANCE: f64 = 0.005;
+/// out, and the pass's own noise, which moved materials of 84–262 pixels by up to 1.8%
+/// between passes of a quarter of 128 samples.
+pub const JOINT_TOLERANCE: f64 = 0.02;
 
 /// Ridge of the joint fit (relative to the mean diagonal of TᵀT), far below the envmap fit's:
 /// a ridge shrinks the cells few pixels see, and with the albedo free the materials that see
@@ -107,8 +110,9 @@ pub struct MaterialAlbedo {
     pub pixels: usize,
     /// Views with such pixels.
     pub views: usize,
-    /// Share of its image only its albedo explains, 0–1 (the module doc); null where not
-    /// measured (unseen, or trusted).
+    /// How well the images pin its albedo, 0 (not at all: lit only by light no other material
+    /// sees) to 1 (as well as beside a material lit exactly alike), the least over its lit
+    /// channels ([`observability_of`]); null where not measured (unseen, or trusted).
     pub observability: Option<f64>,
     /// Mean albedo as given (a texture's mean texel × its factor), linear RGB.
     pub given: [f32; 3],
@@ -126,6 +130,12 @@ pub struct MaterialAlbedo {
 pub struct AlbedoReport {
     pub fit: FitAlbedo,
     pub method: AlbedoMethod,
+    /// Joint: rings of the envmap the albedo was fitted under (the fit's, or coarser where
+    /// the per-material sums would pass their memory bound, [`material_grid`]).
+    pub rings: Option<u32>,
+    /// Joint: a fit's steps stopped on a singular system; the albedo is where they were, and
+    /// not converged.
+    pub stalled: bool,
     /// What fixes the overall scale between albedo and light, in words.
     pub gauge: String,
     /// The materials `--trust-albedo` named.
@@ -192,12 +202,8 @@ impl MaterialPixels {
 }
 
 /// Per material, `ln(Σ reference / Σ render)` per channel over the pixels that see it alone;
-/// `None` where a sum of a channel is not positive (nothing to scale).
-pub fn log_ratios(
-    pixels: &MaterialPixels,
-    references: &[Image],
-    renders: &[Image],
-) -> Vec<Option<DVec3>> {
+/// NaN in a channel whose sums are not both positive (nothing to scale there).
+pub fn log_ratios(pixels: &MaterialPixels, references: &[Image], renders: &[Image]) -> Vec<DVec3> {
     let n = pixels.counts.len();
     let (mut y, mut x) = (vec![DVec3::ZERO; n], vec![DVec3::ZERO; n]);
     for ((ids, r), q) in pixels.ids.iter().zip(references).zip(renders) {
@@ -208,43 +214,53 @@ pub fn log_ratios(
             }
         }
     }
+    let ln = |y: f64, x: f64| {
+        if y > 0.0 && x > 0.0 {
+            (y / x).ln()
+        } else {
+            f64::NAN
+        }
+    };
     y.iter()
         .zip(&x)
-        .map(|(y, x)| {
-            let r = *y / *x;
-            (r.min_element() > 0.0 && r.is_finite())
-                .then(|| DVec3::new(r.x.ln(), r.y.ln(), r.z.ln()))
-        })
+        .map(|(y, x)| DVec3::new(ln(y.x, x.x), ln(y.y, x.y), ln(y.z, x.z)))
         .collect()
 }
 
-/// The step of every material's log-multiplier: a free material's log ratio less the anchors'
-/// pixel-weighted mean log ratio (per channel), zero for the others. The anchors are the
-/// trusted materials, or without any the free ones (keeping their weighted mean at 0).
+/// The step of every material's log-multiplier: per channel, a free material's log ratio less
+/// the anchors' pixel-weighted mean log ratio there, zero for the others and where its ratio
+/// is NaN. The anchors are the trusted materials lit in that channel; without any, the free
+/// ones (keeping their weighted mean at 0).
 pub fn gauged_step(
-    ratios: &[Option<DVec3>],
+    ratios: &[DVec3],
     free: &[bool],
-    anchors: &[bool],
+    trusted: &[bool],
     counts: &[usize],
 ) -> Vec<DVec3> {
-    let (mut sum, mut weight) = (DVec3::ZERO, 0.0);
-    for ((r, &a), &c) in ratios.iter().zip(anchors).zip(counts) {
-        if let (Some(r), true) = (r, a) {
-            sum += *r * c as f64;
-            weight += c as f64;
-        }
+    let mut mean = DVec3::ZERO;
+    for c in 0..3 {
+        let weighted = |anchor: &dyn Fn(usize) -> bool| {
+            let (mut sum, mut weight) = (0.0, 0.0);
+            for m in 0..ratios.len() {
+                let r = ratios[m][c];
+                if anchor(m) && r.is_finite() {
+                    sum += r * counts[m] as f64;
+                    weight += counts[m] as f64;
+                }
+            }
+            (weight > 0.0).then(|| sum / weight)
+        };
+        mean[c] = weighted(&|m| trusted[m])
+            .or_else(|| weighted(&|m| free[m]))
+            .unwrap_or(0.0);
     }
-    let mean = if weight > 0.0 {
-        sum / weight
-    } else {
-        DVec3::ZERO
-    };
     ratios
         .iter()
         .zip(free)
-        .map(|(r, &f)| match (r, f) {
-            (Some(r), true) => *r - mean,
-            _ => DVec3::ZERO,
+        .map(|(r, &f)| {
+            let d = *r - mean;
+            let keep = |v: f64| if f && v.is_finite() { v } else { 0.0 };
+            DVec3::new(keep(d.x), keep(d.y), keep(d.z))
         })
         .collect()
 }
@@ -269,21 +285,20 @@ pub fn scaled_materials(given: &[Material], k: &[DVec3]) -> Vec<Material> {
         .collect()
 }
 
-/// Bytes above which [`observability`] takes a coarser grid than the fit's: its sums are kept
-/// per material.
-const MATERIAL_SUMS_BYTES: usize = 256 << 20;
+/// Bytes of per-material sums above which [`material_sums`] takes a coarser grid than the
+/// fit's.
+pub const MATERIAL_SUMS_BYTES: usize = 256 << 20;
 
-/// The grid [`observability`] measures on for a fit of `rings` rings and `sets` materials: the
-/// fit's, or the finest coarser one whose per-material sums fit in [`MATERIAL_SUMS_BYTES`]
-/// and whose cells are at most [`super::MAX_JACKKNIFE_CELLS`].
+/// The grid of [`material_sums`] for a fit of `rings` rings and `sets` materials: the fit's,
+/// or the finest coarser one whose per-material sums fit in [`MATERIAL_SUMS_BYTES`] (the
+/// albedo is then fitted under a coarser envmap than the final fit's, and takes up its
+/// coarser error; `albedo.rings` in the report).
 pub fn material_grid(rings: u32, sets: usize) -> RingGrid {
     (1..=rings)
         .rev()
         .map(RingGrid::new)
         .find(|g| {
-            g.cell_count() <= super::MAX_JACKKNIFE_CELLS
-                && sets.max(1) * NormalEquations::memory_needed(g.cell_count())
-                    <= MATERIAL_SUMS_BYTES
+            sets.max(1) * NormalEquations::memory_needed(g.cell_count()) <= MATERIAL_SUMS_BYTES
         })
         .unwrap_or_else(|| RingGrid::new(1))
 }
@@ -384,18 +399,27 @@ pub fn material_parts(settings: &FitSettings) -> usize {
 
 impl MaterialSums {
     /// Each material's observability (the module doc) under `envmap`, per material of the
-    /// scene (`None` for those not in a set, or unlit): the least of its channels'.
-    pub fn observability(&self, envmap: &Envmap, materials: usize) -> Vec<Option<f64>> {
-        let mut out = vec![None; materials];
+    /// scene: `None` for those not `free` or not in a set, or unlit; else the least of its
+    /// lit channels'. The sets of materials not free hold the scale; without any, `weights`
+    /// (per material) pin it.
+    pub fn observability(
+        &self,
+        envmap: &Envmap,
+        free: &[bool],
+        weights: &[f64],
+    ) -> Vec<Option<f64>> {
+        let mut out = vec![None; free.len()];
         if self.sums.is_empty() {
             return out;
         }
         let lambda = resampled(envmap, &self.grid);
+        let set_free: Vec<bool> = self.materials.iter().map(|&m| free[m]).collect();
+        let set_weights: Vec<f64> = self.materials.iter().map(|&m| weights[m]).collect();
         let per_channel: Vec<Vec<Option<f64>>> = (0..3)
             .map(|ch| {
                 let grams: Vec<Vec<f64>> = self.sums.iter().map(|s| s.gram(ch)).collect();
                 let l: Vec<f64> = lambda.iter().map(|v| v[ch]).collect();
-                observability_of(&grams, &l)
+                observability_of(&grams, &l, &set_free, &set_weights)
             })
             .collect();
         for (s, &m) in self.materials.iter().enumerate() {
@@ -411,17 +435,17 @@ impl MaterialSums {
     /// The joint fit ([`joint_channel`] per channel) over the sets of the `free` materials
     /// and the `held` ones (kept as they are: they fix the scale): per material of the scene,
     /// the multiplier of its albedo relative to the albedo the sums were rendered at (1 for
-    /// materials not free), and the envmap fitted with them. `weights` (per material) fix the
-    /// scale when none is held; `upper` bounds each material's multiplier.
+    /// materials not free), the envmap fitted with them, and whether a channel's steps
+    /// stalled. `weights` (per material) fix the scale when none is held; `bounds` (per
+    /// material, lower and upper) bound each material's multiplier.
     pub fn joint(
         &self,
-        free: &[bool],
-        held: &[bool],
+        (free, held): (&[bool], &[bool]),
         weights: &[f64],
-        upper: &[DVec3],
+        bounds: &[(DVec3, DVec3)],
         ridge: f64,
         time_limit: std::time::Duration,
-    ) -> (Vec<DVec3>, Envmap) {
+    ) -> (Vec<DVec3>, Envmap, bool) {
         // The sets the fit uses: the free materials' and the held ones'.
         let used: Vec<usize> = (0..self.materials.len())
             .filter(|&s| free[self.materials[s]] || held[self.materials[s]])
@@ -432,19 +456,22 @@ impl MaterialSums {
         let set_weights: Vec<f64> = (0..n_sets).map(|s| weights[material(s)]).collect();
         let mut k = vec![DVec3::ONE; free.len()];
         let mut radiance = vec![Vec3::ZERO; self.grid.cell_count()];
+        let mut stalled = false;
         for ch in 0..3 {
             let grams: Vec<Vec<f64>> = used.iter().map(|&s| self.sums[s].gram(ch)).collect();
             let tb: Vec<Vec<f64>> = used.iter().map(|&s| self.sums[s].tb(ch)).collect();
-            let set_upper: Vec<f64> = (0..n_sets).map(|s| upper[material(s)][ch]).collect();
+            let lower: Vec<f64> = (0..n_sets).map(|s| bounds[material(s)].0[ch]).collect();
+            let upper: Vec<f64> = (0..n_sets).map(|s| bounds[material(s)].1[ch]).collect();
             let fit = joint_channel(
                 &grams,
                 &tb,
                 &set_free,
                 &set_weights,
-                &set_upper,
+                (&lower, &upper),
                 ridge,
                 time_limit,
             );
+            stalled |= fit.stalled;
             for s in 0..n_sets {
                 k[material(s)][ch] = fit.k[s];
             }
@@ -453,7 +480,7 @@ impl MaterialSums {
             }
         }
         let envmap = Envmap::new(self.grid.rings(), radiance).expect("finite and non-negative");
-        (k, envmap)
+        (k, envmap, stalled)
     }
 }
 
@@ -466,42 +493,107 @@ pub struct JointChannel {
     pub lambda: Vec<f64>,
     /// Gauss–Newton steps taken.
     pub iterations: usize,
+    /// The steps stopped on a singular system before converging: `k` is where they were.
+    pub stalled: bool,
 }
 
 /// Most Gauss–Newton steps of [`joint_channel`].
 const MAX_JOINT_STEPS: usize = 40;
 
+/// Per set: `G_s λ` and its energy `λᵀG_sλ`.
+fn lit(grams: &[Vec<f64>], lambda: &[f64]) -> (Vec<Vec<f64>>, Vec<f64>) {
+    let n = lambda.len();
+    let gl: Vec<Vec<f64>> = grams
+        .iter()
+        .map(|g| g.chunks_exact(n).map(|row| dot(row, lambda)).collect())
+        .collect();
+    let energy = gl.iter().map(|v| dot(v, lambda)).collect();
+    (gl, energy)
+}
+
+/// The Gauss–Newton matrix of the profile over the multipliers of the sets `free`, the
+/// radiance of `cells` eliminated: `H = diag(E) − Cᵀ A⁻¹ C`, with `C_s = k_s G_s λ` and
+/// `A = Σ_s k_s² G_s + r I` over those cells (every set's). With `pin` (per set weights) the
+/// common scale of the free multipliers (in log k) is pinned: no set is held to fix it.
+#[allow(clippy::too_many_arguments)]
+fn profile_matrix(
+    grams: &[Vec<f64>],
+    gl: &[Vec<f64>],
+    energy: &[f64],
+    k: &[f64],
+    cells: &[usize],
+    r: f64,
+    free: &[usize],
+    pin: Option<&[f64]>,
+) -> Option<faer::Mat<f64>> {
+    let n = gl.first().map_or(0, Vec::len);
+    let (na, m) = (cells.len(), free.len());
+    let a = faer::Mat::<f64>::from_fn(na, na, |i, j| {
+        let (p, q) = (cells[i], cells[j]);
+        let v: f64 = (0..grams.len())
+            .map(|s| k[s] * k[s] * grams[s][p * n + q])
+            .sum();
+        v + if i == j { r } else { 0.0 }
+    });
+    let c = faer::Mat::<f64>::from_fn(na, m, |i, j| k[free[j]] * gl[free[j]][cells[i]]);
+    let llt = a.llt(faer::Side::Lower).ok()?;
+    let ainv_c = llt.solve(&c);
+    let mut h = faer::Mat::<f64>::from_fn(m, m, |p, q| {
+        let d = if p == q { energy[free[p]] } else { 0.0 };
+        d - (0..na).map(|i| c[(i, p)] * ainv_c[(i, q)]).sum::<f64>()
+    });
+    let scale = (0..m).map(|p| h[(p, p)].abs()).fold(0.0, f64::max);
+    if scale.is_nan() || scale <= 0.0 {
+        return None;
+    }
+    if let Some(w) = pin {
+        let v: Vec<f64> = free.iter().map(|&s| w[s] / k[s]).collect();
+        let vv: f64 = v.iter().map(|x| x * x).sum();
+        for p in 0..m {
+            for q in 0..m {
+                h[(p, q)] += scale * v[p] * v[q] / vv;
+            }
+        }
+    }
+    for p in 0..m {
+        h[(p, p)] += 1e-12 * scale;
+    }
+    Some(h)
+}
+
 /// One channel of the joint fit, from the transport of each set of pixels rendered at the
 /// current albedo (its Gram `grams[s]`, cells × cells, and `tb[s]`): multipliers `k` (1 for
 /// sets not `free`) and radiance `λ ≥ 0` minimising `Σ_s ‖k_s T_s λ − y_s‖² + r‖λ‖²` (r
 /// `ridge` times the mean diagonal of Σ G_s), by Gauss–Newton on k over the profile λ(k)
-/// (variable projection: each k's λ is the exact NNLS, so the steps follow the valley the
-/// alternation of [`super::job::run`] crawls along). With no set held, the pixel-weighted
-/// geometric mean of the free sets' k is kept at 1. Each k_s stays within
-/// `[0.01, upper_s]`.
+/// (variable projection: each k's λ is the exact NNLS, so the steps follow the valley an
+/// alternation crawls along), with a backtracking line search. The scale is held by the sets
+/// not free that this channel lights; with none, the pixel-weighted (`weights`) geometric
+/// mean of the free sets' k is kept at 1. Each k_s stays within `[lower_s, upper_s]`.
+#[allow(clippy::too_many_arguments)]
 pub fn joint_channel(
     grams: &[Vec<f64>],
     tb: &[Vec<f64>],
     free: &[bool],
     weights: &[f64],
-    upper: &[f64],
+    (lower, upper): (&[f64], &[f64]),
     ridge: f64,
     time_limit: std::time::Duration,
 ) -> JointChannel {
     let sets = grams.len();
     let n = tb.first().map_or(0, Vec::len);
     let mut k = vec![1.0f64; sets];
-    let held = free.iter().any(|f| !f);
     let mean_diag = (0..n)
         .map(|i| grams.iter().map(|g| g[i * n + i]).sum::<f64>())
         .sum::<f64>()
         / n.max(1) as f64;
     let r = ridge * mean_diag;
-    if n == 0 || mean_diag.is_nan() || mean_diag <= 0.0 {
+    let idx: Vec<usize> = (0..sets).filter(|&s| free[s]).collect();
+    if n == 0 || mean_diag.is_nan() || mean_diag <= 0.0 || idx.is_empty() {
         return JointChannel {
             k,
             lambda: vec![0.0; n],
             iterations: 0,
+            stalled: false,
         };
     }
     // λ(k) by NNLS and the objective ½λᵀAλ − cᵀλ there.
@@ -520,103 +612,74 @@ pub fn joint_channel(
         let f = super::nnls::objective(&a, &c, &sol.x);
         (sol.x, f)
     };
+    let (mut lambda, mut f) = profile(&k);
+    // Held: a set not free that this channel lights (a trusted red material holds nothing
+    // in green).
+    let held = {
+        let (_, energy) = lit(grams, &lambda);
+        (0..sets).any(|s| !free[s] && energy[s] > 0.0)
+    };
+    let bounded = |k: &mut [f64]| {
+        for &s in &idx {
+            k[s] = k[s].clamp(lower[s], upper[s].max(lower[s]));
+        }
+    };
     let gauge = |k: &mut [f64]| {
         if held {
             return;
         }
         let (mut sum, mut w) = (0.0, 0.0);
-        for s in 0..sets {
-            if free[s] {
-                sum += weights[s] * k[s].ln();
-                w += weights[s];
-            }
+        for &s in &idx {
+            sum += weights[s] * k[s].ln();
+            w += weights[s];
         }
         if w > 0.0 {
             let c = (-sum / w).exp();
-            k.iter_mut()
-                .zip(free)
-                .filter(|(_, f)| **f)
-                .for_each(|(k, _)| *k *= c);
+            idx.iter().for_each(|&s| k[s] *= c);
         }
     };
-    let (mut lambda, mut f) = profile(&k);
-    let mut iterations = 0;
-    let idx: Vec<usize> = (0..sets).filter(|&s| free[s]).collect();
-    let m = idx.len();
-    while iterations < MAX_JOINT_STEPS && m > 0 {
+    let (mut iterations, mut stalled) = (0, false);
+    while iterations < MAX_JOINT_STEPS {
         iterations += 1;
-        // Per set: G_s λ, its energy λᵀG_sλ and λᵀb_s.
-        let gl: Vec<Vec<f64>> = grams
-            .iter()
-            .map(|g| g.chunks_exact(n).map(|row| dot(row, &lambda)).collect())
-            .collect();
-        let energy: Vec<f64> = gl.iter().map(|v| dot(v, &lambda)).collect();
+        let (gl, energy) = lit(grams, &lambda);
         let beta: Vec<f64> = tb.iter().map(|b| dot(b, &lambda)).collect();
-        // Gauss–Newton on (k, λ_active), λ eliminated: H = D − Cᵀ A⁻¹ C, D = diag(energy),
-        // C_s = k_s G_s λ on the lit cells, A = Σ k² G + r I there.
         let active: Vec<usize> = (0..n).filter(|&i| lambda[i] > 0.0).collect();
-        let na = active.len();
-        let a = faer::Mat::<f64>::from_fn(na, na, |i, j| {
-            let (p, q) = (active[i], active[j]);
-            let v: f64 = (0..sets).map(|s| k[s] * k[s] * grams[s][p * n + q]).sum();
-            v + if i == j { r } else { 0.0 }
-        });
-        let cmat = faer::Mat::<f64>::from_fn(na, m, |i, j| k[idx[j]] * gl[idx[j]][active[i]]);
-        let Ok(llt) = a.llt(faer::Side::Lower) else {
+        let pin = (!held).then_some(weights);
+        let Some(h) = profile_matrix(grams, &gl, &energy, &k, &active, r, &idx, pin) else {
+            stalled = true;
             break;
         };
-        let ainv_c = llt.solve(&cmat);
-        let mut h = faer::Mat::<f64>::from_fn(m, m, |p, q| {
-            let d = if p == q { energy[idx[p]] } else { 0.0 };
-            d - (0..na).map(|i| cmat[(i, p)] * ainv_c[(i, q)]).sum::<f64>()
-        });
-        let scale = (0..m).map(|p| h[(p, p)].abs()).fold(0.0, f64::max);
-        if scale.is_nan() || scale <= 0.0 {
-            break;
-        }
-        // No set held: the common scale of k is the lighting's; pin it (in log k).
-        if !held {
-            let v: Vec<f64> = idx.iter().map(|&s| weights[s] / k[s]).collect();
-            let vv: f64 = v.iter().map(|x| x * x).sum();
-            for p in 0..m {
-                for q in 0..m {
-                    h[(p, q)] += scale * v[p] * v[q] / vv;
-                }
-            }
-        }
-        for p in 0..m {
-            h[(p, p)] += 1e-12 * scale;
-        }
-        let grad = faer::Mat::<f64>::from_fn(m, 1, |p, _| {
+        let grad = faer::Mat::<f64>::from_fn(idx.len(), 1, |p, _| {
             let s = idx[p];
             beta[s] - k[s] * energy[s]
         });
         let Ok(hl) = h.llt(faer::Side::Lower) else {
+            stalled = true;
             break;
         };
         let dk = hl.solve(&grad);
         let mut alpha = 1.0;
-        let mut accepted = false;
-        let mut largest = 0.0f64;
+        let mut moved = None;
         for _ in 0..10 {
             let mut next = k.clone();
-            for p in 0..m {
-                let s = idx[p];
-                next[s] = (k[s] + alpha * dk[(p, 0)]).clamp(0.01, upper[s].max(0.01));
+            for (p, &s) in idx.iter().enumerate() {
+                next[s] = k[s] + alpha * dk[(p, 0)];
             }
+            // Bounds, the gauge, and the bounds again (the gauge may push one past).
+            bounded(&mut next);
             gauge(&mut next);
+            bounded(&mut next);
             let (l2, f2) = profile(&next);
             if f2 <= f {
-                largest = (0..sets).fold(0.0f64, |a, s| a.max((next[s] / k[s]).ln().abs()));
-                k = next;
-                lambda = l2;
-                f = f2;
-                accepted = true;
+                let largest = (0..sets).fold(0.0f64, |a, s| a.max((next[s] / k[s]).ln().abs()));
+                (k, lambda, f) = (next, l2, f2);
+                moved = Some(largest);
                 break;
             }
             alpha *= 0.5;
         }
-        if !accepted || largest < 1e-6 {
+        // No step lowers the objective: at its minimum (up to the line search's reach).
+        if moved.is_none_or(|m| m < 1e-6) {
             break;
         }
     }
@@ -624,6 +687,7 @@ pub fn joint_channel(
         k,
         lambda,
         iterations,
+        stalled,
     }
 }
 
@@ -632,58 +696,67 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 }
 
 /// The observability (the module doc) of each set of pixels from one channel's Gram matrices
-/// `grams` (dense, cells × cells, one per set) and radiance `lambda`: `F / S`, F the Schur
-/// complement of the set's multiplier against the lighting fitted over every set, and
-/// `S = E(Ê − E)/Ê` the value F takes when the other sets are lit exactly as this one (the
-/// harmonic combination of its energy E and theirs, Ê all sets'): a set that dominates the
-/// pixels is not unconstrained for it. `None` where the set has no energy in this channel.
-pub fn observability_of(grams: &[Vec<f64>], lambda: &[f64]) -> Vec<Option<f64>> {
+/// `grams` (dense, cells × cells, one per set) and radiance `lambda`: per free set,
+/// `1 / (S · (H⁻¹)_ss)`, H the profile's Gauss–Newton matrix over every free set's multiplier
+/// with the radiance of every cell free ([`profile_matrix`]; the lighting and the other free
+/// materials refitted: a group of materials lit only by light no held one sees is
+/// unobservable together), and `S = E(Ê − E)/Ê` what `1/(H⁻¹)_ss` is for one free set beside
+/// others lit exactly as it is (the harmonic combination of its energy E and theirs, Ê all
+/// sets'): a set that dominates the pixels is not unconstrained for it. Without a lit set
+/// held, the free sets' pixel-weighted (`weights`) mean is pinned, and a lone free set is 0.
+/// `None` for sets not free or not lit in this channel.
+pub fn observability_of(
+    grams: &[Vec<f64>],
+    lambda: &[f64],
+    free: &[bool],
+    weights: &[f64],
+) -> Vec<Option<f64>> {
+    let sets = grams.len();
     let n = lambda.len();
-    let mut all = vec![0.0; n * n];
-    for g in grams {
-        all.iter_mut().zip(g).for_each(|(a, b)| *a += b);
-    }
-    let gl: Vec<Vec<f64>> = grams
-        .iter()
-        .map(|gm| {
-            (0..n)
-                .map(|i| (0..n).map(|j| gm[i * n + j] * lambda[j]).sum())
-                .collect()
-        })
-        .collect();
-    let energy: Vec<f64> = gl
-        .iter()
-        .map(|sm| sm.iter().zip(lambda).map(|(a, b)| a * b).sum())
-        .collect();
+    let mut out = vec![None; sets];
+    let (gl, energy) = lit(grams, lambda);
     let total: f64 = energy.iter().sum();
-    let trace: f64 = (0..n).map(|i| all[i * n + i]).sum();
-    if total.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) || trace <= 0.0 {
-        return vec![None; grams.len()];
+    let trace: f64 = (0..n)
+        .map(|i| grams.iter().map(|g| g[i * n + i]).sum::<f64>())
+        .sum();
+    if total.is_nan() || total <= 0.0 || trace.is_nan() || trace <= 0.0 {
+        return out;
     }
-    // A ridge far below the data's scale: cells no pixel sees leave G singular.
-    let ridge = 1e-9 * trace / n as f64;
-    let g = faer::Mat::<f64>::from_fn(n, n, |i, j| {
-        all[i * n + j] + if i == j { ridge } else { 0.0 }
-    });
-    let Ok(llt) = g.llt(faer::Side::Lower) else {
-        return vec![None; grams.len()];
+    let idx: Vec<usize> = (0..sets).filter(|&s| free[s] && energy[s] > 0.0).collect();
+    let held = (0..sets).any(|s| !free[s] && energy[s] > 0.0);
+    if idx.is_empty() {
+        return out;
+    }
+    if !held && idx.len() == 1 {
+        // Alone, it is the scale itself: nothing to compare its albedo with.
+        out[idx[0]] = Some(0.0);
+        return out;
+    }
+    let cells: Vec<usize> = (0..n).collect();
+    // A ridge far below the data's scale: cells no pixel sees leave A singular.
+    let r = 1e-9 * trace / n as f64;
+    let k = vec![1.0; sets];
+    let pin = (!held).then_some(weights);
+    let inverse_diagonal =
+        profile_matrix(grams, &gl, &energy, &k, &cells, r, &idx, pin).and_then(|h| {
+            let m = idx.len();
+            let llt = h.llt(faer::Side::Lower).ok()?;
+            let inv = llt.solve(faer::Mat::<f64>::identity(m, m));
+            Some((0..m).map(|p| inv[(p, p)]).collect::<Vec<f64>>())
+        });
+    let Some(var) = inverse_diagonal else {
+        return out;
     };
-    gl.iter()
-        .zip(&energy)
-        .map(|(sm, &e)| {
-            if e.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-                return None;
-            }
-            let shared = e * (total - e) / total;
-            if shared <= 0.0 {
-                // The only lit set: nothing to compare its albedo with.
-                return Some(0.0);
-            }
-            let x = llt.solve(faer::Mat::<f64>::from_fn(n, 1, |i, _| sm[i]));
-            let explained: f64 = (0..n).map(|i| sm[i] * x[(i, 0)]).sum();
-            Some(((e - explained) / shared).clamp(0.0, 1.0))
-        })
-        .collect()
+    for (p, &s) in idx.iter().enumerate() {
+        let e = energy[s];
+        let shared = e * (total - e) / total;
+        out[s] = Some(if shared > 0.0 && var[p] > 0.0 {
+            (1.0 / (shared * var[p])).clamp(0.0, 1.0)
+        } else {
+            0.0
+        });
+    }
+    out
 }
 
 /// Part seeds of [`material_sums`]'s pass, apart from the fit's.
@@ -699,26 +772,26 @@ mod tests {
         // its own error times the light's. The step removes the light's share.
         let light = DVec3::new(0.1, -0.2, 0.05);
         let own = DVec3::new(0.3, 0.0, -0.1);
-        let ratios = [Some(light), Some(light + own), None];
-        let step = gauged_step(
-            &ratios,
-            &[false, true, true],
-            &[true, false, false],
-            &[10, 5, 3],
-        );
+        let nan = DVec3::splat(f64::NAN);
+        let ratios = [light, light + own, nan];
+        let trusted = [true, false, false];
+        let step = gauged_step(&ratios, &[false, true, true], &trusted, &[10, 5, 3]);
         assert!((step[0]).length() == 0.0);
         assert!((step[1] - own).length() < 1e-12);
         assert_eq!(step[2], DVec3::ZERO);
         // Without trusted materials, the free ones' weighted mean step is 0.
-        let step = gauged_step(
-            &ratios,
-            &[true, true, false],
-            &[true, true, false],
-            &[10, 5, 3],
-        );
+        let step = gauged_step(&ratios, &[true, true, false], &[false; 3], &[10, 5, 3]);
         let mean = (step[0] * 10.0 + step[1] * 5.0) / 15.0;
         assert!(mean.length() < 1e-12);
         assert!((step[1] - step[0] - own).length() < 1e-12);
+        // A trusted pure red material holds red only: green and blue fall back to the free
+        // materials' mean.
+        let red = DVec3::new(light.x, f64::NAN, f64::NAN);
+        let ratios = [red, light + own, light];
+        let step = gauged_step(&ratios, &[false, true, true], &trusted, &[10, 5, 5]);
+        assert!((step[1].x - own.x).abs() < 1e-12);
+        assert!((step[1].y + step[2].y).abs() < 1e-12 && (step[1].z + step[2].z).abs() < 1e-12);
+        assert!(step.iter().all(|v| v.is_finite()));
     }
 
     #[test]
@@ -745,32 +818,43 @@ mod tests {
 
     #[test]
     fn a_material_lit_by_light_no_other_sees_is_unobservable() {
-        // Four cells. A sees cells 0 and 1, B cells 1 and 2, C only cell 3.
+        // Four cells; A is held (trusted). A sees cells 0 and 1, B cells 1 and 2, C only 3.
         let a = gram(&[vec![1.0, 0.5, 0.0, 0.0], vec![0.8, 0.9, 0.0, 0.0]]);
         let b = gram(&[vec![0.0, 0.7, 0.4, 0.0], vec![0.0, 0.2, 1.0, 0.0]]);
         let c = gram(&[vec![0.0, 0.0, 0.0, 1.0], vec![0.0, 0.0, 0.0, 0.6]]);
         let lambda = [1.0, 2.0, 0.5, 3.0];
-        let o = observability_of(&[a.clone(), b.clone(), c], &lambda);
+        let w = [1.0; 3];
+        let free = [false, true, true];
+        let o = observability_of(&[a.clone(), b.clone(), c.clone()], &lambda, &free, &w);
+        assert_eq!(o[0], None);
         assert!(o[2].unwrap() < 1e-6, "{o:?}");
-        // A and B share cell 1: a change of A's albedo cannot all go into its own cell 0
-        // (its two pixels mix cells 0 and 1 differently) without changing B.
-        assert!(o[0].unwrap() > 0.05 && o[1].unwrap() > 0.05, "{o:?}");
-        // Lit exactly alike (the same rows), two materials are fully observable: 1.
-        let same = observability_of(&[a.clone(), a.clone()], &lambda);
+        // B shares cell 1 with A: a change of B's albedo cannot all go into its own cell 2
+        // (its two pixels mix cells 1 and 2 differently) without changing A.
+        assert!(o[1].unwrap() > 0.05, "{o:?}");
+        // A group: B and C lit only by cells 2 and 3, which A does not see. Each alone is
+        // pinned by the other, but together they trade with those cells: both unobservable.
+        let b2 = gram(&[vec![0.0, 0.0, 0.7, 0.4], vec![0.0, 0.0, 0.2, 1.0]]);
+        let c2 = gram(&[vec![0.0, 0.0, 1.0, 0.1], vec![0.0, 0.0, 0.3, 0.6]]);
+        let group = observability_of(&[a.clone(), b2, c2], &lambda, &free, &w);
         assert!(
-            same.iter().all(|v| (v.unwrap() - 1.0).abs() < 1e-6),
-            "{same:?}"
+            group[1].unwrap() < 1e-6 && group[2].unwrap() < 1e-6,
+            "{group:?}"
         );
-        // One lit set alone has nothing to compare with; an unlit one says nothing.
-        let dark = observability_of(&[a, vec![0.0; 16]], &lambda);
+        // Lit exactly alike, a free material beside a held one is fully observable: 1.
+        let same = observability_of(&[a.clone(), a.clone()], &lambda, &[false, true], &w);
+        assert!((same[1].unwrap() - 1.0).abs() < 1e-6, "{same:?}");
+        // Nothing held: two alike pin each other; one alone is the scale itself; an unlit
+        // one says nothing.
+        let pair = observability_of(&[a.clone(), a.clone()], &lambda, &[true, true], &w);
+        assert!(pair.iter().all(|v| v.unwrap() > 0.5), "{pair:?}");
+        let dark = observability_of(&[a, vec![0.0; 16]], &lambda, &[true, true], &w);
         assert_eq!(dark, vec![Some(0.0), None]);
     }
 
     #[test]
     fn the_material_grid_bounds_the_sums() {
         assert_eq!(material_grid(9, 8).rings(), 9);
-        let g = material_grid(27, 8);
-        assert!(g.cell_count() <= super::super::MAX_JACKKNIFE_CELLS);
+        assert_eq!(material_grid(27, 8).rings(), 27);
         let many = material_grid(17, 2000);
         assert!(2000 * NormalEquations::memory_needed(many.cell_count()) <= MATERIAL_SUMS_BYTES);
     }

@@ -275,6 +275,22 @@ impl EstimateSettings {
                     .into(),
             ));
         }
+        if self.fit_albedo.is_some()
+            && self.exposure == Exposure::PerView
+            && self.model == LightModel::Envmap
+        {
+            return Err(Error::Invalid(
+                "fitting the albedo and per-view exposures together needs a sphere model \
+                 (--model spheres, spheres:K or auto): with the envmap the albedo is fitted \
+                 jointly with the lighting, and that joint fit has no exposures yet"
+                    .into(),
+            ));
+        }
+        if self.trust_albedo.iter().any(String::is_empty) {
+            return Err(Error::Invalid(
+                "trusted albedo: an empty material name (a trailing comma?)".into(),
+            ));
+        }
         if self.fit_albedo.is_none() && !self.trust_albedo.is_empty() {
             return Err(Error::Invalid(
                 "trusted albedo names the materials that fix the scale of a fitted albedo; \
@@ -299,8 +315,10 @@ impl EstimateSettings {
     /// job renders beside them (estimate, noise floor, representation limit, a candidate's
     /// validation), 16 bytes each; with sphere lights, the walked camera paths they keep
     /// ([`super::spheres::PathCache`]: up to `max_bounces` vertices of 64 bytes for each of
-    /// 80 samples per pixel), which grow with the pixels.
-    pub fn memory_needed(&self, pixels: u64, max_bounces: u32) -> u64 {
+    /// 80 samples per pixel), which grow with the pixels; with `--fit-albedo`, the sums kept
+    /// per material of the scene's `materials` ([`albedo::material_grid`]) with one channel's
+    /// dense copies, and a material index per pixel.
+    pub fn memory_needed(&self, pixels: u64, max_bounces: u32, materials: usize) -> u64 {
         let groups = if self.diagnose && self.colour == Colour::PerChannel {
             JACKKNIFE_GROUPS as usize
         } else {
@@ -325,7 +343,17 @@ impl EstimateSettings {
         } else {
             0
         };
-        super::transport::memory_needed(&grids, parts) as u64 + pixels * 16 * 5 + paths
+        let albedo = match self.fit_albedo {
+            Some(_) => {
+                let rings = self.ring_counts().iter().copied().max().unwrap_or(1);
+                let cells = albedo::material_grid(rings, materials).cell_count();
+                let sums = super::transport::NormalEquations::memory_needed(cells);
+                (materials * (sums + 8 * cells * cells) + 7 * 8 * cells * cells) as u64
+                    + pixels * (4 + 16)
+            }
+            None => 0,
+        };
+        super::transport::memory_needed(&grids, parts) as u64 + pixels * 16 * 5 + paths + albedo
     }
 }
 
@@ -657,6 +685,9 @@ pub struct Timings {
     /// Diagnosing a misfit of the envmap to given references (the bounce probe: a re-fit
     /// with one more bounce); 0 when nothing was diagnosed.
     pub diagnosis_seconds: f64,
+    /// `--exposure per-view` and `--fit-albedo`: the fits and passes before the last fit
+    /// (the last is counted as any estimate's).
+    pub alternation_seconds: f64,
     /// The job's wall time; `estimate` writes its whole command's (loading, references and
     /// the output files included).
     pub total_seconds: f64,
@@ -734,6 +765,8 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     // Fitting with every sample (once the quarter-sample fits converged), and the fit that
     // must end the loop.
     let (mut full, mut last) = (false, false);
+    // `--rings auto`: the first fit's choice, which the later ones keep.
+    let mut selection: Option<Selection> = None;
     // Natural logarithms of the exposures, then of each material's multiplier per channel:
     // the alternation's map is close to linear in them.
     let mut x = vec![0.0f64; n_views + 3 * materials * fitting.is_some() as usize];
@@ -744,6 +777,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         .map(|c| (c.width * c.height) as u64)
         .sum();
     for fits in 1.. {
+        let t_fit = Instant::now();
         let exposures: Vec<f64> = x[..n_views].iter().map(|l| l.exp()).collect();
         let multipliers: Vec<glam::DVec3> = x[n_views..]
             .chunks_exact(3)
@@ -793,9 +827,15 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                 }
                 progress.phase("albedo render", pixels);
                 let lights = final_lights(&estimate.envmap, estimate.spheres.as_ref());
+                // Seeds apart from the references' (rendered references share `render`'s).
+                let first = pipeline::evaluation_settings(&render);
+                let settings = RenderSettings {
+                    seed: first.seed.wrapping_add(ALBEDO_RENDER_SEED),
+                    ..first
+                };
                 fitted_renders =
                     fit.with_lights(&lights)
-                        .render_views(&original.views, &render, &|k| progress.advance(k));
+                        .render_views(&original.views, &settings, &|k| progress.advance(k));
                 &fitted_renders
             }
             None => match &estimate.spheres {
@@ -822,7 +862,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         }
         let converged =
             exposure_change < EXPOSURE_TOLERANCE && albedo_change < albedo::ALBEDO_TOLERANCE;
-        if last || (full && converged) {
+        if last {
             let report = &mut estimate.report;
             report.exposure = per_view.then(|| ExposureReport {
                 relative: original
@@ -847,6 +887,11 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                 ));
                 estimate.materials = scene.take().map(|s| s.materials);
             }
+            if report.rings_selection.is_none() {
+                report.timings.rings_selection_seconds = selection.as_ref().map(|s| s.seconds);
+                report.rings_selection = selection;
+            }
+            report.timings.alternation_seconds = (t_fit - t_all).as_secs_f64();
             report.timings.total_seconds = original.seconds + t_all.elapsed().as_secs_f64();
             return Ok(estimate);
         }
@@ -859,16 +904,36 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             f.bound(&mut next[n_views..]);
         }
         x = next;
-        settings.rings = Rings::Fixed(estimate.report.rings);
-        if !full && (converged || fits + 2 >= MAX_ALTERNATION_FITS) {
+        if selection.is_none() {
+            selection = estimate.report.rings_selection.take();
+        }
+        let rings = Rings::Fixed(estimate.report.rings);
+        let to_full = !full && (converged || fits + 3 >= MAX_ALTERNATION_FITS);
+        if to_full {
             full = true;
-            settings = EstimateSettings {
-                rings: settings.rings.clone(),
-                ..job.settings.clone()
-            };
             render = *job.render;
         }
-        last = fits + 1 == MAX_ALTERNATION_FITS;
+        // The exposures alone: one fit with every sample ends. With the albedo, fits with
+        // every sample until one converges, then the last.
+        last = fits + 1 == MAX_ALTERNATION_FITS
+            || (to_full && fitting.is_none())
+            || (full && !to_full && converged);
+        settings = if last {
+            EstimateSettings {
+                rings,
+                ..job.settings.clone()
+            }
+        } else if full {
+            EstimateSettings {
+                rings,
+                noise_floor: false,
+                oracle: false,
+                diagnose: false,
+                ..job.settings.clone()
+            }
+        } else {
+            EstimateSettings { rings, ..settings }
+        };
     }
     unreachable!("the loop returns by its last fit")
 }
@@ -923,32 +988,41 @@ fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     };
     let first = fit_in(&scene, &settings, &render)?;
     settings.rings = Rings::Fixed(first.report.rings);
+    let selection = first.report.rings_selection.clone();
     let mut steer = first.envmap.fit.envmap.clone();
-    let (mut passes, mut change) = (0, f64::INFINITY);
-    while passes < albedo::MAX_JOINT_PASSES && change >= albedo::JOINT_TOLERANCE {
+    let (mut passes, mut change, mut stalled, mut grid_rings) = (0, f64::INFINITY, false, None);
+    while passes < albedo::MAX_JOINT_PASSES && change >= albedo::JOINT_TOLERANCE && !stalled {
         passes += 1;
         scene.materials = albedo::scaled_materials(given, &multipliers);
         let fit = job.fit.with_scene(&scene, job.fit.lights);
         let sums = fitting.pass(&fit, job.seen, &steer, &settings, &render, progress);
+        grid_rings = Some(sums.grid.rings());
         let fitted = fitting.fitted();
-        let upper: Vec<glam::DVec3> = fitting
+        // Bounds relative to the multipliers so far: at least MIN_MULTIPLIER_LOG in all, at
+        // most the albedo 1.
+        let log = |k: &glam::DVec3| glam::DVec3::new(k.x.ln(), k.y.ln(), k.z.ln());
+        let exp = |v: glam::DVec3| glam::DVec3::new(v.x.exp(), v.y.exp(), v.z.exp());
+        let bounds: Vec<(glam::DVec3, glam::DVec3)> = fitting
             .upper
             .iter()
             .zip(&multipliers)
             .map(|(u, k)| {
-                let room = *u - glam::DVec3::new(k.x.ln(), k.y.ln(), k.z.ln());
-                glam::DVec3::new(room.x.exp(), room.y.exp(), room.z.exp())
+                let upper = u.max(glam::DVec3::splat(MIN_MULTIPLIER_LOG));
+                (
+                    exp(glam::DVec3::splat(MIN_MULTIPLIER_LOG) - log(k)),
+                    exp(upper - log(k)),
+                )
             })
             .collect();
         let weights: Vec<f64> = fitting.pixels.counts.iter().map(|&c| c as f64).collect();
-        let (k, envmap) = sums.joint(
-            &fitted,
-            &fitting.trusted,
+        let (k, envmap, stuck) = sums.joint(
+            (&fitted, &fitting.trusted),
             &weights,
-            &upper,
+            &bounds,
             albedo::JOINT_RIDGE,
             settings.time_limit,
         );
+        stalled = stuck;
         change = k
             .iter()
             .flat_map(|v| v.to_array())
@@ -965,14 +1039,24 @@ fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         rings: settings.rings,
         ..job.settings.clone()
     };
+    let alternation_seconds = t_all.elapsed().as_secs_f64();
     let mut estimate = fit_in(&scene, &settings, job.render)?;
     let report = &mut estimate.report;
-    report.albedo = Some(fitting.report(
+    report.timings.alternation_seconds = alternation_seconds;
+    if report.rings_selection.is_none() {
+        report.timings.rings_selection_seconds = selection.as_ref().map(|s| s.seconds);
+        report.rings_selection = selection;
+    }
+    let mut albedo_report = fitting.report(
         job,
         &multipliers,
         (albedo::AlbedoMethod::Joint, passes),
         change,
-    ));
+    );
+    albedo_report.rings = grid_rings;
+    albedo_report.stalled = stalled;
+    albedo_report.converged &= !stalled;
+    report.albedo = Some(albedo_report);
     report.timings.total_seconds = job.seen.seconds + t_all.elapsed().as_secs_f64();
     estimate.materials = Some(scene.materials);
     Ok(estimate)
@@ -1116,7 +1200,11 @@ impl AlbedoFit {
             &|k| progress.advance(k),
         );
         if self.observability.is_none() {
-            self.observability = Some(sums.observability(envmap, self.free.len()));
+            let weights: Vec<f64> = self.pixels.counts.iter().map(|&c| c as f64).collect();
+            let free: Vec<bool> = (0..self.free.len())
+                .map(|m| self.free[m] && !self.trusted[m])
+                .collect();
+            self.observability = Some(sums.observability(envmap, &free, &weights));
         }
         sums
     }
@@ -1137,13 +1225,7 @@ impl AlbedoFit {
     /// The step of every material's log-multiplier from the references and the renders.
     fn step(&self, references: &[Image], renders: &[Image]) -> Vec<glam::DVec3> {
         let ratios = albedo::log_ratios(&self.pixels, references, renders);
-        let fitted = self.fitted();
-        let anchors = if self.trusted.contains(&true) {
-            &self.trusted
-        } else {
-            &fitted
-        };
-        albedo::gauged_step(&ratios, &fitted, anchors, &self.pixels.counts)
+        albedo::gauged_step(&ratios, &self.fitted(), &self.trusted, &self.pixels.counts)
     }
 
     /// Keeps log-multipliers within their bounds, and those not fitted at 0.
@@ -1186,6 +1268,8 @@ impl AlbedoFit {
             },
             trusted,
             method,
+            rings: None,
+            stalled: false,
             fits,
             last_change,
             converged: last_change
@@ -1585,6 +1669,7 @@ fn run_once(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
             oracle_seconds: envmap.oracle_seconds,
             sphere_fit_seconds,
             diagnosis_seconds,
+            alternation_seconds: 0.0,
             total_seconds: seen.seconds + t_all.elapsed().as_secs_f64(),
         },
         rings_selection: selection,
@@ -1643,6 +1728,9 @@ fn render_again(
 
 /// Seed offset of [`render_again`] from the final render's.
 const RENDER_AGAIN_SEED: u64 = 65_537;
+
+/// Seed offset of the alternation's renders of the albedo steps from the evaluation's.
+const ALBEDO_RENDER_SEED: u64 = 131_071;
 
 /// The sphere-light models the settings ask for, started from the envmap estimate.
 fn fit_spheres(

@@ -147,7 +147,8 @@ pub struct LightFigures {
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Timings {
     /// What the fit costs on its own (`estimate --fit-only`'s fit): choosing the resolution
-    /// (with `--rings auto`), the transport and the solves.
+    /// (with `--rings auto`), fitting the albedo (with `--fit-albedo`), the transport and the
+    /// solves.
     pub fit_seconds: f64,
     pub transport_seconds: f64,
     pub solve_seconds: f64,
@@ -157,6 +158,9 @@ pub struct Timings {
     /// `--rings auto`: choosing the resolution (included in `fit_seconds`).
     #[serde(default)]
     pub selection_seconds: f64,
+    /// `--fit-albedo`: the fits and passes before the last fit (included in `fit_seconds`).
+    #[serde(default)]
+    pub albedo_seconds: f64,
 }
 
 /// One trial: a line of `trials*.jsonl`.
@@ -453,6 +457,21 @@ pub fn run(
         })
         .collect::<Result<_>>()?;
     check_memory(&todo, &scenarios, &scenes, &axes, settings, &id)?;
+    // A trusted name the scene lacks would leave every material perturbed and fail every
+    // fitting trial: refused before the first.
+    for (g, scene) in scenes.iter().enumerate() {
+        let Some(scene) = scene else { continue };
+        if let Some(name) = settings
+            .trust_albedo
+            .iter()
+            .find(|n| !scene.materials.iter().any(|m| &m.name == *n))
+        {
+            return Err(Error::file(
+                &group_files[g],
+                format!("trusted albedo names material {name:?}, which this scene does not have"),
+            ));
+        }
+    }
     let mut sink = open_append(&trials_file)?;
     let no_lights = Lights::new(Vec::new());
     let renderers: Vec<Option<Renderer>> = scenes
@@ -934,7 +953,7 @@ fn check_memory(
             None => Rings::Auto(axes.rings.clone()),
         };
         let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres, t.fit_albedo)
-            .memory_needed(pixels, scene.settings.max_bounces);
+            .memory_needed(pixels, scene.settings.max_bounces, scene.materials.len());
         crate::memory::reserve(need, || format!("trial {}", id(t)))?;
     }
     Ok(())
@@ -1072,12 +1091,16 @@ fn fill_record(
     let t = &report.timings;
     let selection_seconds = report.rings_selection.as_ref().map_or(0.0, |s| s.seconds);
     record.timings = Timings {
-        fit_seconds: selection_seconds + t.transport_seconds + t.solve_seconds,
+        fit_seconds: selection_seconds
+            + t.alternation_seconds
+            + t.transport_seconds
+            + t.solve_seconds,
         transport_seconds: t.transport_seconds,
         solve_seconds: t.solve_seconds,
         rerender_seconds: t.rerender_seconds,
         trial_seconds: 0.0,
         selection_seconds,
+        albedo_seconds: t.alternation_seconds,
     };
     record.transport_bytes = report.memory.transport_bytes;
     record.auto = report.rings_selection;

@@ -229,13 +229,20 @@ fn write_scene(
     note: Option<&export::EnvmapNote>,
     render: &crate::render::RenderSettings,
 ) -> Result<Vec<String>> {
+    let given = &scene.materials;
     let fitted = albedo.map(|m| Scene {
         materials: m.to_vec(),
         ..scene.clone()
     });
+    let (gltf, mut notes) = export::write_with_lights(
+        &scene.gltf,
+        dir,
+        lights,
+        doubts,
+        note,
+        albedo.map(|m| (&given[..], m)),
+    )?;
     let scene = fitted.as_ref().unwrap_or(scene);
-    let (gltf, mut notes) =
-        export::write_with_lights(&scene.gltf, dir, lights, doubts, note, albedo)?;
     let name = gltf
         .file_name()
         .and_then(|n| n.to_str())

@@ -135,12 +135,17 @@ impl Material {
         }
     }
 
-    /// The mean albedo: the constant, or the texture's mean texel × its factor (vertex colours
-    /// not included).
+    /// The mean albedo as rendered: the constant, or the mean over texels of texel × factor
+    /// clamped to 1 (vertex colours not included).
     pub fn mean_albedo(&self) -> Vec3 {
         match &self.albedo {
             Albedo::Constant(c) => *c,
-            Albedo::Texture { texture, factor } => texture.mean() * *factor,
+            Albedo::Texture { texture, factor } => {
+                let sum = texture.texels.iter().fold(glam::DVec3::ZERO, |s, t| {
+                    s + (*t * *factor).min(Vec3::ONE).as_dvec3()
+                });
+                (sum / texture.texels.len().max(1) as f64).as_vec3()
+            }
         }
     }
 }

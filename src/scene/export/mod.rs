@@ -84,15 +84,16 @@ pub fn radius_doubt_words(r: f32, factor: f64) -> String {
 
 /// Writes `source` (a `.glb` or `.gltf`) into `dir` as `scene.glb` or `scene.gltf` (with
 /// copies of the files it refers to) with `lights` and `envmap` in it, and with `albedo`
-/// (the scene's materials, fitted) as its materials' baseColorFactor. Returns the path
-/// written and what the file could not hold.
+/// (the scene's materials as given, then fitted) as its materials' baseColorFactor where the
+/// fit changed them ([`put_albedo`]). Returns the path written and what the file could not
+/// hold.
 pub fn write_with_lights(
     source: &Path,
     dir: &Path,
     lights: &[SphereLight],
     doubts: RadiusDoubts,
     envmap: Option<&EnvmapNote>,
-    albedo: Option<&[super::Material]>,
+    albedo: Option<(&[super::Material], &[super::Material])>,
 ) -> Result<(PathBuf, Vec<String>)> {
     let bytes = crate::memory::read_input(source)?;
     let bad = |why: String| Error::file(source, format!("cannot be written back: {why}"));
@@ -105,7 +106,7 @@ pub fn write_with_lights(
     let mut doc: Value = serde_json::from_slice(json).map_err(|e| bad(e.to_string()))?;
     put_lights(&mut doc, lights, doubts, envmap).map_err(bad)?;
     let notes = match albedo {
-        Some(m) => put_albedo(&mut doc, m).map_err(bad)?,
+        Some((given, fitted)) => put_albedo(&mut doc, given, fitted).map_err(bad)?,
         None => Vec::new(),
     };
     // Files the source refers to go beside the copy (a GLB may refer to some too). The loader
@@ -130,15 +131,23 @@ pub fn write_with_lights(
     Ok((out, notes))
 }
 
-/// Sets each glTF material's baseColorFactor (RGB; alpha kept) to `materials`' albedo: the
+/// Sets the baseColorFactor (RGB; alpha kept) of each glTF material whose albedo the fit
+/// changed (`fitted` against `given`, the scene's materials) to the fitted albedo: the
 /// constant, or the texture's factor. `materials[0]` is glTF's default material, which the
-/// file cannot name; `materials[i]` is the file's material i − 1. Returns what did not fit:
-/// glTF's factors end at 1, so a texture's factor above 1 is written as 1.
+/// file cannot name; `materials[i]` is the file's material i − 1. Returns what the file could
+/// not take: glTF's factors end at 1, so a texture's factor above 1 is written as 1; an
+/// albedo the sidecar gave in place of the file's (a texture for a constant or the other
+/// way) is not written.
 fn put_albedo(
     doc: &mut Value,
+    given: &[super::Material],
     materials: &[super::Material],
 ) -> std::result::Result<Vec<String>, String> {
     let mut notes = Vec::new();
+    let factor_of = |m: &super::Material| match &m.albedo {
+        super::Albedo::Constant(c) => (*c, false),
+        super::Albedo::Texture { factor, .. } => (*factor, true),
+    };
     let list = doc.get_mut("materials").and_then(Value::as_array_mut);
     let list = match list {
         Some(l) => l,
@@ -152,11 +161,22 @@ fn put_albedo(
             materials.len() - 1
         ));
     }
-    for (m, gm) in materials[1..].iter().zip(list.iter_mut()) {
-        let factor = match &m.albedo {
-            super::Albedo::Constant(c) => *c,
-            super::Albedo::Texture { factor, .. } => *factor,
-        };
+    for ((m, g), gm) in materials[1..].iter().zip(&given[1..]).zip(list.iter_mut()) {
+        let (factor, textured) = factor_of(m);
+        if factor == factor_of(g).0 {
+            continue;
+        }
+        let file_textured = gm
+            .pointer("/pbrMetallicRoughness/baseColorTexture")
+            .is_some();
+        if textured != file_textured {
+            notes.push(format!(
+                "material {:?}: its albedo came from the sidecar, not the glTF, so the fitted \
+                 one is in report.json only",
+                m.name
+            ));
+            continue;
+        }
         if factor.max_element() > 1.0 {
             notes.push(format!(
                 "material {:?}: its fitted texture factor {:.3} {:.3} {:.3} is above glTF's 1, \
