@@ -91,24 +91,27 @@ pub struct Args {
     saturation: Option<f32>,
     /// `shared`: the references are radiance at one exposure. `per-view`: each view's
     /// reference has its own unknown exposure (photographs at different shutter, aperture or
-    /// gain), fitted beside the lighting by alternating fits (4–7); report.json
+    /// gain), fitted beside the lighting by alternating fits (2–8); report.json
     /// gives the views' exposures relative to their geometric mean, the unit the lighting is
     /// then in (photographs cannot tell the overall scale).
     #[arg(long, value_enum, default_value_t = ExposureArg::Shared)]
     exposure: ExposureArg,
     /// Fit the albedo beside the lighting: `materials` corrects each material's albedo by an
-    /// RGB multiplier (of its constant, or of its texture's factor), from the pixels that see
-    /// it alone; with the envmap, jointly with it (2–4 transport passes, then the fit), with
-    /// sphere models by alternating fits (2–8). Materials seen by fewer than 64 such pixels,
-    /// or lit only by light no other material sees, are kept as given and reported so.
+    /// RGB multiplier (of its constant, or of its texture's factor; vertex colours kept), from
+    /// the pixels that see it alone; with --model envmap jointly with the envmap (1–4
+    /// transport passes, then the fit), with other models by alternating fits (2–8). A
+    /// material seen alone by fewer than 64 pixels, or whose albedo the images cannot tell
+    /// from the light (lit only by light no other material sees), is kept as given and
+    /// reported so; it takes two such materials sharing light, or one beside a trusted one.
     /// report.json's "albedo" lists every material's given and fitted albedo; the written
     /// glTF, Blender and Mitsuba scenes carry the fitted one. With --exposure per-view it
-    /// needs a sphere model.
+    /// needs --model spheres or spheres:K.
     #[arg(long, value_enum)]
     fit_albedo: Option<FitAlbedoArg>,
     /// Materials whose albedo is known (comma-separated glTF material names): kept as given,
     /// they fix the scale between albedo and light that images cannot tell (default: the
-    /// fitted materials' mean albedo is kept).
+    /// fitted materials' pixel-weighted geometric-mean multiplier is kept at 1, so the light's
+    /// level is as right as the given albedo on average).
     #[arg(long, value_delimiter = ',', requires = "fit_albedo")]
     trust_albedo: Vec<String>,
     /// Rings of the envmap (default: the sidecar's), or `auto`: fit each of
@@ -375,12 +378,32 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             ));
         }
     }
-    if let Some(a) = report.albedo.as_ref().filter(|a| !a.converged) {
-        say(&format!(
-            "lightprobe: warning: the albedo did not converge in {} fits (the last still moved one by {:.2}%): the model may fit the images too poorly to tell albedo from lighting",
-            a.fits,
-            100.0 * a.last_change
-        ));
+    if let Some(a) = report.albedo.as_ref() {
+        let what = match a.method {
+            AlbedoMethod::Joint => "joint passes",
+            AlbedoMethod::Alternation => "fits",
+        };
+        if a.stalled {
+            say(&format!(
+                "lightprobe: warning: the albedo's joint fit stopped on a singular system after {} {what}: the albedo is where it stopped; trust more materials (--trust-albedo) or fit a sphere model",
+                a.fits
+            ));
+        } else if !a.converged {
+            say(&format!(
+                "lightprobe: warning: the albedo did not converge in {} {what} (the last still moved one by {:.2}%): the model may fit the images too poorly to tell albedo from lighting; check the fit test, or try a sphere model",
+                a.fits,
+                100.0 * a.last_change
+            ));
+        }
+        if !a
+            .materials
+            .iter()
+            .any(|m| m.status == MaterialStatus::Fitted)
+        {
+            say(
+                "lightprobe: warning: no material's albedo was fitted (report.json \"albedo\" says why for each): at least two materials must be seen alone by 64 pixels and share light, or one besides a trusted one",
+            );
+        }
     }
     if let Some(e) = report.exposure.as_ref().filter(|e| !e.converged) {
         say(&format!(
@@ -596,7 +619,7 @@ fn summary(r: &EstimateReport) -> Vec<String> {
 fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
     let rgb = |v: [f32; 3]| format!("{:.3} {:.3} {:.3}", v[0], v[1], v[2]);
     let mut lines = vec![format!(
-        "albedo fitted per material, {} {} ({seconds:.1} s before the last fit), last change {:.2}%; scale: {}",
+        "albedo fitted per material in {seconds:.1} s, {} {}, last change {:.2}%; scale: {}",
         a.fits,
         match a.method {
             AlbedoMethod::Joint => "joint passes",
@@ -604,7 +627,7 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
         },
         100.0 * a.last_change,
         if a.trusted.is_empty() {
-            "the fitted materials' mean kept".to_string()
+            "the fitted materials' mean multiplier kept at 1".to_string()
         } else {
             format!("trusted {}", a.trusted.join(", "))
         }
@@ -618,8 +641,10 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
             MaterialStatus::Fitted if m.at_bound => "fitted (at albedo 1)",
             MaterialStatus::Fitted => "fitted",
             MaterialStatus::Trusted => "trusted",
-            MaterialStatus::Unseen => "kept: too few pixels see it alone",
-            MaterialStatus::Unconstrained => "kept: lit only by light no other material sees",
+            MaterialStatus::Unseen => "kept: fewer than 64 pixels see it alone",
+            MaterialStatus::Unconstrained => {
+                "kept: the images cannot tell its albedo from the light (trust it, or add views)"
+            }
         };
         let obs = m
             .observability

@@ -78,7 +78,7 @@ pub struct SweepArgs {
     /// in the true scene. 0 = the true albedos.
     #[arg(long, value_delimiter = ',', default_value = "0")]
     albedo_error: Vec<f32>,
-    /// Beside every trial with an albedo error, one that fits the albedo (as `estimate
+    /// Beside every trial with a nonzero albedo error, one that fits the albedo (as `estimate
     /// --fit-albedo materials`); its records give the fitted albedo's error against the truth.
     #[arg(long, value_enum)]
     fit_albedo: Option<FitAlbedoArg>,

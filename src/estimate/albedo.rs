@@ -114,14 +114,16 @@ pub struct MaterialAlbedo {
     /// sees) to 1 (as well as beside a material lit exactly alike), the least over its lit
     /// channels ([`observability_of`]); null where not measured (unseen, or trusted).
     pub observability: Option<f64>,
-    /// Mean albedo as given (a texture's mean texel × its factor), linear RGB.
+    /// Mean albedo as given, linear RGB: over the pixels that see it alone as rendered there
+    /// (texture, factor and vertex colours together); where none does, the material's own
+    /// (a texture's mean texel × its factor).
     pub given: [f32; 3],
-    /// Mean albedo fitted, linear RGB.
+    /// Mean albedo fitted, linear RGB: `given × multiplier`.
     pub fitted: [f32; 3],
-    /// `fitted / given` per channel: what multiplies the constant albedo or the texture's
-    /// factor.
+    /// What multiplies the constant albedo or the texture's factor, per channel.
     pub multiplier: [f32; 3],
-    /// A channel reached the bound albedo ≤ 1.
+    /// A channel reached a bound: the mean albedo 1 (`given × multiplier` ≤ 1), or 1/100 of
+    /// the given.
     pub at_bound: bool,
 }
 
@@ -160,6 +162,9 @@ pub struct MaterialPixels {
     pub counts: Vec<usize>,
     /// Views with a pixel per material.
     pub views: Vec<usize>,
+    /// Per material, its mean albedo over those pixels at their centres, as rendered (texture,
+    /// factor and vertex colours together); zero where no pixel sees it alone.
+    pub seen_albedo: Vec<DVec3>,
 }
 
 impl MaterialPixels {
@@ -167,17 +172,20 @@ impl MaterialPixels {
     pub fn new(renderer: &Renderer, views: &[&Camera], masks: &[Vec<bool>]) -> Self {
         let n = renderer.scene.materials.len();
         let (mut counts, mut seen_in) = (vec![0usize; n], vec![0usize; n]);
+        let mut albedo = vec![DVec3::ZERO; n];
         let ids: Vec<Vec<u32>> = views
             .iter()
             .zip(masks)
             .map(|(cam, mask)| {
                 let mut ids = renderer.material_ids(cam);
+                let aov = renderer.aovs(cam).albedo;
                 let mut here = vec![false; n];
-                for (id, &m) in ids.iter_mut().zip(mask) {
+                for ((id, &m), a) in ids.iter_mut().zip(mask).zip(&aov.rgb) {
                     if !m || *id as usize >= n {
                         *id = NO_MATERIAL;
                     } else {
                         counts[*id as usize] += 1;
+                        albedo[*id as usize] += a.as_dvec3();
                         here[*id as usize] = true;
                     }
                 }
@@ -187,10 +195,16 @@ impl MaterialPixels {
                 ids
             })
             .collect();
+        let seen_albedo = albedo
+            .iter()
+            .zip(&counts)
+            .map(|(a, &c)| *a / c.max(1) as f64)
+            .collect();
         MaterialPixels {
             ids,
             counts,
             views: seen_in,
+            seen_albedo,
         }
     }
 

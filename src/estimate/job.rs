@@ -277,12 +277,12 @@ impl EstimateSettings {
         }
         if self.fit_albedo.is_some()
             && self.exposure == Exposure::PerView
-            && self.model == LightModel::Envmap
+            && matches!(self.model, LightModel::Envmap | LightModel::Auto)
         {
             return Err(Error::Invalid(
                 "fitting the albedo and per-view exposures together needs a sphere model \
-                 (--model spheres, spheres:K or auto): with the envmap the albedo is fitted \
-                 jointly with the lighting, and that joint fit has no exposures yet"
+                 (--model spheres or spheres:K): with the envmap the albedo is fitted jointly \
+                 with the lighting, and that joint fit has no exposures yet"
                     .into(),
             ));
         }
@@ -741,25 +741,13 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     job.settings.check()?;
     let t_all = Instant::now();
     let original = job.seen;
-    let quarter = |n: u32, least: u32| (n / 4).max(least).min(n);
-    let mut settings = EstimateSettings {
-        spp: quarter(job.settings.spp, job.settings.rounds),
-        noise_floor: false,
-        oracle: false,
-        diagnose: false,
-        ..job.settings.clone()
-    };
-    let mut render = RenderSettings {
-        spp: quarter(job.render.spp, 16),
-        ..*job.render
-    };
+    let (mut settings, mut render) = first_fits(job);
     let mut fitting = match job.settings.fit_albedo {
         Some(_) => Some(AlbedoFit::new(job, progress)?),
         None => None,
     };
     // The scene the lighting is fitted in, its materials set to the current albedo each fit.
     let mut scene = fitting.as_ref().map(|_| job.fit.scene.clone());
-    let judged_in_fit = std::ptr::eq(job.fit.scene, job.truth.scene);
     let n_views = if per_view { original.views.len() } else { 0 };
     let materials = job.fit.scene.materials.len();
     // Fitting with every sample (once the quarter-sample fits converged), and the fit that
@@ -793,14 +781,7 @@ pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
         if let Some(scene) = scene.as_mut() {
             scene.materials = albedo::scaled_materials(&job.fit.scene.materials, &multipliers);
         }
-        let in_scene = scene.as_ref().map(|s| {
-            let fit = job.fit.with_scene(s, job.fit.lights);
-            let truth = match judged_in_fit {
-                true => job.truth.with_scene(s, job.truth.lights),
-                false => job.truth.with_lights(job.truth.lights),
-            };
-            (fit, truth)
-        });
+        let in_scene = scene.as_ref().map(|s| renderers_in(job, s));
         let (fit, truth) = match &in_scene {
             Some((f, t)) => (f, t),
             None => (job.fit, job.truth),
@@ -949,20 +930,8 @@ fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     job.settings.check()?;
     let t_all = Instant::now();
     let mut fitting = AlbedoFit::new(job, progress)?;
-    let quarter = |n: u32, least: u32| (n / 4).max(least).min(n);
-    let mut settings = EstimateSettings {
-        spp: quarter(job.settings.spp, job.settings.rounds),
-        noise_floor: false,
-        oracle: false,
-        diagnose: false,
-        ..job.settings.clone()
-    };
-    let render = RenderSettings {
-        spp: quarter(job.render.spp, 16),
-        ..*job.render
-    };
+    let (mut settings, render) = first_fits(job);
     let given = &job.fit.scene.materials;
-    let judged_in_fit = std::ptr::eq(job.fit.scene, job.truth.scene);
     let mut scene = job.fit.scene.clone();
     let mut multipliers = vec![glam::DVec3::ONE; given.len()];
     // The job in `scene` with `settings` and `render`.
@@ -970,11 +939,7 @@ fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                   settings: &EstimateSettings,
                   render: &RenderSettings|
      -> Result<Estimate> {
-        let fit = job.fit.with_scene(scene, job.fit.lights);
-        let truth = match judged_in_fit {
-            true => job.truth.with_scene(scene, job.truth.lights),
-            false => job.truth.with_lights(job.truth.lights),
-        };
+        let (fit, truth) = renderers_in(job, scene);
         run_once(
             &Job {
                 fit: &fit,
@@ -1062,6 +1027,37 @@ fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     Ok(estimate)
 }
 
+/// The settings of the alternation's fits before the last: a quarter of the samples (at least
+/// a sample per part, and 16 per pixel for renders), no noise floor, oracle or diagnosis.
+fn first_fits(job: &Job) -> (EstimateSettings, RenderSettings) {
+    let quarter = |n: u32, least: u32| (n / 4).max(least).min(n);
+    let settings = EstimateSettings {
+        spp: quarter(job.settings.spp, job.settings.rounds),
+        noise_floor: false,
+        oracle: false,
+        diagnose: false,
+        ..job.settings.clone()
+    };
+    let render = RenderSettings {
+        spp: quarter(job.render.spp, 16),
+        ..*job.render
+    };
+    (settings, render)
+}
+
+/// The job's renderers over `scene` (its geometry, other albedo): the fit's, and the judge's,
+/// which takes the albedo too when the job judges in the scene it fits in (`fit` and `truth`
+/// share a scene: a user's estimate), else keeps its own (a sweep trial's true albedo).
+fn renderers_in<'s>(job: &'s Job, scene: &'s crate::scene::Scene) -> (Renderer<'s>, Renderer<'s>) {
+    let fit = job.fit.with_scene(scene, job.fit.lights);
+    let truth = if std::ptr::eq(job.fit.scene, job.truth.scene) {
+        job.truth.with_scene(scene, job.truth.lights)
+    } else {
+        job.truth.with_lights(job.truth.lights)
+    };
+    (fit, truth)
+}
+
 /// The lights an estimate ends with: its chosen sphere model (with any envmap behind it),
 /// else its envmap.
 fn final_lights(envmap: &Outcome, spheres: Option<&SphereOutcome>) -> Lights {
@@ -1087,6 +1083,15 @@ struct AlbedoFit {
     observability: Option<Vec<Option<f64>>>,
     /// Per material, the largest log-multiplier that keeps its mean albedo at most 1.
     upper: Vec<glam::DVec3>,
+}
+
+/// Material `m`'s mean albedo as given: over the pixels that see it alone, else its own.
+fn given_albedo(pixels: &MaterialPixels, material: &crate::scene::Material, m: usize) -> Vec3 {
+    if pixels.counts[m] > 0 {
+        pixels.seen_albedo[m].as_vec3()
+    } else {
+        material.mean_albedo()
+    }
 }
 
 /// Smallest multiplier the alternation may set (a material 100× darker than given is not a
@@ -1139,11 +1144,13 @@ impl AlbedoFit {
                 albedo::MIN_MATERIAL_PIXELS
             )));
         }
+        // The bound albedo ≤ 1 applies to what the pixels show (vertex colours included: a
+        // scan's white material under dark vertex colours may brighten).
+        let upper = (0..materials.len())
+            .map(|m| albedo::upper_bound(given_albedo(&pixels, &materials[m], m)))
+            .collect();
         Ok(AlbedoFit {
-            upper: materials
-                .iter()
-                .map(|m| albedo::upper_bound(m.mean_albedo()))
-                .collect(),
+            upper,
             pixels,
             trusted,
             free,
@@ -1281,7 +1288,7 @@ impl AlbedoFit {
                 .iter()
                 .enumerate()
                 .map(|(m, mat)| {
-                    let given = mat.mean_albedo();
+                    let given = given_albedo(&self.pixels, mat, m);
                     let k = multipliers[m];
                     let status = if self.trusted[m] {
                         MaterialStatus::Trusted
@@ -1304,9 +1311,13 @@ impl AlbedoFit {
                             .and_then(|o| o[m])
                             .filter(|_| self.free[m]),
                         given: given.to_array(),
-                        fitted: mat.scaled(k.as_vec3()).mean_albedo().to_array(),
+                        fitted: (given * k.as_vec3()).to_array(),
                         multiplier: k.as_vec3().to_array(),
-                        at_bound: fitted[m] && (0..3).any(|c| log_k[c] >= self.upper[m][c] - 1e-9),
+                        at_bound: fitted[m]
+                            && (0..3).any(|c| {
+                                log_k[c] >= self.upper[m][c] - 1e-9
+                                    || log_k[c] <= MIN_MULTIPLIER_LOG + 1e-9
+                            }),
                     }
                 })
                 .collect(),

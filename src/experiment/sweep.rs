@@ -682,6 +682,13 @@ impl Axes {
                 got: e.to_string(),
             });
         }
+        if settings.fit_albedo && !albedo_errors.iter().any(|&e| e > 0.0) {
+            return Err(Error::Invalid(
+                "fitting the albedo adds trials beside the nonzero albedo errors, and none is \
+                 given (--albedo-error 0.2, say)"
+                    .into(),
+            ));
+        }
         // What every trial's estimate checks, once for the sweep (a bad value would otherwise
         // fail every trial, and the failures would count as done).
         for &solver in &settings.solvers {
@@ -849,7 +856,7 @@ fn run_trial<'a>(
         Ok(est) => {
             if let Some(a) = &est.report.albedo {
                 (record.albedo_max_error, record.albedo_mean_error) =
-                    albedo_errors(a, &scene.materials);
+                    albedo_errors(a, &fit_renderer.scene.materials, &scene.materials);
             }
             fill_record(
                 &mut record,
@@ -863,22 +870,25 @@ fn run_trial<'a>(
 }
 
 /// The largest and the mean relative error, over the fitted materials and their channels, of
-/// the fitted albedo against the true `materials`' (`None` without a fitted material).
+/// the fitted albedo (the `given` materials' times their multipliers) against the `truth`'s
+/// (`None` without a fitted material).
 fn albedo_errors(
     report: &crate::estimate::albedo::AlbedoReport,
-    materials: &[crate::scene::Material],
+    given: &[crate::scene::Material],
+    truth: &[crate::scene::Material],
 ) -> (Option<f64>, Option<f64>) {
     use crate::estimate::albedo::MaterialStatus;
     let errors: Vec<f64> = report
         .materials
         .iter()
-        .zip(materials)
+        .zip(given.iter().zip(truth))
         .filter(|(m, _)| m.status == MaterialStatus::Fitted)
-        .flat_map(|(m, t)| {
+        .flat_map(|(m, (g, t))| {
+            let fitted = g.scaled(glam::Vec3::from_array(m.multiplier)).mean_albedo();
             let truth = t.mean_albedo();
             (0..3)
                 .filter(move |&c| truth[c] > 0.0)
-                .map(move |c| (m.fitted[c] as f64 / truth[c] as f64 - 1.0).abs())
+                .map(move |c| (fitted[c] as f64 / truth[c] as f64 - 1.0).abs())
         })
         .collect();
     let max = errors.iter().copied().reduce(f64::max);

@@ -597,10 +597,11 @@ fn albedo_section(h: &mut String, r: &Value) {
     let _ = writeln!(
         h,
         "<h2>Albedo (--fit-albedo)</h2><p class=\"note\">{}; {} {}, {}. A material is fitted \
-         from the pixels that see it alone; observability is the share of its image only its \
-         albedo explains (0: lit by light no other material sees, and kept as given). Where \
-         the fit test says the model does not explain the images, the albedo has taken up \
-         part of the misfit.</p><table><tr><th>material</th><th>status</th><th>pixels</th>\
+         from the pixels that see it alone; observability says how well the images tell its \
+         albedo from the light (0: not at all, as when only it sees that light; 1: as well as \
+         beside a material lit exactly alike; below 0.01 it is kept as given). Where the fit \
+         test says the model does not explain the images, the albedo has taken up part of the \
+         misfit.</p><table><tr><th>material</th><th>status</th><th>pixels</th>\
          <th>observability</th><th>given (linear RGB)</th><th>fitted</th><th></th></tr>",
         escape(r["albedo"]["gauge"].as_str().unwrap_or("")),
         span(r, "albedo.fits", Format::Integer),
