@@ -285,16 +285,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         .iter()
         .find(|n| !n.is_empty() && !scene.materials.iter().any(|m| &m.name == *n))
     {
-        let names: Vec<&str> = scene
-            .materials
-            .iter()
-            .map(|m| m.name.as_str())
-            .filter(|n| !n.is_empty())
-            .collect();
         anyhow::bail!(
             "{}: --trust-albedo names material {name:?}, which the scene does not have (it has {})",
             path.display(),
-            names.join(", ")
+            lightprobe::estimate::albedo::material_names(&scene.materials)
         );
     }
     anyhow::ensure!(

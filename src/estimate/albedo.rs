@@ -208,6 +208,11 @@ impl MaterialPixels {
         }
     }
 
+    /// Per material, its pixel count as a weight (of the gauge's mean).
+    pub fn weights(&self) -> Vec<f64> {
+        self.counts.iter().map(|&c| c as f64).collect()
+    }
+
     /// The material pixel `i` of view `v` sees alone.
     pub fn of(&self, (v, i): (usize, u32)) -> Option<usize> {
         let id = self.ids[v][i as usize];
@@ -277,6 +282,17 @@ pub fn gauged_step(
             DVec3::new(keep(d.x), keep(d.y), keep(d.z))
         })
         .collect()
+}
+
+/// The named materials, comma-separated (glTF's unnamed default left out): for messages that
+/// name one the scene lacks.
+pub fn material_names(materials: &[Material]) -> String {
+    let names: Vec<&str> = materials
+        .iter()
+        .map(|m| m.name.as_str())
+        .filter(|n| !n.is_empty())
+        .collect();
+    names.join(", ")
 }
 
 /// The largest log-multiplier per channel that keeps a material's mean albedo `given` at most

@@ -979,7 +979,7 @@ fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
                 )
             })
             .collect();
-        let weights: Vec<f64> = fitting.pixels.counts.iter().map(|&c| c as f64).collect();
+        let weights = fitting.pixels.weights();
         let (k, envmap, stuck) = sums.joint(
             (&fitted, &fitting.trusted),
             &weights,
@@ -1106,15 +1106,10 @@ impl AlbedoFit {
             match materials.iter().position(|m| &m.name == name) {
                 Some(i) => trusted[i] = true,
                 None => {
-                    let names: Vec<&str> = materials
-                        .iter()
-                        .map(|m| m.name.as_str())
-                        .filter(|n| !n.is_empty())
-                        .collect();
                     return Err(Error::Invalid(format!(
                         "trusted albedo names material {name:?}, which the scene does not \
                          have (it has {})",
-                        names.join(", ")
+                        albedo::material_names(materials)
                     )));
                 }
             }
@@ -1207,7 +1202,7 @@ impl AlbedoFit {
             &|k| progress.advance(k),
         );
         if self.observability.is_none() {
-            let weights: Vec<f64> = self.pixels.counts.iter().map(|&c| c as f64).collect();
+            let weights = self.pixels.weights();
             let free: Vec<bool> = (0..self.free.len())
                 .map(|m| self.free[m] && !self.trusted[m])
                 .collect();
