@@ -165,6 +165,9 @@ pub struct MaterialPixels {
     /// Per material, its mean albedo over those pixels at their centres, as rendered (texture,
     /// factor and vertex colours together); zero where no pixel sees it alone.
     pub seen_albedo: Vec<DVec3>,
+    /// Per view, per pixel, the glTF texture coordinates at its centre (NaN where it sees
+    /// no geometry): where a texel fit ([`super::texels`]) puts the pixel.
+    pub uv: Vec<Vec<Vec2>>,
 }
 
 impl MaterialPixels {
@@ -173,14 +176,15 @@ impl MaterialPixels {
         let n = renderer.scene.materials.len();
         let (mut counts, mut seen_in) = (vec![0usize; n], vec![0usize; n]);
         let mut albedo = vec![DVec3::ZERO; n];
+        let mut uv = Vec::with_capacity(views.len());
         let ids: Vec<Vec<u32>> = views
             .iter()
             .zip(masks)
             .map(|(cam, mask)| {
                 let mut ids = renderer.material_ids(cam);
-                let aov = renderer.aovs(cam).albedo;
+                let aovs = renderer.aovs(cam);
                 let mut here = vec![false; n];
-                for ((id, &m), a) in ids.iter_mut().zip(mask).zip(&aov.rgb) {
+                for ((id, &m), a) in ids.iter_mut().zip(mask).zip(&aovs.albedo.rgb) {
                     if !m || *id as usize >= n {
                         *id = NO_MATERIAL;
                     } else {
@@ -192,6 +196,7 @@ impl MaterialPixels {
                 for (s, h) in seen_in.iter_mut().zip(here) {
                     *s += h as usize;
                 }
+                uv.push(aovs.uv);
                 ids
             })
             .collect();
@@ -205,6 +210,7 @@ impl MaterialPixels {
             counts,
             views: seen_in,
             seen_albedo,
+            uv,
         }
     }
 

@@ -17,6 +17,7 @@ pub mod pipeline;
 pub mod recovery;
 pub mod select;
 pub mod spheres;
+pub mod texels;
 pub mod transport;
 
 use std::time::{Duration, Instant};

@@ -211,6 +211,8 @@ struct SurfacePoint {
     /// Shading normal (interpolated), on the same side as `ng`.
     ns: Vec3,
     albedo: Vec3,
+    /// glTF texture coordinates.
+    uv: Vec2,
 }
 
 impl SurfacePoint {
@@ -220,6 +222,7 @@ impl SurfacePoint {
         ng: Vec3::Z,
         ns: Vec3::Z,
         albedo: Vec3::ZERO,
+        uv: Vec2::ZERO,
     };
 }
 
@@ -243,7 +246,25 @@ fn surface_point(scene: &Scene, hit: &Hit, d: Vec3) -> SurfacePoint {
     let uv = mesh.uvs[ia] * b0 + mesh.uvs[ib] * hit.b1 + mesh.uvs[ic] * hit.b2;
     let color = mesh.colors[ia] * b0 + mesh.colors[ib] * hit.b1 + mesh.colors[ic] * hit.b2;
     let albedo = scene.materials[mesh.triangle_material[t] as usize].albedo_at(uv) * color;
-    SurfacePoint { p, ng, ns, albedo }
+    SurfacePoint {
+        p,
+        ng,
+        ns,
+        albedo,
+        uv,
+    }
+}
+
+/// What a ray sees first ([`Tracer::first_hit`]).
+pub struct FirstHit {
+    /// Distance from the ray's origin, metres.
+    pub distance: f32,
+    /// Shading normal facing the ray, world space.
+    pub normal: Vec3,
+    /// Albedo, linear RGB (texture, factor and vertex colour together).
+    pub albedo: Vec3,
+    /// glTF texture coordinates (not wrapped).
+    pub uv: Vec2,
 }
 
 /// A ray origin just off the surface on the side of `n`, scaled to the coordinates' magnitude.
@@ -595,16 +616,20 @@ impl Tracer<'_> {
         added[lane].push((ls.emitter, ls.wi, v.throughput_f * (cos_s * w / ls.pdf)));
     }
 
-    /// Per-pixel-centre geometry for checking: (distance to the first hit in metres, shading
-    /// normal facing the camera, albedo), or `None` if the ray sees no scene geometry.
-    pub fn first_hit(&self, origin: Vec3, dir: Vec3) -> Option<(f32, Vec3, Vec3)> {
+    /// The first surface the ray meets, or `None` if it sees no scene geometry.
+    pub fn first_hit(&self, origin: Vec3, dir: Vec3) -> Option<FirstHit> {
         let t_light = self
             .lights
             .intersect(origin, dir, 0.0, f32::INFINITY)
             .map_or(f32::INFINITY, |h| h.0);
         let hit = self.accel.intersect(origin, dir, t_light)?;
         let sp = surface_point(self.scene, &hit, dir);
-        Some((hit.t, sp.ns, sp.albedo))
+        Some(FirstHit {
+            distance: hit.t,
+            normal: sp.ns,
+            albedo: sp.albedo,
+            uv: sp.uv,
+        })
     }
 
     /// The material of the first surface the ray meets (as [`Tracer::first_hit`] finds it),

@@ -29,7 +29,7 @@ use crate::accel::Accel;
 use crate::imageio::Image;
 use crate::sampling::mix64;
 use crate::scene::{Camera, Scene, SceneSettings};
-use integrator::Tracer;
+use integrator::{FirstHit, Tracer};
 use pixels::{Light, TilePaths, Trace, View, Walk, drive, render_key};
 
 pub use pixels::{Done, TILE, Tile, tiles};
@@ -149,6 +149,8 @@ pub struct Aovs {
     pub normal: Image,
     /// Albedo, linear RGB (0 where none).
     pub albedo: Image,
+    /// glTF texture coordinates, row-major (NaN where none).
+    pub uv: Vec<Vec2>,
 }
 
 /// Builds the ray-query structure over a scene's triangles.
@@ -484,19 +486,20 @@ impl<'a> Renderer<'a> {
         frame.into_image()
     }
 
-    /// Depth, normal and albedo at pixel centres (one ray per pixel, no randomness).
+    /// Depth, normal, albedo and texture coordinates at pixel centres (one ray per pixel, no
+    /// randomness).
     pub fn aovs(&self, camera: &Camera) -> Aovs {
         let settings = RenderSettings::preview();
         let tracer = self.tracer(&settings);
         let (w, h) = (camera.width, camera.height);
-        let hits: Vec<Option<(f32, Vec3, Vec3)>> = (0..w * h)
+        let hits: Vec<Option<FirstHit>> = (0..w * h)
             .into_par_iter()
             .map(|i| {
                 let c = Vec2::new((i % w) as f32 + 0.5, (i / w) as f32 + 0.5);
                 tracer.first_hit(camera.origin_world, camera.ray_dir_world(c.x, c.y))
             })
             .collect();
-        let make = |f: &dyn Fn(&(f32, Vec3, Vec3)) -> Vec3| Image {
+        let make = |f: &dyn Fn(&FirstHit) -> Vec3| Image {
             width: w,
             height: h,
             rgb: hits
@@ -506,9 +509,13 @@ impl<'a> Renderer<'a> {
             alpha: None,
         };
         Aovs {
-            depth: make(&|h| Vec3::splat(h.0)),
-            normal: make(&|h| h.1),
-            albedo: make(&|h| h.2),
+            depth: make(&|h| Vec3::splat(h.distance)),
+            normal: make(&|h| h.normal),
+            albedo: make(&|h| h.albedo),
+            uv: hits
+                .iter()
+                .map(|hit| hit.as_ref().map_or(Vec2::NAN, |h| h.uv))
+                .collect(),
         }
     }
 

@@ -1,0 +1,453 @@
+//! Texel corrections of albedo textures (`--fit-albedo texels`): the shading a photographed
+//! texture carries baked in, taken out where the fitted lighting does not explain it.
+//!
+//! **The model.** With the lighting fixed, a pixel that sees one textured material is linear
+//! in the albedo where it sees it. The correction `c` is a coarse grid of RGB multipliers over
+//! the texture's domain (repeat-wrapped and looked up bilinearly, as the texture is), coarse
+//! enough to vary slowly against a pixel, so a pixel's reference is `y ≈ c(uv)·x` with `x` its
+//! re-render at the current texture and `uv` the texture coordinates at its centre. Light that
+//! came back to the same texture is scaled too, which the model ignores (a plane or a convex
+//! object does not light itself).
+//!
+//! **Least squares with a membrane prior.** Per channel, over the grid's cells `c_j`:
+//!
+//! ```text
+//! Σ_p (y_p − x_p Σ_j w_pj c_j)²  +  μ Σ_{i~j} (c_i − c_j)²  +  ε Σ_j (c_j − 1)²
+//! ```
+//!
+//! with `w_pj` the bilinear taps and `i~j` the four-neighbour pairs (wrapping). `x_p²` is taken
+//! as `x¹_p·x²_p` of two independent re-renders and `x_p` as their mean, so the renders' noise
+//! does not bias `c` low (`E[x¹x²] = x̄²`, where `E[x²] = x̄² + σ²`); the references' noise
+//! does not bias a least-squares fit. `μ` is the smoothness times the mean diagonal of the
+//! data term over the cells pixels see: at 1 a cell leans on its neighbours as much as on its
+//! own pixels. `ε` ([`UNSEEN_PULL`] of that diagonal) keeps the system definite: a cell no
+//! pixel sees follows its seen neighbours, and far from any, stays 1.
+//!
+//! **Bounds.** The corrected texel times the material's factor is clamped to [0, 1]
+//! ([`Correction::apply`]).
+
+use faer::linalg::solvers::Solve;
+use faer::sparse::{SparseColMat, Triplet};
+use glam::{DVec3, Vec2, Vec3};
+
+use crate::scene::Texture;
+
+/// Cells along the longer side of a texture's correction grid by default.
+pub const DEFAULT_TEXEL_GRID: u32 = 32;
+
+/// Fewest cells along a side (the neighbour bookkeeping needs three; four keeps a wrap from
+/// tying a cell to itself).
+pub const MIN_TEXEL_GRID: u32 = 4;
+
+/// Most cells along a side: a finer grid than this is more unknowns than any capture's pixels
+/// pin down, and the sparse solve grows with it.
+pub const MAX_TEXEL_GRID: u32 = 256;
+
+/// Default weight of the membrane prior, relative to the mean diagonal of the data term.
+pub const DEFAULT_TEXEL_SMOOTHNESS: f64 = 1.0;
+
+/// Pull of every cell toward 1, relative to the mean diagonal of the data term: far below any
+/// seen cell's data, it only decides cells no pixel sees.
+pub const UNSEEN_PULL: f64 = 1e-3;
+
+/// Pixel-weighted RMS change of a correction below which the texel rounds stop.
+pub const TEXEL_TOLERANCE: f64 = 0.02;
+
+/// Most texel rounds (a correction, then a lighting fit at it).
+pub const MAX_TEXEL_ROUNDS: usize = 3;
+
+/// The cells of a correction grid for a `width` × `height` texture with `cells` along its
+/// longer side: the other side in proportion, each within [`MIN_TEXEL_GRID`] and
+/// [`MAX_TEXEL_GRID`].
+pub fn grid_size(width: u32, height: u32, cells: u32) -> (u32, u32) {
+    let cells = cells.clamp(MIN_TEXEL_GRID, MAX_TEXEL_GRID);
+    let (long, short) = (width.max(height).max(1), width.min(height).max(1));
+    let other = ((cells as u64 * short as u64 + long as u64 / 2) / long as u64) as u32;
+    let other = other.clamp(MIN_TEXEL_GRID, MAX_TEXEL_GRID);
+    if width >= height {
+        (cells, other)
+    } else {
+        (other, cells)
+    }
+}
+
+/// The four bilinear taps (cell index, weight) of glTF texture coordinates `uv` on a
+/// `width` × `height` grid, repeat-wrapped: the weights [`Texture::sample`] gives its texels.
+/// `None` for coordinates that are not finite.
+pub fn taps(uv: Vec2, width: u32, height: u32) -> Option<[(usize, f64); 4]> {
+    let x = uv.x as f64 * width as f64 - 0.5;
+    let y = uv.y as f64 * height as f64 - 0.5;
+    if !(x.is_finite() && y.is_finite()) {
+        return None;
+    }
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    let (w, h) = (width as i64, height as i64);
+    let (i0, j0) = ((x0 as i64).rem_euclid(w), (y0 as i64).rem_euclid(h));
+    let (i1, j1) = ((i0 + 1) % w, (j0 + 1) % h);
+    let at = |i: i64, j: i64| (j * w + i) as usize;
+    Some([
+        (at(i0, j0), (1.0 - fx) * (1.0 - fy)),
+        (at(i1, j0), fx * (1.0 - fy)),
+        (at(i0, j1), (1.0 - fx) * fy),
+        (at(i1, j1), fx * fy),
+    ])
+}
+
+/// The normal equations of one texture's correction ([`TexelSums::add`] per pixel).
+#[derive(Debug, Clone)]
+pub struct TexelSums {
+    pub width: u32,
+    pub height: u32,
+    /// Per cell, per neighbour offset (`3·(dy+1) + (dx+1)`, wrapping), per channel:
+    /// `Σ_p w_pi w_pj x¹_p x²_p`.
+    gram: Vec<[DVec3; 9]>,
+    /// Per cell, per channel: `Σ_p w_pi x̄_p y_p`.
+    rhs: Vec<DVec3>,
+    /// Per cell: `Σ_p w_pi`, how much the pixels see it.
+    pub seen: Vec<f64>,
+    /// Pixels added.
+    pub pixels: usize,
+}
+
+impl TexelSums {
+    pub fn new((width, height): (u32, u32)) -> TexelSums {
+        let n = (width * height) as usize;
+        TexelSums {
+            width,
+            height,
+            gram: vec![[DVec3::ZERO; 9]; n],
+            rhs: vec![DVec3::ZERO; n],
+            seen: vec![0.0; n],
+            pixels: 0,
+        }
+    }
+
+    /// The offset slot of cell `b` seen from cell `a` (they are at most one cell apart per
+    /// axis, wrapping).
+    fn slot(&self, a: usize, b: usize) -> usize {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let step = |from: usize, to: usize, n: usize| {
+            if to == from {
+                1
+            } else if to == (from + 1) % n {
+                2
+            } else {
+                0
+            }
+        };
+        3 * step(a / w, b / w, h) + step(a % w, b % w, w)
+    }
+
+    /// The cell at offset slot `k` from cell `a`.
+    fn neighbour(&self, a: usize, k: usize) -> usize {
+        let (w, h) = (self.width as i64, self.height as i64);
+        let (dx, dy) = ((k % 3) as i64 - 1, (k / 3) as i64 - 1);
+        let (i, j) = (a as i64 % w, a as i64 / w);
+        ((j + dy).rem_euclid(h) * w + (i + dx).rem_euclid(w)) as usize
+    }
+
+    /// Adds a pixel at texture coordinates `uv` with reference `y` and two independent
+    /// re-renders `x1`, `x2` at the current texture. A pixel whose coordinates are not finite
+    /// is skipped.
+    pub fn add(&mut self, uv: Vec2, y: Vec3, x1: Vec3, x2: Vec3) {
+        let Some(taps) = taps(uv, self.width, self.height) else {
+            return;
+        };
+        let (x1, x2) = (x1.as_dvec3(), x2.as_dvec3());
+        let (cross, mean) = (x1 * x2, (x1 + x2) * 0.5);
+        let y = y.as_dvec3();
+        for &(a, wa) in &taps {
+            self.rhs[a] += wa * mean * y;
+            self.seen[a] += wa;
+            for &(b, wb) in &taps {
+                let k = self.slot(a, b);
+                self.gram[a][k] += wa * wb * cross;
+            }
+        }
+        self.pixels += 1;
+    }
+
+    /// The correction minimising the module's objective with membrane weight `smoothness`;
+    /// `None` when no pixel was added or a channel's system is not positive definite.
+    pub fn solve(&self, smoothness: f64) -> Option<Correction> {
+        let n = self.gram.len();
+        let seen_cells: Vec<usize> = (0..n).filter(|&a| self.seen[a] > 0.0).collect();
+        if seen_cells.is_empty() {
+            return None;
+        }
+        let mut cells = vec![DVec3::ONE; n];
+        for ch in 0..3 {
+            let diag = seen_cells.iter().map(|&a| self.gram[a][4][ch]).sum::<f64>()
+                / seen_cells.len() as f64;
+            if diag <= 0.0 || diag.is_nan() {
+                // Nothing lit in this channel: nothing to correct.
+                continue;
+            }
+            let (mu, eps) = (smoothness.max(0.0) * diag, UNSEEN_PULL * diag);
+            let mut triplets = Vec::with_capacity(n * 9);
+            for a in 0..n {
+                let mut row = [0.0f64; 9];
+                for (k, g) in self.gram[a].iter().enumerate() {
+                    row[k] = g[ch];
+                }
+                row[4] += eps;
+                for k in [1, 3, 5, 7] {
+                    row[4] += mu;
+                    row[k] -= mu;
+                }
+                for (k, &v) in row.iter().enumerate() {
+                    if v != 0.0 {
+                        triplets.push(Triplet::new(self.neighbour(a, k), a, v));
+                    }
+                }
+            }
+            let h = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).ok()?;
+            let llt = h.sp_cholesky(faer::Side::Lower).ok()?;
+            let b = faer::Mat::<f64>::from_fn(n, 1, |a, _| self.rhs[a][ch] + eps);
+            let c = llt.solve(b);
+            for (a, cell) in cells.iter_mut().enumerate() {
+                let v = c[(a, 0)];
+                if !v.is_finite() {
+                    return None;
+                }
+                cell[ch] = v.max(0.0);
+            }
+        }
+        Some(Correction {
+            width: self.width,
+            height: self.height,
+            cells,
+            seen: self.seen.clone(),
+        })
+    }
+}
+
+/// A texture's correction: a multiplier per cell and channel.
+#[derive(Debug, Clone)]
+pub struct Correction {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major, row 0 at the texture's top (glTF's v = 0).
+    pub cells: Vec<DVec3>,
+    /// Per cell, how much the pixels saw it ([`TexelSums::seen`]).
+    pub seen: Vec<f64>,
+}
+
+impl Correction {
+    /// The correction's value at texture coordinates `uv` (bilinear, wrapping).
+    pub fn at(&self, uv: Vec2) -> DVec3 {
+        taps(uv, self.width, self.height)
+            .map(|t| t.iter().map(|&(a, w)| self.cells[a] * w).sum())
+            .unwrap_or(DVec3::ONE)
+    }
+
+    /// `texture` with every texel multiplied by the correction at its centre, each channel
+    /// clamped so that texel × `factor` stays within [0, 1]; and how many texels a clamp
+    /// changed.
+    pub fn apply(&self, texture: &Texture, factor: Vec3) -> (Texture, usize) {
+        let (w, h) = (texture.width, texture.height);
+        let ceiling = Vec3::select(factor.cmpgt(Vec3::ZERO), 1.0 / factor, Vec3::INFINITY);
+        let mut clamped = 0;
+        let texels = texture
+            .texels
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                let uv = Vec2::new(
+                    ((i as u32 % w) as f32 + 0.5) / w as f32,
+                    ((i as u32 / w) as f32 + 0.5) / h as f32,
+                );
+                let v = *t * self.at(uv).as_vec3();
+                let c = v.clamp(Vec3::ZERO, ceiling);
+                clamped += (c != v) as usize;
+                c
+            })
+            .collect();
+        let texture = Texture {
+            width: w,
+            height: h,
+            texels,
+        };
+        (texture, clamped)
+    }
+
+    /// The seen-weighted RMS of `c − 1`, the largest over channels: how far this correction
+    /// moves the texture where pixels see it.
+    pub fn change(&self) -> f64 {
+        let total: f64 = self.seen.iter().sum();
+        if total <= 0.0 {
+            return 0.0;
+        }
+        let sq = self
+            .cells
+            .iter()
+            .zip(&self.seen)
+            .fold(DVec3::ZERO, |s, (c, &w)| s + (*c - 1.0) * (*c - 1.0) * w);
+        (sq / total).max_element().sqrt()
+    }
+
+    /// The least and largest multiplier over the cells pixels see, per channel's extreme.
+    pub fn range(&self) -> (f64, f64) {
+        self.cells
+            .iter()
+            .zip(&self.seen)
+            .filter(|(_, w)| **w > 0.0)
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (c, _)| {
+                (lo.min(c.min_element()), hi.max(c.max_element()))
+            })
+    }
+
+    /// Cells pixels see.
+    pub fn cells_seen(&self) -> usize {
+        self.seen.iter().filter(|&&w| w > 0.0).count()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn rng(seed: &mut u64) -> f64 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (*seed >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    #[test]
+    fn taps_weigh_as_the_texture_samples() {
+        let (w, h) = (7u32, 5u32);
+        let texels: Vec<Vec3> = (0..w * h)
+            .map(|i| Vec3::new(i as f32, (i * i % 11) as f32, 1.0 + (i % 3) as f32))
+            .collect();
+        let texture = Texture {
+            width: w,
+            height: h,
+            texels: texels.clone(),
+        };
+        let mut seed = 3;
+        for _ in 0..200 {
+            let uv = Vec2::new(
+                (rng(&mut seed) * 3.0 - 1.0) as f32,
+                (rng(&mut seed) * 3.0 - 1.0) as f32,
+            );
+            let t = taps(uv, w, h).expect("finite");
+            let sum: f64 = t.iter().map(|&(_, w)| w).sum();
+            assert!((sum - 1.0).abs() < 1e-12);
+            let mine: Vec3 = t.iter().map(|&(a, wt)| texels[a] * wt as f32).sum();
+            let theirs = texture.sample(uv);
+            assert!(
+                (mine - theirs).abs().max_element() < 1e-3,
+                "{uv}: {mine} against {theirs}"
+            );
+        }
+        assert!(taps(Vec2::new(f32::NAN, 0.0), w, h).is_none());
+    }
+
+    #[test]
+    fn grid_follows_the_aspect_within_bounds() {
+        assert_eq!(grid_size(256, 256, 32), (32, 32));
+        assert_eq!(grid_size(512, 256, 32), (32, 16));
+        assert_eq!(grid_size(100, 400, 32), (8, 32));
+        assert_eq!(grid_size(4096, 16, 32), (32, MIN_TEXEL_GRID));
+        assert_eq!(grid_size(8, 8, 1000), (MAX_TEXEL_GRID, MAX_TEXEL_GRID));
+    }
+
+    /// A known correction on the grid (a darkened blob, one multiplier per cell and channel,
+    /// looked up bilinearly), seen by noiseless pixels everywhere but one cell: recovered to
+    /// 0.1% with a faint prior, and the cell no pixel sees follows its neighbours.
+    #[test]
+    fn recovers_a_known_correction() {
+        let (w, h) = (16u32, 12u32);
+        let blob = |i: u32, j: u32| {
+            let d = (i as f64 - 6.0).powi(2) + (j as f64 - 6.5).powi(2);
+            let e = (-d / 8.0).exp();
+            DVec3::new(1.0 - 0.5 * e, 1.0 - 0.4 * e, 1.0 - 0.3 * e)
+        };
+        let truth = Correction {
+            width: w,
+            height: h,
+            cells: (0..w * h).map(|a| blob(a % w, a / w)).collect(),
+            seen: vec![1.0; (w * h) as usize],
+        };
+        let mut sums = TexelSums::new((w, h));
+        let mut seed = 11;
+        for _ in 0..40_000 {
+            let uv = Vec2::new(rng(&mut seed) as f32, rng(&mut seed) as f32);
+            // No pixel near cell (3, 3)'s centre: none of its taps is taken.
+            let cell = Vec2::new(uv.x * w as f32 - 0.5, uv.y * h as f32 - 0.5);
+            if (cell - Vec2::new(3.0, 3.0)).abs().max_element() < 1.0 {
+                continue;
+            }
+            let x = Vec3::new(0.2, 0.3, 0.25) * (0.5 + rng(&mut seed) as f32);
+            let y = (x.as_dvec3() * truth.at(uv)).as_vec3();
+            sums.add(uv, y, x, x);
+        }
+        let c = sums.solve(1e-4).expect("solved");
+        let hole = (3 * w + 3) as usize;
+        let worst = (0..(w * h) as usize)
+            .filter(|&a| a != hole)
+            .map(|a| (c.cells[a] - truth.cells[a]).abs().max_element())
+            .fold(0.0f64, f64::max);
+        assert!(worst < 1e-3, "worst cell off by {worst}");
+        assert_eq!(c.cells_seen(), (w * h) as usize - 1);
+        let next = c.cells[hole + 1];
+        assert!(
+            (c.cells[hole] - next).abs().max_element() < 0.1,
+            "{} beside {next}",
+            c.cells[hole]
+        );
+    }
+
+    /// Noisy re-renders: the cross product keeps the fit unbiased where the square of one
+    /// render would pull it low by x̄²/(x̄²+σ²).
+    #[test]
+    fn render_noise_does_not_bias_the_correction() {
+        let (w, h) = (4u32, 4u32);
+        let mut sums = TexelSums::new((w, h));
+        let mut squared = TexelSums::new((w, h));
+        let mut seed = 5;
+        let noisy = |seed: &mut u64| 0.5 * (1.0 + 0.8 * (rng(seed) - 0.5) * 3.4641) as f32;
+        for _ in 0..200_000 {
+            let uv = Vec2::new(rng(&mut seed) as f32, rng(&mut seed) as f32);
+            let (x1, x2) = (Vec3::splat(noisy(&mut seed)), Vec3::splat(noisy(&mut seed)));
+            let y = Vec3::splat(0.7 * 0.5);
+            sums.add(uv, y, x1, x2);
+            squared.add(uv, y, x1, x1);
+        }
+        let c = sums.solve(0.1).expect("solved");
+        let mean = c.cells.iter().map(|c| c.x).sum::<f64>() / c.cells.len() as f64;
+        assert!((mean - 0.7).abs() < 0.01, "cross: {mean}");
+        let biased = squared.solve(0.1).expect("solved");
+        let low = biased.cells.iter().map(|c| c.x).sum::<f64>() / c.cells.len() as f64;
+        // x̄ = 0.5, σ = 0.2: the square's fit lands near 0.7·0.25/0.29 = 0.60, not 0.7.
+        assert!(low < 0.65, "square: {low}");
+    }
+
+    #[test]
+    fn apply_clamps_to_the_albedo_bound() {
+        let texture = Texture {
+            width: 2,
+            height: 1,
+            texels: vec![Vec3::splat(0.5), Vec3::splat(0.9)],
+        };
+        let c = Correction {
+            width: 4,
+            height: 4,
+            cells: vec![DVec3::splat(1.5); 16],
+            seen: vec![1.0; 16],
+        };
+        let (t, clamped) = c.apply(&texture, Vec3::new(1.0, 1.0, 2.0));
+        assert_eq!(clamped, 2);
+        assert!(
+            (t.texels[0] - Vec3::new(0.75, 0.75, 0.5))
+                .abs()
+                .max_element()
+                < 1e-6
+        );
+        assert!((t.texels[1] - Vec3::new(1.0, 1.0, 0.5)).abs().max_element() < 1e-6);
+        assert!((c.change() - 0.5).abs() < 1e-12);
+        assert_eq!(c.range(), (1.5, 1.5));
+    }
+}
