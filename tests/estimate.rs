@@ -1841,3 +1841,171 @@ fn a_white_light_comes_back_white_when_the_channels_are_fitted_together() {
         "{together_err} vs {apart_err}"
     );
 }
+
+#[test]
+fn shading_baked_into_a_texture_is_taken_out_by_texels() {
+    // The table carries a texture (stripes); the fit's copy has a soft shadow baked into it
+    // (down to 45% in a blob the views see). The references show the true texture under a
+    // 3-ring sky. `--fit-albedo materials` can only rescale the whole texture; `texels` must
+    // take most of the shadow out (texture error over the seen texels well under half the
+    // materials fit's), keep the stripes, and fit the lighting as well as with the true
+    // texture.
+    use lightprobe::estimate::albedo::FitAlbedo;
+    use lightprobe::estimate::job::{self, EstimateSettings, Job, References, Rings};
+    use lightprobe::scene::Texture;
+    let n = 64u32;
+    let stripes: Vec<Vec3> = (0..n * n)
+        .map(|i| {
+            let x = i % n;
+            if (x / 8).is_multiple_of(2) {
+                Vec3::new(0.7, 0.6, 0.45)
+            } else {
+                Vec3::new(0.5, 0.42, 0.3)
+            }
+        })
+        .collect();
+    let shadow = |i: u32| {
+        let (u, v) = (
+            (i % n) as f32 / n as f32 - 0.62,
+            (i / n) as f32 / n as f32 - 0.72,
+        );
+        1.0 - 0.55 * (-(u * u + v * v) / (2.0 * 0.12f32.powi(2))).exp()
+    };
+    let texture = |texels: Vec<Vec3>| Albedo::Texture {
+        texture: std::sync::Arc::new(Texture {
+            width: n,
+            height: n,
+            texels,
+        }),
+        factor: Vec3::ONE,
+    };
+    let mut sc = scene(vec![]);
+    // The table with texture coordinates over its 2 m × 2 m, texels 3 cm wide.
+    let mut mesh = lightprobe::scene::Mesh::default();
+    let p = [
+        Vec3::new(-1.0, 0.0, -1.0),
+        Vec3::new(1.0, 0.0, -1.0),
+        Vec3::new(1.0, 0.0, 1.0),
+        Vec3::new(-1.0, 0.0, 1.0),
+    ];
+    let uv = [
+        glam::Vec2::new(0.0, 0.0),
+        glam::Vec2::new(1.0, 0.0),
+        glam::Vec2::new(1.0, 1.0),
+        glam::Vec2::new(0.0, 1.0),
+    ];
+    mesh.push(&p, None, Some(&uv), &[0, 2, 1, 0, 3, 2], 0);
+    let rest = {
+        let mut m = sc.mesh.clone();
+        let first = 2; // the plane's two triangles come first
+        m.triangles.drain(..first);
+        m.triangle_material.drain(..first);
+        m
+    };
+    // Rebuild: the textured plane, then the ball and the box as `scene` made them.
+    let mut whole = mesh;
+    let offset = whole.positions.len() as u32;
+    whole.positions.extend(&rest.positions);
+    whole.normals.extend(&rest.normals);
+    whole.uvs.extend(&rest.uvs);
+    whole.colors.extend(&rest.colors);
+    whole
+        .triangles
+        .extend(rest.triangles.iter().map(|t| t.map(|i| i + offset)));
+    whole.triangle_material.extend(&rest.triangle_material);
+    sc.mesh = whole;
+    sc.materials[0].albedo = texture(stripes.clone());
+    let lights = Lights::env(three_ring_sky());
+    let truth = Renderer::new(&sc, &lights);
+    let render = settings(256, 1);
+    let (refs, _) = render_all(&truth, &sc, 256, 1);
+    let seen = job::observe(&truth, &render, References::Images(refs), &()).unwrap();
+    let mut baked = sc.clone();
+    baked.materials[0].albedo = texture(
+        stripes
+            .iter()
+            .enumerate()
+            .map(|(i, t)| *t * shadow(i as u32))
+            .collect(),
+    );
+    let fit = truth.with_scene(&baked, &lights);
+    let run = |fit_albedo, fit: &Renderer| {
+        let settings = EstimateSettings {
+            rings: Rings::Fixed(3),
+            spp: 256,
+            noise_floor: false,
+            fit_albedo,
+            trust_albedo: match fit_albedo {
+                Some(_) => vec!["ball".into()],
+                None => Vec::new(),
+            },
+            texel_grid: 16,
+            ..EstimateSettings::new(&sc.settings)
+        };
+        let job = Job {
+            fit,
+            ..Job::new(&truth, &seen, &render, &settings)
+        };
+        job::run(&job, &()).unwrap()
+    };
+    // Texels the views see (texture coordinates at the views' pixel centres on the table).
+    let mut seen_texel = vec![false; (n * n) as usize];
+    for cam in &sc.cameras {
+        let aovs = truth.aovs(cam);
+        let ids = truth.material_ids(cam);
+        for (uv, id) in aovs.uv.iter().zip(ids) {
+            if id == 0 && uv.is_finite() {
+                let (x, y) = ((uv.x * n as f32) as u32, (uv.y * n as f32) as u32);
+                seen_texel[(y.min(n - 1) * n + x.min(n - 1)) as usize] = true;
+            }
+        }
+    }
+    // Mean relative error (worst channel) of the fitted texture × factor over the seen texels,
+    // and over those inside the shadow (darkened by more than 20%).
+    let texture_error = |e: &lightprobe::estimate::job::Estimate| {
+        let Albedo::Texture { texture, factor } = &e.materials.as_ref().unwrap()[0].albedo else {
+            panic!("the table stays textured");
+        };
+        let (mut all, mut inside) = ((0.0f64, 0usize), (0.0f64, 0usize));
+        for (i, t) in texture.texels.iter().enumerate() {
+            if seen_texel[i] {
+                let rel = (*t * *factor / stripes[i] - Vec3::ONE).abs().max_element() as f64;
+                all = (all.0 + rel, all.1 + 1);
+                if shadow(i as u32) < 0.8 {
+                    inside = (inside.0 + rel, inside.1 + 1);
+                }
+            }
+        }
+        assert!(inside.1 > 100, "the views see the shadow");
+        (all.0 / all.1 as f64, inside.0 / inside.1 as f64)
+    };
+    let exact = run(None, &truth).report.rel_mae.unwrap();
+    let materials = run(Some(FitAlbedo::Materials), &fit);
+    let texels = run(Some(FitAlbedo::Texels), &fit);
+    let (e_materials, e_texels) = (texture_error(&materials), texture_error(&texels));
+    let report = texels.report.albedo.as_ref().unwrap();
+    let (rel_materials, rel_texels) = (
+        materials.report.rel_mae.unwrap(),
+        texels.report.rel_mae.unwrap(),
+    );
+    eprintln!(
+        "texture error (all, in the shadow): materials {e_materials:?}, texels {e_texels:?}; \
+         relMAE exact {exact:.4}, materials {rel_materials:.4}, texels {rel_texels:.4}; {} \
+         rounds, {:?}",
+        report.texel_rounds, report.texels
+    );
+    assert!(
+        e_texels.0 < 0.4 * e_materials.0 && e_texels.1 < 0.2 * e_materials.1,
+        "texture error (all, in the shadow): materials {e_materials:?}, texels {e_texels:?}"
+    );
+    assert!(
+        rel_texels < 1.1 * exact && rel_materials > 1.5 * exact,
+        "relMAE exact {exact}, materials {rel_materials}, texels {rel_texels}"
+    );
+    assert_eq!(report.texels.len(), 1);
+    let fit = &report.texels[0];
+    // The shadow took the texture to 45%: the correction reaches about 1/0.45 inside it,
+    // and keeps the level (about 1) outside.
+    assert!(fit.range[1] > 1.7 && fit.range[0] > 0.85, "{fit:?}");
+    assert!(fit.cells_seen > 100 && fit.clamped_texels == 0, "{fit:?}");
+}

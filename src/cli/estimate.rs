@@ -105,9 +105,23 @@ pub struct Args {
     /// reported so; it takes two such materials sharing light, or one beside a trusted one.
     /// report.json's "albedo" lists every material's given and fitted albedo; the written
     /// glTF, Blender and Mitsuba scenes carry the fitted one. With --exposure per-view it
-    /// needs --model spheres or spheres:K.
+    /// needs --model spheres or spheres:K. `texels` then corrects each fitted textured
+    /// material's texture by a grid of multipliers (--texel-grid cells, smooth by
+    /// --texel-smoothness) from the pixels that see it, and fits the lighting again, up to 3
+    /// rounds: shading baked into a photographed texture is taken out where the lighting does
+    /// not explain it. The corrected textures are written as albedo_textures/*.png beside the
+    /// glTF export (and as EXRs in the Blender and Mitsuba exports).
     #[arg(long, value_enum)]
     fit_albedo: Option<FitAlbedoArg>,
+    /// `--fit-albedo texels`: cells along each texture's longer side of its correction grid
+    /// (4 to 256). Finer follows sharper baked shading and needs more pixels per texture:
+    /// aim for 20 or more pixels per cell the views see.
+    #[arg(long, default_value_t = lightprobe::estimate::texels::DEFAULT_TEXEL_GRID)]
+    texel_grid: u32,
+    /// `--fit-albedo texels`: how strongly neighbouring cells of a correction are pulled
+    /// together (relative to a cell's own pixels; 0 = not at all).
+    #[arg(long, default_value_t = lightprobe::estimate::texels::DEFAULT_TEXEL_SMOOTHNESS)]
+    texel_smoothness: f64,
     /// Materials whose albedo is known (comma-separated glTF material names): kept as given,
     /// they fix the scale between albedo and light that images cannot tell (default: the
     /// fitted materials' pixel-weighted geometric-mean multiplier is kept at 1, so the light's
@@ -218,6 +232,8 @@ impl Args {
             diagnose: true,
             fit_albedo: self.fit_albedo.map(Into::into),
             trust_albedo: self.trust_albedo.clone(),
+            texel_grid: self.texel_grid,
+            texel_smoothness: self.texel_smoothness,
         }
     }
 
@@ -249,6 +265,10 @@ impl Args {
         match *name {
             "rings" if matches!(self.rings, Some(RingsArg::Auto)) => {
                 anyhow::anyhow!("--rings-candidates must be {expected}, got {got}")
+            }
+            "texel grid" => anyhow::anyhow!("--texel-grid must be {expected}, got {got}"),
+            "texel smoothness" => {
+                anyhow::anyhow!("--texel-smoothness must be {expected}, got {got}")
             }
             "time limit" => anyhow::anyhow!(
                 "--time-limit must be a positive number of seconds, at most 1e6, got {}",

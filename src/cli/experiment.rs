@@ -190,7 +190,13 @@ pub fn sweep(a: SweepArgs) -> anyhow::Result<()> {
         auto: a.auto,
         albedo_errors: a.albedo_error.clone(),
         spheres: a.spheres,
-        fit_albedo: a.fit_albedo.is_some(),
+        fit_albedo: match a.fit_albedo {
+            None => false,
+            Some(FitAlbedoArg::Materials) => true,
+            Some(FitAlbedoArg::Texels) => anyhow::bail!(
+                "sweep --fit-albedo takes `materials`: the scenarios' albedo errors are per material, with no texture's shading to correct"
+            ),
+        },
         trust_albedo: a.trust_albedo.clone(),
     };
 

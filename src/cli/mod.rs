@@ -61,6 +61,9 @@ cli_enum!(ColourArg => Colour {
 cli_enum!(FitAlbedoArg => FitAlbedo {
     /// One RGB multiplier per material, of its constant albedo or its texture's factor.
     Materials,
+    /// The materials' multipliers, then each fitted texture corrected by a coarse grid of
+    /// multipliers with a smoothness prior (shading baked into a photographed texture).
+    Texels,
 });
 cli_enum!(TargetArg => Target {
     /// Mitsuba 3's envmap: +Y up, poles on the first and last rows.

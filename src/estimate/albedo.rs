@@ -45,6 +45,10 @@ pub enum FitAlbedo {
     /// One RGB multiplier per material: of its constant albedo, or of its texture's factor
     /// (the texture's pattern and the vertex colours are kept).
     Materials,
+    /// The materials' multipliers, then each fitted texture's texels corrected by a coarse
+    /// grid of multipliers with a smoothness prior ([`super::texels`]): shading baked into a
+    /// photographed texture taken out.
+    Texels,
 }
 
 /// Fewest pixels that see a material alone for its albedo to be fitted: fewer are reported
@@ -151,6 +155,11 @@ pub struct AlbedoReport {
     /// [`JOINT_TOLERANCE`] (joint).
     pub converged: bool,
     pub materials: Vec<MaterialAlbedo>,
+    /// `--fit-albedo texels`: rounds made (a correction of every fitted texture, then a fit of
+    /// the lighting at it); 0 otherwise.
+    pub texel_rounds: usize,
+    /// `--fit-albedo texels`: each fitted texture's correction.
+    pub texels: Vec<super::texels::TexelFit>,
 }
 
 /// Where each material is seen alone: per view, per pixel, the material index the pixel's
@@ -252,16 +261,10 @@ pub fn log_ratios(pixels: &MaterialPixels, references: &[Image], renders: &[Imag
         .collect()
 }
 
-/// The step of every material's log-multiplier: per channel, a free material's log ratio less
-/// the anchors' pixel-weighted mean log ratio there, zero for the others and where its ratio
-/// is NaN. The anchors are the trusted materials lit in that channel; without any, the free
-/// ones (keeping their weighted mean at 0).
-pub fn gauged_step(
-    ratios: &[DVec3],
-    free: &[bool],
-    trusted: &[bool],
-    counts: &[usize],
-) -> Vec<DVec3> {
+/// The anchors' pixel-weighted mean log ratio per channel: the trusted materials lit in that
+/// channel; without any, the free ones; 0 where none is lit. What every free material's step
+/// is taken relative to ([`gauged_step`]).
+pub fn anchor_mean(ratios: &[DVec3], free: &[bool], trusted: &[bool], counts: &[usize]) -> DVec3 {
     let mut mean = DVec3::ZERO;
     for c in 0..3 {
         let weighted = |anchor: &dyn Fn(usize) -> bool| {
@@ -279,6 +282,18 @@ pub fn gauged_step(
             .or_else(|| weighted(&|m| free[m]))
             .unwrap_or(0.0);
     }
+    mean
+}
+
+/// The step of every material's log-multiplier: per channel, a free material's log ratio less
+/// the anchors' mean ([`anchor_mean`]), zero for the others and where its ratio is NaN.
+pub fn gauged_step(
+    ratios: &[DVec3],
+    free: &[bool],
+    trusted: &[bool],
+    counts: &[usize],
+) -> Vec<DVec3> {
+    let mean = anchor_mean(ratios, free, trusted, counts);
     ratios
         .iter()
         .zip(free)

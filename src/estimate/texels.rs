@@ -29,6 +29,8 @@
 use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
 use glam::{DVec3, Vec2, Vec3};
+use schemars::JsonSchema;
+use serde::Serialize;
 
 use crate::scene::Texture;
 
@@ -55,6 +57,29 @@ pub const TEXEL_TOLERANCE: f64 = 0.02;
 
 /// Most texel rounds (a correction, then a lighting fit at it).
 pub const MAX_TEXEL_ROUNDS: usize = 3;
+
+/// `report.json`'s `albedo.texels[]`: one texture's correction.
+#[derive(Debug, Clone, Serialize, JsonSchema)]
+pub struct TexelFit {
+    pub material: String,
+    /// Cells of its correction grid, across and down.
+    pub grid: [u32; 2],
+    /// Pixels that see the material alone and fed the last round's correction.
+    pub pixels: usize,
+    /// Cells those pixels see; the others follow their seen neighbours (the prior) and, far
+    /// from any, stay 1.
+    pub cells_seen: usize,
+    /// The least and the largest multiplier over the seen cells, all rounds together: the
+    /// texture as fitted against as given.
+    pub range: [f64; 2],
+    /// The last round's pixel-weighted RMS change of the multipliers ([`TEXEL_TOLERANCE`]).
+    pub last_change: f64,
+    /// Texels the bound (texel × factor within [0, 1]) clamped in the last round.
+    pub clamped_texels: usize,
+    /// The corrected texture (8-bit sRGB PNG, texels before the factor) as the glTF exports
+    /// refer to it, relative to each: `albedo_textures/…`.
+    pub file: String,
+}
 
 /// The cells of a correction grid for a `width` × `height` texture with `cells` along its
 /// longer side: the other side in proportion, each within [`MIN_TEXEL_GRID`] and
@@ -104,6 +129,8 @@ pub struct TexelSums {
     gram: Vec<[DVec3; 9]>,
     /// Per cell, per channel: `Σ_p w_pi x̄_p y_p`.
     rhs: Vec<DVec3>,
+    /// Per cell, per channel: `Σ_p w_pi x̄_p`, the re-render the cell carries.
+    carried: Vec<DVec3>,
     /// Per cell: `Σ_p w_pi`, how much the pixels see it.
     pub seen: Vec<f64>,
     /// Pixels added.
@@ -118,6 +145,7 @@ impl TexelSums {
             height,
             gram: vec![[DVec3::ZERO; 9]; n],
             rhs: vec![DVec3::ZERO; n],
+            carried: vec![DVec3::ZERO; n],
             seen: vec![0.0; n],
             pixels: 0,
         }
@@ -159,6 +187,7 @@ impl TexelSums {
         let y = y.as_dvec3();
         for &(a, wa) in &taps {
             self.rhs[a] += wa * mean * y;
+            self.carried[a] += wa * mean;
             self.seen[a] += wa;
             for &(b, wb) in &taps {
                 let k = self.slot(a, b);
@@ -166,6 +195,18 @@ impl TexelSums {
             }
         }
         self.pixels += 1;
+    }
+
+    /// The factor by which `c` changes the pixels' summed re-render, per channel (1 where
+    /// nothing is lit): a correction divided by it keeps the material's level and changes its
+    /// pattern only.
+    pub fn level(&self, c: &Correction) -> DVec3 {
+        let (mut moved, mut total) = (DVec3::ZERO, DVec3::ZERO);
+        for (x, k) in self.carried.iter().zip(&c.cells) {
+            moved += *x * *k;
+            total += *x;
+        }
+        DVec3::select(total.cmpgt(DVec3::ZERO), moved / total, DVec3::ONE)
     }
 
     /// The correction minimising the module's objective with membrane weight `smoothness`;
@@ -296,6 +337,31 @@ impl Correction {
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (c, _)| {
                 (lo.min(c.min_element()), hi.max(c.max_element()))
             })
+    }
+
+    /// The correction divided by `k` per channel (the anchors' ratio, which is the lighting's
+    /// error and not the texture's).
+    pub fn divided(mut self, k: DVec3) -> Correction {
+        for c in &mut self.cells {
+            *c /= k;
+        }
+        self
+    }
+
+    /// This correction followed by `next` on the same grid: the cells' product, seen as
+    /// `next` saw them.
+    pub fn then(&self, next: &Correction) -> Correction {
+        Correction {
+            cells: self
+                .cells
+                .iter()
+                .zip(&next.cells)
+                .map(|(a, b)| *a * *b)
+                .collect(),
+            seen: next.seen.clone(),
+            width: next.width,
+            height: next.height,
+        }
     }
 
     /// Cells pixels see.

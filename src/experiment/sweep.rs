@@ -1007,6 +1007,8 @@ fn trial_settings(
         } else {
             Vec::new()
         },
+        texel_grid: crate::estimate::texels::DEFAULT_TEXEL_GRID,
+        texel_smoothness: crate::estimate::texels::DEFAULT_TEXEL_SMOOTHNESS,
     }
 }
 

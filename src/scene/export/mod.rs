@@ -31,6 +31,23 @@ fn albedo_image(texture: &super::Texture, factor: glam::Vec3) -> crate::imageio:
     }
 }
 
+/// The file a fitted texture of material `m` (the scene's index) named `name` is written to,
+/// relative to the glTF that refers to it.
+pub fn albedo_texture_file(m: usize, name: &str) -> String {
+    let safe: String = name
+        .chars()
+        .take(40)
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    format!("albedo_textures/{m}_{safe}.png")
+}
+
 /// An envmap written beside the glTF, named in its scene's `extras.lightprobe_envmap`.
 #[derive(Debug, Clone)]
 pub struct EnvmapNote {
@@ -105,7 +122,7 @@ pub fn write_with_lights(
     };
     let mut doc: Value = serde_json::from_slice(json).map_err(|e| bad(e.to_string()))?;
     put_lights(&mut doc, lights, doubts, envmap).map_err(bad)?;
-    let notes = match albedo {
+    let mut notes = match albedo {
         Some((given, fitted)) => put_albedo(&mut doc, given, fitted).map_err(bad)?,
         None => Vec::new(),
     };
@@ -120,6 +137,9 @@ pub fn write_with_lights(
         }
         let data = crate::memory::read_input(&from.join(&rel))?;
         crate::imageio::write_bytes(&target, &data)?;
+    }
+    if let Some((given, fitted)) = albedo {
+        notes.extend(put_textures(&mut doc, dir, given, fitted)?);
     }
     let out = dir.join(written_name(source));
     if glb_source {
@@ -201,6 +221,101 @@ fn put_albedo(
             "baseColorFactor".into(),
             json!([f.x as f64, f.y as f64, f.z as f64, alpha]),
         );
+    }
+    Ok(notes)
+}
+
+/// Writes each texture the fit corrected (`fitted`'s texture is not `given`'s) into
+/// `dir` ([`albedo_texture_file`]: 8-bit sRGB PNG, texels before the factor, as glTF's
+/// baseColorTexture holds them) and points the glTF material's baseColorTexture at it (a new
+/// image and texture, the old texture's sampler and the material's texCoord kept). Returns
+/// what the file could not take: a material the glTF gives no texture (its texture came from
+/// the sidecar) keeps the file's albedo, the corrected texture being written all the same.
+fn put_textures(
+    doc: &mut Value,
+    dir: &Path,
+    given: &[super::Material],
+    fitted: &[super::Material],
+) -> Result<Vec<String>> {
+    use super::Albedo;
+    let mut notes = Vec::new();
+    for (m, (f, g)) in fitted.iter().zip(given).enumerate() {
+        let (Albedo::Texture { texture, .. }, Albedo::Texture { texture: was, .. }) =
+            (&f.albedo, &g.albedo)
+        else {
+            continue;
+        };
+        if std::sync::Arc::ptr_eq(texture, was) {
+            continue;
+        }
+        let file = albedo_texture_file(m, &f.name);
+        let image = crate::imageio::Image {
+            width: texture.width,
+            height: texture.height,
+            rgb: texture.texels.clone(),
+            alpha: None,
+        };
+        let path = dir.join(&file);
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+        }
+        crate::imageio::write_png(&path, &image, 1.0)?;
+        // materials[0] is glTF's default material, which has no texture in the file.
+        let Some(slot) = m.checked_sub(1) else {
+            continue;
+        };
+        let sampler = doc
+            .pointer(&format!(
+                "/materials/{slot}/pbrMetallicRoughness/baseColorTexture/index"
+            ))
+            .and_then(Value::as_u64)
+            .and_then(|t| doc.pointer(&format!("/textures/{t}/sampler")).cloned());
+        if doc
+            .pointer(&format!(
+                "/materials/{slot}/pbrMetallicRoughness/baseColorTexture"
+            ))
+            .is_none()
+        {
+            notes.push(format!(
+                "material {:?}: its texture came from the sidecar, not the glTF; the \
+                 corrected texture is {file}, which the glTF does not use",
+                f.name
+            ));
+            continue;
+        }
+        let push = |doc: &mut Value, key: &str, item: Value| -> Option<usize> {
+            let obj = doc.as_object_mut()?;
+            let list = obj.entry(key).or_insert_with(|| json!([])).as_array_mut()?;
+            list.push(item);
+            Some(list.len() - 1)
+        };
+        let mut texture_item =
+            json!({ "source": Value::Null, "name": format!("lightprobe {file}") });
+        let image_index = push(
+            doc,
+            "images",
+            json!({ "uri": file, "mimeType": "image/png" }),
+        );
+        let Some(image_index) = image_index else {
+            notes.push(format!(
+                "material {:?}: the glTF's images are not a list; the corrected texture is {file}",
+                f.name
+            ));
+            continue;
+        };
+        texture_item["source"] = json!(image_index);
+        if let Some(s) = sampler {
+            texture_item["sampler"] = s;
+        }
+        let Some(texture_index) = push(doc, "textures", texture_item) else {
+            notes.push(format!("material {:?}: the glTF's textures are not a list; the corrected texture is {file}", f.name));
+            continue;
+        };
+        if let Some(index) = doc.pointer_mut(&format!(
+            "/materials/{slot}/pbrMetallicRoughness/baseColorTexture/index"
+        )) {
+            *index = json!(texture_index);
+        }
     }
     Ok(notes)
 }
