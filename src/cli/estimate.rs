@@ -115,13 +115,13 @@ pub struct Args {
     fit_albedo: Option<FitAlbedoArg>,
     /// `--fit-albedo texels`: cells along each texture's longer side of its correction grid
     /// (4 to 256). Finer follows sharper baked shading and needs more pixels per texture:
-    /// aim for 20 or more pixels per cell the views see.
-    #[arg(long, default_value_t = lightprobe::estimate::texels::DEFAULT_TEXEL_GRID)]
-    texel_grid: u32,
+    /// aim for 20 or more pixels per cell the views see. [default: 32]
+    #[arg(long)]
+    texel_grid: Option<u32>,
     /// `--fit-albedo texels`: how strongly neighbouring cells of a correction are pulled
-    /// together (relative to a cell's own pixels; 0 = not at all).
-    #[arg(long, default_value_t = lightprobe::estimate::texels::DEFAULT_TEXEL_SMOOTHNESS)]
-    texel_smoothness: f64,
+    /// together (relative to a cell's own pixels; 0 = not at all). [default: 1]
+    #[arg(long)]
+    texel_smoothness: Option<f64>,
     /// Materials whose albedo is known (comma-separated glTF material names): kept as given,
     /// they fix the scale between albedo and light that images cannot tell (default: the
     /// fitted materials' pixel-weighted geometric-mean multiplier is kept at 1, so the light's
@@ -232,8 +232,12 @@ impl Args {
             diagnose: true,
             fit_albedo: self.fit_albedo.map(Into::into),
             trust_albedo: self.trust_albedo.clone(),
-            texel_grid: self.texel_grid,
-            texel_smoothness: self.texel_smoothness,
+            texel_grid: self
+                .texel_grid
+                .unwrap_or(lightprobe::estimate::texels::DEFAULT_TEXEL_GRID),
+            texel_smoothness: self
+                .texel_smoothness
+                .unwrap_or(lightprobe::estimate::texels::DEFAULT_TEXEL_SMOOTHNESS),
         }
     }
 
@@ -287,6 +291,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         let found = lightprobe::estimate::pipeline::reference_sizes(dir, &scene.cameras)?;
         let sizes: Vec<_> = found.iter().map(|f| f.0).collect();
         scene.size_views(&sizes, |i| found[i].1.clone())?;
+    }
+    let texels = matches!(a.fit_albedo, Some(FitAlbedoArg::Texels));
+    if !texels && (a.texel_grid.is_some() || a.texel_smoothness.is_some()) {
+        anyhow::bail!("--texel-grid and --texel-smoothness shape the texel corrections of --fit-albedo texels; without it they do nothing");
     }
     let settings = a.settings(&scene);
     settings.check().map_err(|e| a.flag_error(e))?;
@@ -672,6 +680,37 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
             status,
             m.pixels
         ));
+    }
+    if a.texel_rounds > 0 {
+        lines.push(format!(
+            "texels corrected in {} round(s) (a texture's level stays with its material):",
+            a.texel_rounds
+        ));
+    }
+    for t in &a.texels {
+        lines.push(format!(
+            "  {:<14} grid {}×{}, {} of its cells seen by {} px; multipliers {:.2} to {:.2}, last change {:.2}%{}; {}",
+            t.material,
+            t.grid[0],
+            t.grid[1],
+            t.cells_seen,
+            t.pixels,
+            t.range[0],
+            t.range[1],
+            100.0 * t.last_change,
+            if t.clamped_texels > 0 {
+                format!(", {} texels clamped to albedo 1", t.clamped_texels)
+            } else {
+                String::new()
+            },
+            t.file
+        ));
+    }
+    if a.fit == lightprobe::estimate::albedo::FitAlbedo::Texels && a.texel_rounds == 0 {
+        lines.push(
+            "texels: no fitted material has a texture; only the materials' albedo was fitted"
+                .into(),
+        );
     }
     lines
 }

@@ -2278,8 +2278,13 @@ fn misfit_causes(job: &Job, model: &str) -> Vec<String> {
         None => "the albedo (the glTF's baseColor, or the sidecar's albedo): try --fit-albedo \
                  materials"
             .to_string(),
-        Some(_) => "the albedo within a material (--fit-albedo materials fits one colour per \
-                    material)"
+        Some(FitAlbedo::Materials) => "the albedo within a material (--fit-albedo materials \
+                                       fits one colour per material; texels also corrects \
+                                       textures)"
+            .to_string(),
+        Some(FitAlbedo::Texels) => "the albedo within a material: finer than the texel grid \
+                                    (--texel-grid), or vertex colours and constant albedos, \
+                                    which texels leaves to one colour per material"
             .to_string(),
     });
     let ignored = &job.truth.scene.ignored;

@@ -259,9 +259,21 @@ impl HeatMapLayout {
 pub fn write_error_map(
     path: &Path,
     title: &str,
+    size: (u32, u32),
+    err: &[f32],
+    scale: f32,
+) -> Result<HeatMapLayout> {
+    write_signed_map(path, title, size, err, scale, "error / mean reference")
+}
+
+/// [`write_error_map`] of any signed fraction, its colour bar labelled `bar_label`.
+pub fn write_signed_map(
+    path: &Path,
+    title: &str,
     (width, height): (u32, u32),
     err: &[f32],
     scale: f32,
+    bar_label: &str,
 ) -> Result<HeatMapLayout> {
     font()?;
     let layout = HeatMapLayout::of(width, height);
@@ -315,11 +327,7 @@ pub fn write_error_map(
                 text(12).pos(Pos::new(HPos::Left, VPos::Center)),
             ))?;
         }
-        root.draw(&Text::new(
-            "error / mean reference".to_string(),
-            (bx - 6, by1 + 8),
-            text(11),
-        ))?;
+        root.draw(&Text::new(bar_label.to_string(), (bx - 6, by1 + 8), text(11)))?;
         Ok(())
     })?;
     Ok(layout)

@@ -229,6 +229,7 @@ pub fn write(
     selection_sections(&mut h, report);
     exposure_section(&mut h, report);
     albedo_section(&mut h, report);
+    texels_section(&mut h, dir, report, estimate, scene)?;
     h.push_str(
         "<h2>Files</h2><ul><li><a href=\"report.json\">report.json</a>: every figure \
          (its JSON Schema: <code>lightprobe schema --report</code>)</li><li><a href=\"envmap.ron\">envmap.ron</a>, \
@@ -660,6 +661,130 @@ fn albedo_section(h: &mut String, r: &Value) {
         );
     }
     h.push_str("</table>\n");
+}
+
+/// Longest side of a texture's pictures on the page.
+const TEXTURE_PICTURE: u32 = 256;
+
+/// `texture × factor` reduced by box means to at most [`TEXTURE_PICTURE`] a side.
+fn texture_picture(texture: &crate::scene::Texture, factor: glam::Vec3) -> imageio::Image {
+    let block = texture.width.max(texture.height).div_ceil(TEXTURE_PICTURE).max(1);
+    let (w, h) = (texture.width.div_ceil(block), texture.height.div_ceil(block));
+    let mut rgb = vec![glam::Vec3::ZERO; (w * h) as usize];
+    let mut count = vec![0u32; (w * h) as usize];
+    for (i, t) in texture.texels.iter().enumerate() {
+        let (x, y) = (i as u32 % texture.width, i as u32 / texture.width);
+        let k = ((y / block) * w + x / block) as usize;
+        rgb[k] += (*t * factor).clamp(glam::Vec3::ZERO, glam::Vec3::ONE);
+        count[k] += 1;
+    }
+    for (c, n) in rgb.iter_mut().zip(&count) {
+        *c /= (*n).max(1) as f32;
+    }
+    imageio::Image {
+        width: w,
+        height: h,
+        rgb,
+        alpha: None,
+    }
+}
+
+/// `--fit-albedo texels`: each corrected texture as given and as fitted, the change between
+/// them, and its correction's figures.
+fn texels_section(
+    h: &mut String,
+    dir: &Path,
+    r: &Value,
+    estimate: &Estimate,
+    scene: Option<&Scene>,
+) -> Result<()> {
+    let Some(fits) = r["albedo"]["texels"].as_array().filter(|f| !f.is_empty()) else {
+        return Ok(());
+    };
+    let (Some(scene), Some(fitted)) = (scene, estimate.materials.as_ref()) else {
+        return Ok(());
+    };
+    let _ = writeln!(
+        h,
+        "<h2>Texels (--fit-albedo texels)</h2><p class=\"note\">{} round(s) of a correction \
+         per texture (a coarse grid of multipliers, smooth, its mean over the material's pixels \
+         kept at 1) and a fit of the materials' albedo and the lighting at it. The change is \
+         the fitted texture over the given, less 1 (mean of the channels): shading baked into \
+         the given texture shows as a brightened patch.</p><table><tr><th>material</th>\
+         <th>grid</th><th>cells seen</th><th>pixels</th><th>least multiplier</th>\
+         <th>largest</th><th>last change</th><th>texels clamped</th></tr>",
+        span(r, "albedo.texel_rounds", Format::Integer),
+    );
+    for i in 0..fits.len() {
+        let p = format!("albedo.texels.{i}");
+        let _ = writeln!(
+            h,
+            "<tr><td>{}</td><td>{}×{}</td>{}{}{}{}{}{}</tr>",
+            escape(fits[i]["material"].as_str().unwrap_or("")),
+            span(r, &format!("{p}.grid.0"), Format::Integer),
+            span(r, &format!("{p}.grid.1"), Format::Integer),
+            cell(r, &format!("{p}.cells_seen"), Format::Integer),
+            cell(r, &format!("{p}.pixels"), Format::Integer),
+            cell(r, &format!("{p}.range.0"), Format::Ratio),
+            cell(r, &format!("{p}.range.1"), Format::Ratio),
+            cell(r, &format!("{p}.last_change"), Format::Percent),
+            cell(r, &format!("{p}.clamped_texels"), Format::Integer),
+        );
+    }
+    h.push_str("</table>\n");
+    for (i, fit) in fits.iter().enumerate() {
+        let name = fit["material"].as_str().unwrap_or("");
+        let Some(m) = scene.materials.iter().position(|m| m.name == name) else {
+            continue;
+        };
+        use crate::scene::Albedo;
+        let (
+            Albedo::Texture {
+                texture: given,
+                factor: given_factor,
+            },
+            Albedo::Texture { texture, factor },
+        ) = (&scene.materials[m].albedo, &fitted[m].albedo)
+        else {
+            continue;
+        };
+        let (before, after) = (
+            texture_picture(given, *given_factor),
+            texture_picture(texture, *factor),
+        );
+        let stem = format!("texels_{i}");
+        imageio::write_png(&dir.join(format!("figures/{stem}_given.png")), &before, 1.0)?;
+        imageio::write_png(&dir.join(format!("figures/{stem}_fitted.png")), &after, 1.0)?;
+        let change: Vec<f32> = before
+            .rgb
+            .iter()
+            .zip(&after.rgb)
+            .map(|(b, a)| {
+                let (b, a) = (b.element_sum(), a.element_sum());
+                if b > 0.0 { a / b - 1.0 } else { f32::NAN }
+            })
+            .collect();
+        let scale = figure::shared_scale([&change]);
+        figure::write_signed_map(
+            &dir.join(format!("figures/{stem}_change.png")),
+            &format!("{name}: fitted / given − 1"),
+            (before.width, before.height),
+            &change,
+            scale,
+            "change of the albedo",
+        )?;
+        let _ = writeln!(
+            h,
+            "<figure><img src=\"figures/{stem}_given.png\" alt=\"{0} as given\" width=\"256\"> \
+             <img src=\"figures/{stem}_fitted.png\" alt=\"{0} as fitted\" width=\"256\"> \
+             <img src=\"figures/{stem}_change.png\" alt=\"change of {0}\"><figcaption>{0}: \
+             as given, as fitted (<code>{1}</code> beside the glTF exports), and the change\
+             </figcaption></figure>",
+            escape(name),
+            escape(fit["file"].as_str().unwrap_or("")),
+        );
+    }
+    Ok(())
 }
 
 fn spheres_section(h: &mut String, r: &Value, kept: &[usize], word: &str) {
