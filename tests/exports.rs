@@ -307,3 +307,83 @@ fn blender_py_carries_the_views_materials_and_settings() {
         }
     }
 }
+
+#[test]
+fn a_corrected_texture_goes_into_the_gltf_and_comes_back() {
+    // The table's texture corrected (a gradient across it, as `--fit-albedo texels` would
+    // write): the written GLB points the table at a new PNG beside it (sampler and texCoord
+    // kept, the original image still in the file), and lightprobe's own loader reads back the
+    // corrected texels within 8-bit sRGB quantisation.
+    use lightprobe::scene::Texture;
+    use lightprobe::scene::export;
+    let given = tabletop();
+    let table = given
+        .materials
+        .iter()
+        .position(|m| m.name == "table")
+        .unwrap();
+    let Albedo::Texture { texture, factor } = &given.materials[table].albedo else {
+        panic!("the bundled table is textured");
+    };
+    let w = texture.width;
+    let corrected = Texture {
+        width: texture.width,
+        height: texture.height,
+        texels: texture
+            .texels
+            .iter()
+            .enumerate()
+            .map(|(i, t)| *t * (0.6 + 0.8 * (i as u32 % w) as f32 / w as f32))
+            .map(|t| t.min(Vec3::ONE))
+            .collect(),
+    };
+    let mut fitted = given.materials.clone();
+    fitted[table].albedo = Albedo::Texture {
+        texture: std::sync::Arc::new(corrected.clone()),
+        factor: *factor,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (written, notes) = export::write_with_lights(
+        &given.gltf,
+        dir.path(),
+        &[],
+        &[],
+        None,
+        Some((&given.materials, &fitted)),
+    )
+    .unwrap();
+    assert!(notes.is_empty(), "{notes:?}");
+    let file = export::albedo_texture_file(table, "table");
+    assert!(dir.path().join(&file).is_file());
+    let back = Scene::load(&written).unwrap();
+    let Albedo::Texture { texture: read, .. } = &back.materials[table].albedo else {
+        panic!("the written table is textured");
+    };
+    assert_eq!(
+        (read.width, read.height),
+        (corrected.width, corrected.height)
+    );
+    let worst = read
+        .texels
+        .iter()
+        .zip(&corrected.texels)
+        .map(|(a, b)| ((*a - *b).abs() / (*b + 0.01)).max_element())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 0.06, "worst texel off by {worst}");
+    // The other materials are as they were, and the file keeps its own image.
+    let bytes = std::fs::read(&written).unwrap();
+    let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    let doc: serde_json::Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+    assert_eq!(doc["images"].as_array().unwrap().len(), 2);
+    assert_eq!(doc["images"][1]["uri"], file.as_str());
+    let t = doc["materials"][table - 1]["pbrMetallicRoughness"]["baseColorTexture"]["index"]
+        .as_u64()
+        .unwrap() as usize;
+    assert_eq!(doc["textures"][t]["source"], 1);
+    assert_eq!(doc["textures"][t]["sampler"], doc["textures"][0]["sampler"]);
+    for (m, (a, b)) in back.materials.iter().zip(&given.materials).enumerate() {
+        if m != table {
+            assert!((a.mean_albedo() - b.mean_albedo()).abs().max_element() < 1e-6);
+        }
+    }
+}

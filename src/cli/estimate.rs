@@ -114,8 +114,8 @@ pub struct Args {
     #[arg(long, value_enum)]
     fit_albedo: Option<FitAlbedoArg>,
     /// `--fit-albedo texels`: cells along each texture's longer side of its correction grid
-    /// (4 to 256). Finer follows sharper baked shading and needs more pixels per texture:
-    /// aim for 20 or more pixels per cell the views see. [default: 32]
+    /// (4 to 256). Finer follows sharper baked shading; cells few pixels see lean on their
+    /// neighbours (--texel-smoothness). [default: 32]
     #[arg(long)]
     texel_grid: Option<u32>,
     /// `--fit-albedo texels`: how strongly neighbouring cells of a correction are pulled
@@ -294,7 +294,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     let texels = matches!(a.fit_albedo, Some(FitAlbedoArg::Texels));
     if !texels && (a.texel_grid.is_some() || a.texel_smoothness.is_some()) {
-        anyhow::bail!("--texel-grid and --texel-smoothness shape the texel corrections of --fit-albedo texels; without it they do nothing");
+        anyhow::bail!(
+            "--texel-grid and --texel-smoothness shape the texel corrections of --fit-albedo texels; without it they do nothing"
+        );
     }
     let settings = a.settings(&scene);
     settings.check().map_err(|e| a.flag_error(e))?;

@@ -1132,8 +1132,9 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
     let mut fits: Vec<Option<TexelFit>> = vec![None; targets.len()];
     let mut albedo_fits = first_report.fits;
     let mut estimate = first;
-    let (mut rounds, mut before_last) = (0, 0.0);
-    while rounds < texels::MAX_TEXEL_ROUNDS {
+    let mut rounds = 0;
+    let mut before_last;
+    loop {
         rounds += 1;
         let lights = final_lights(&estimate.envmap, estimate.spheres.as_ref());
         let fit = job.fit.with_scene(&scene, &lights);
@@ -1199,12 +1200,23 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             };
         }
         before_last = t_texels.elapsed().as_secs_f64();
+        // A round that will not be the last fits as the alternation's first fits do: what it
+        // must give is the next round's lighting, not the report's figures.
+        let last = change < texels::TEXEL_TOLERANCE || rounds == texels::MAX_TEXEL_ROUNDS;
+        let (round, render) = if last {
+            (settings.clone(), *job.render)
+        } else {
+            let (round, render) = first_fits(job);
+            let rings = settings.rings.clone();
+            (EstimateSettings { rings, ..round }, render)
+        };
         let (fit, truth) = renderers_in(job, &scene);
         let next = run_materials(
             &Job {
                 fit: &fit,
                 truth: &truth,
-                settings: &settings,
+                settings: &round,
+                render: &render,
                 ..*job
             },
             progress,
@@ -1223,7 +1235,7 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             .clone()
             .expect("the materials' fit sets them");
         estimate = carry_over(estimate, next);
-        if change < texels::TEXEL_TOLERANCE {
+        if last {
             break;
         }
     }

@@ -327,7 +327,11 @@ pub fn write_signed_map(
                 text(12).pos(Pos::new(HPos::Left, VPos::Center)),
             ))?;
         }
-        root.draw(&Text::new(bar_label.to_string(), (bx - 6, by1 + 8), text(11)))?;
+        root.draw(&Text::new(
+            bar_label.to_string(),
+            (bx - 6, by1 + 8),
+            text(11),
+        ))?;
         Ok(())
     })?;
     Ok(layout)

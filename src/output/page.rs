@@ -668,8 +668,15 @@ const TEXTURE_PICTURE: u32 = 256;
 
 /// `texture × factor` reduced by box means to at most [`TEXTURE_PICTURE`] a side.
 fn texture_picture(texture: &crate::scene::Texture, factor: glam::Vec3) -> imageio::Image {
-    let block = texture.width.max(texture.height).div_ceil(TEXTURE_PICTURE).max(1);
-    let (w, h) = (texture.width.div_ceil(block), texture.height.div_ceil(block));
+    let block = texture
+        .width
+        .max(texture.height)
+        .div_ceil(TEXTURE_PICTURE)
+        .max(1);
+    let (w, h) = (
+        texture.width.div_ceil(block),
+        texture.height.div_ceil(block),
+    );
     let mut rgb = vec![glam::Vec3::ZERO; (w * h) as usize];
     let mut count = vec![0u32; (w * h) as usize];
     for (i, t) in texture.texels.iter().enumerate() {
@@ -715,12 +722,12 @@ fn texels_section(
          <th>largest</th><th>last change</th><th>texels clamped</th></tr>",
         span(r, "albedo.texel_rounds", Format::Integer),
     );
-    for i in 0..fits.len() {
+    for (i, fit) in fits.iter().enumerate() {
         let p = format!("albedo.texels.{i}");
         let _ = writeln!(
             h,
             "<tr><td>{}</td><td>{}×{}</td>{}{}{}{}{}{}</tr>",
-            escape(fits[i]["material"].as_str().unwrap_or("")),
+            escape(fit["material"].as_str().unwrap_or("")),
             span(r, &format!("{p}.grid.0"), Format::Integer),
             span(r, &format!("{p}.grid.1"), Format::Integer),
             cell(r, &format!("{p}.cells_seen"), Format::Integer),
