@@ -1382,8 +1382,10 @@ fn check_results_page(out: &Path) {
         );
         images += 1;
     }
-    // Per view: reference, estimate, error; and the envmap.
-    assert!(images == 2 * 3 + 1, "{images} images");
+    // Per view: reference, estimate, error; the envmap; per corrected texture: as given, as
+    // fitted, the change.
+    let textures = report["albedo"]["texels"].as_array().map_or(0, Vec::len);
+    assert!(images == 2 * 3 + 1 + 3 * textures, "{images} images");
     let mut numbers = 0;
     for tag in html.split("<td class=\"num\" ").skip(1) {
         let path = attr(tag, "data-json").unwrap();
@@ -1506,6 +1508,126 @@ fn estimate_fits_the_albedo_and_writes_it_back() {
     }
     let html = std::fs::read_to_string(out.join("index.html")).unwrap();
     assert!(html.contains("Albedo (--fit-albedo)"));
+    check_results_page(&out);
+}
+
+#[test]
+fn estimate_takes_a_baked_shadow_out_of_a_texture() {
+    // References of the bundled scene (true table texture) under a 5-ring sky; the estimate's
+    // scene has the shadow-baked table texture (scenes/tabletop/baked_shadow). `--fit-albedo
+    // texels` must correct the table's texture (its correction brightens the shadow toward
+    // 1/0.4), write it beside the glTF, point the glTF at it, and show it on the page.
+    let tmp = tempfile::tempdir().unwrap();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let sidecar = |albedo: &str| {
+        format!(
+            "Scene(\n    gltf: {:?},\n    image: (width: 96, height: 72),\n    {albedo}\n    render: (spp: 128, max_bounces: 2, seed: 1),\n)\n",
+            bundled_glb()
+        )
+    };
+    let truth = tmp.path().join("truth.ron");
+    std::fs::write(&truth, sidecar("")).unwrap();
+    let baked = tmp.path().join("baked.ron");
+    let map = root.join("scenes/tabletop/baked_shadow/table_baked.png");
+    std::fs::write(
+        &baked,
+        sidecar(&format!("albedo: {{ \"table\": Map({map:?}) }},")),
+    )
+    .unwrap();
+    let grid = lightprobe::envmap::RingGrid::new(5);
+    let sky: Vec<glam::Vec3> = (0..grid.cell_count() as u32)
+        .map(|c| {
+            let d = grid.center(c);
+            let warm =
+                glam::Vec3::new(3.0, 2.4, 1.6) * d.dot(glam::Vec3::new(-0.5, 0.8, 0.3)).max(0.0);
+            glam::Vec3::new(0.3, 0.4, 0.6) * (0.4 + d.y.max(0.0)) + warm
+        })
+        .collect();
+    let env = tmp.path().join("sky.ron");
+    lightprobe::envmap::Envmap::new(5, sky)
+        .unwrap()
+        .save(&env)
+        .unwrap();
+    let refs = tmp.path().join("refs");
+    let o = run(&[
+        "render-reference",
+        truth.to_str().unwrap(),
+        "--out",
+        refs.to_str().unwrap(),
+        "--envmap",
+        env.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = tmp.path().join("out");
+    let estimate = |extra: &[&str]| {
+        let mut args = vec![
+            "estimate",
+            baked.to_str().unwrap(),
+            "--reference",
+            refs.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--rings",
+            "5",
+            "--spp",
+            "128",
+            "--quiet",
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    // The texel flags mean nothing without texels.
+    let o = estimate(&["--fit-albedo", "materials", "--texel-grid", "16"]);
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(stderr.contains("--fit-albedo texels"), "{stderr}");
+    let o = estimate(&[
+        "--fit-albedo",
+        "texels",
+        "--trust-albedo",
+        "sphere_white",
+        "--texel-grid",
+        "16",
+    ]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(stdout.contains("texels corrected in"), "{stdout}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let albedo = &report["albedo"];
+    assert_eq!(albedo["fit"], "texels");
+    let texels = albedo["texels"].as_array().unwrap();
+    assert_eq!(texels.len(), 1, "{albedo}");
+    let t = &texels[0];
+    assert_eq!(t["material"], "table");
+    assert_eq!(t["grid"][0], 16);
+    assert!(t["range"][1].as_f64().unwrap() > 1.5, "{t}");
+    let file = t["file"].as_str().unwrap();
+    assert!(out.join(file).is_file(), "{file}");
+    // The written glTF uses it for the table.
+    let glb = std::fs::read(out.join("scene.glb")).unwrap();
+    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let doc: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let table = doc["materials"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == "table")
+        .unwrap();
+    let index = table["pbrMetallicRoughness"]["baseColorTexture"]["index"]
+        .as_u64()
+        .unwrap() as usize;
+    let source = doc["textures"][index]["source"].as_u64().unwrap() as usize;
+    assert_eq!(doc["images"][source]["uri"], file);
+    let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+    assert!(html.contains("Texels (--fit-albedo texels)"));
+    for f in ["given", "fitted", "change"] {
+        assert!(
+            out.join(format!("figures/texels_0_{f}.png")).is_file(),
+            "{f}"
+        );
+    }
     check_results_page(&out);
 }
 
