@@ -1620,6 +1620,23 @@ fn estimate_takes_a_baked_shadow_out_of_a_texture() {
         .unwrap() as usize;
     let source = doc["textures"][index]["source"].as_u64().unwrap() as usize;
     assert_eq!(doc["images"][source]["uri"], file);
+    // The glTF's texture × factor is the albedo the Mitsuba export renders (its linear EXR),
+    // within 8-bit sRGB.
+    let back = lightprobe::scene::Scene::load(&out.join("scene.glb")).unwrap();
+    let m = t["index"].as_u64().unwrap() as usize;
+    let lightprobe::scene::Albedo::Texture { texture, factor } = &back.materials[m].albedo else {
+        panic!("the exported table is textured");
+    };
+    let exr =
+        lightprobe::imageio::read_exr(&out.join(format!("mitsuba/textures/{m}.exr"))).unwrap();
+    assert_eq!((exr.width, exr.height), (texture.width, texture.height));
+    let worst = texture
+        .texels
+        .iter()
+        .zip(&exr.rgb)
+        .map(|(a, b)| ((*a * *factor - *b).abs() / (*b + 0.01)).max_element())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 0.06, "glTF and Mitsuba textures differ by {worst}");
     let html = std::fs::read_to_string(out.join("index.html")).unwrap();
     assert!(html.contains("Texels (--fit-albedo texels)"));
     for f in ["given", "fitted", "change"] {

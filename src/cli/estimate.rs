@@ -335,7 +335,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let rings = settings.ring_counts().iter().copied().max().unwrap_or(1);
     let spheres = settings.model.max_lights() > 0;
     check_memory(
-        settings.memory_needed(pixels, scene.settings.max_bounces, scene.materials.len()),
+        settings.memory_needed(pixels, scene.settings.max_bounces, &scene.materials),
         || match spheres {
             true => format!("sphere lights and {rings} rings at {size}"),
             false => format!("{rings} rings at {size}"),
@@ -710,10 +710,12 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
     }
     if a.fit == lightprobe::estimate::albedo::FitAlbedo::Texels && a.texel_rounds == 0 {
         lines.push(
-            "texels: no fitted material has a texture; only the materials' albedo was fitted"
+            "texels: no texture was corrected (no fitted or trusted material seen by the views \
+             has one); only the materials' albedo was fitted"
                 .into(),
         );
     }
+    lines.extend(a.texel_notes.iter().map(|n| format!("  {n}")));
     lines
 }
 

@@ -122,7 +122,8 @@ pub struct MaterialAlbedo {
     /// (texture, factor and vertex colours together); where none does, the material's own
     /// (a texture's mean texel × its factor).
     pub given: [f32; 3],
-    /// Mean albedo fitted, linear RGB: `given × multiplier`.
+    /// Mean albedo fitted, linear RGB, over the same pixels as `given`: `given × multiplier`,
+    /// and with `--fit-albedo texels` the corrected texture's too.
     pub fitted: [f32; 3],
     /// What multiplies the constant albedo or the texture's factor, per channel.
     pub multiplier: [f32; 3],
@@ -158,8 +159,10 @@ pub struct AlbedoReport {
     /// `--fit-albedo texels`: rounds made (a correction of every fitted texture, then a fit of
     /// the lighting at it); 0 otherwise.
     pub texel_rounds: usize,
-    /// `--fit-albedo texels`: each fitted texture's correction.
+    /// `--fit-albedo texels`: each corrected texture's correction.
     pub texels: Vec<super::texels::TexelFit>,
+    /// `--fit-albedo texels`: the textures left as given, and why.
+    pub texel_notes: Vec<String>,
 }
 
 /// Where each material is seen alone: per view, per pixel, the material index the pixel's

@@ -300,11 +300,18 @@ impl EstimateSettings {
         }
         if self.fit_albedo == Some(FitAlbedo::Texels) && self.exposure == Exposure::PerView {
             return Err(Error::Invalid(
-                "fitting texels and per-view exposures together is not supported: fit the \
-                 exposures with --fit-albedo materials first, or give references at one \
-                 exposure"
+                "fitting texels beside per-view exposures is not supported yet: fit them with \
+                 --fit-albedo materials, or give references at one exposure (scaled by the \
+                 exposures that fit reports)"
                     .into(),
             ));
+        }
+        if self.texel_smoothness > texels::MAX_TEXEL_SMOOTHNESS {
+            return setting(
+                "texel smoothness",
+                format!("at most {:e}", texels::MAX_TEXEL_SMOOTHNESS),
+                self.texel_smoothness.to_string(),
+            );
         }
         if !(texels::MIN_TEXEL_GRID..=texels::MAX_TEXEL_GRID).contains(&self.texel_grid) {
             return setting(
@@ -344,8 +351,22 @@ impl EstimateSettings {
     /// ([`super::spheres::PathCache`]: up to `max_bounces` vertices of 64 bytes for each of
     /// 80 samples per pixel), which grow with the pixels; with `--fit-albedo`, the sums kept
     /// per material of the scene's `materials` ([`albedo::material_grid`]) with one channel's
-    /// dense copies, and a material index per pixel.
-    pub fn memory_needed(&self, pixels: u64, max_bounces: u32, materials: usize) -> u64 {
+    /// dense copies, and a material index per pixel; with texels, their renders and sums and
+    /// the corrected textures.
+    pub fn memory_needed(
+        &self,
+        pixels: u64,
+        max_bounces: u32,
+        materials: &[crate::scene::Material],
+    ) -> u64 {
+        let texture_texels: u64 = materials
+            .iter()
+            .map(|m| match &m.albedo {
+                crate::scene::Albedo::Texture { texture, .. } => texture.texels.len() as u64,
+                crate::scene::Albedo::Constant(_) => 0,
+            })
+            .sum();
+        let materials = materials.len();
         let groups = if self.diagnose && self.colour == Colour::PerChannel {
             JACKKNIFE_GROUPS as usize
         } else {
@@ -381,11 +402,12 @@ impl EstimateSettings {
             None => 0,
         };
         // Texels: two re-renders and the coordinates per pixel; one texture's sums and its
-        // sparse factor (a grid's Cholesky fills in to about 100 entries a row).
+        // sparse factor (a grid's Cholesky fills in to about 100 entries a row); a corrected
+        // copy of every texture and an export's copy of one.
         let texel = match self.fit_albedo {
             Some(FitAlbedo::Texels) => {
                 let cells = (self.texel_grid as u64).pow(2);
-                pixels * (2 * 16 + 8) + cells * (9 * 24 + 32 + 100 * 16)
+                pixels * (2 * 16 + 8) + cells * (9 * 24 + 56 + 100 * 16) + 2 * 12 * texture_texels
             }
             _ => 0,
         };
@@ -1080,39 +1102,71 @@ fn run_joint(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
 
 /// The texel rounds of [`FitAlbedo::Texels`] after `first` (the materials' fit): each renders
 /// the estimate's lighting twice (independent seeds) in the scene at the albedo so far,
-/// corrects the pattern of every fitted textured material's texture ([`texels`]; its level
-/// kept: the correction's mean over the material's pixels is 1), and fits the materials'
-/// albedo and the lighting again at it ([`run_materials`], same rings): the level of an albedo
-/// trades with the lighting, which the joint fit settles and an alternation would only
-/// approach (3.5% short after three rounds on a test scene), while a shadow's shape does not.
-/// Until a round changes no texture by [`texels::TEXEL_TOLERANCE`], at most
+/// corrects the pattern of every seen textured material's texture, fitted or trusted
+/// ([`texels`]; its level kept: the material's re-rendered pixels keep their sum), and fits the
+/// materials' albedo and the lighting again at it ([`run_materials`], same rings; a round
+/// that will not be the last as the alternation's first fits): the level of an albedo trades
+/// with the lighting, which the joint fit settles and an alternation would only approach
+/// (3.5% short after three rounds on a test scene), while a shadow's shape does not. Until a
+/// round changes no texture by [`texels::TEXEL_TOLERANCE`], at most
 /// [`texels::MAX_TEXEL_ROUNDS`].
 fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Estimate> {
     use crate::scene::Albedo;
     let t_texels = Instant::now();
-    let first_report = first
-        .report
-        .albedo
-        .clone()
-        .expect("the materials' fit reports");
+    let Some(first_report) = first.report.albedo.clone() else {
+        return Ok(first);
+    };
+    let Some(materials) = first.materials.clone() else {
+        return Ok(first);
+    };
     let mut scene = job.fit.scene.clone();
-    scene.materials = first
-        .materials
-        .clone()
-        .expect("the materials' fit sets them");
-    let targets: Vec<usize> = first_report
+    scene.materials = materials;
+    let mut notes = Vec::new();
+    let mut targets: Vec<(usize, (u32, u32))> = Vec::new();
+    for (m, a) in first_report.materials.iter().enumerate() {
+        let Albedo::Texture { texture, .. } = &scene.materials[m].albedo else {
+            continue;
+        };
+        if !matches!(a.status, MaterialStatus::Fitted | MaterialStatus::Trusted) {
+            notes.push(format!(
+                "material {:?}: its texture is kept as given (the material is {})",
+                a.name,
+                match a.status {
+                    MaterialStatus::Unseen => "seen alone by too few pixels",
+                    _ => "not constrained by the images",
+                }
+            ));
+            continue;
+        }
+        match texels::grid_size(texture.width, texture.height, job.settings.texel_grid) {
+            Some(size) => targets.push((m, size)),
+            None => notes.push(format!(
+                "material {:?}: its {}×{} texture is narrower than {} texels, too small for a \
+                 correction grid; its multiplier is all it takes",
+                a.name,
+                texture.width,
+                texture.height,
+                texels::MIN_TEXEL_GRID
+            )),
+        }
+    }
+    // What the first fit took (the references' time apart).
+    let first_seconds = first.report.timings.total_seconds - job.seen.seconds;
+    if targets.is_empty() {
+        let mut estimate = first;
+        if let Some(a) = estimate.report.albedo.as_mut() {
+            a.texel_notes = notes;
+        }
+        return Ok(estimate);
+    }
+    let given: Vec<Option<std::sync::Arc<crate::scene::Texture>>> = scene
         .materials
         .iter()
-        .enumerate()
-        .filter(|(m, a)| {
-            a.status == MaterialStatus::Fitted
-                && matches!(scene.materials[*m].albedo, Albedo::Texture { .. })
+        .map(|m| match &m.albedo {
+            Albedo::Texture { texture, .. } => Some(texture.clone()),
+            Albedo::Constant(_) => None,
         })
-        .map(|(m, _)| m)
         .collect();
-    if targets.is_empty() {
-        return Ok(first);
-    }
     let seen = job.seen;
     let units: u64 = seen.views.iter().map(|c| (c.width * c.height) as u64).sum();
     progress.phase("material maps", units);
@@ -1122,18 +1176,18 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
         rings: Rings::Fixed(first.report.rings),
         ..job.settings.clone()
     };
-    // Per material, the product of the rounds' multipliers; per target, of the corrections.
+    // Per material, the product of the rounds' multipliers.
     let mut multipliers: Vec<Vec3> = first_report
         .materials
         .iter()
         .map(|a| Vec3::from_array(a.multiplier))
         .collect();
-    let mut totals: Vec<Option<texels::Correction>> = vec![None; targets.len()];
-    let mut fits: Vec<Option<TexelFit>> = vec![None; targets.len()];
+    // Per target, its last correction and its report.
+    let mut fits: Vec<Option<(texels::Correction, TexelFit)>> = vec![None; targets.len()];
     let mut albedo_fits = first_report.fits;
     let mut estimate = first;
     let mut rounds = 0;
-    let mut before_last;
+    let mut texel_seconds;
     loop {
         rounds += 1;
         let lights = final_lights(&estimate.envmap, estimate.spheres.as_ref());
@@ -1150,11 +1204,10 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             fit.render_views(&seen.views, &settings, &|n| progress.advance(n))
         });
         let mut change = 0.0f64;
-        for (t, &m) in targets.iter().enumerate() {
+        for (t, &(m, size)) in targets.iter().enumerate() {
             let Albedo::Texture { texture, factor } = &scene.materials[m].albedo else {
                 continue;
             };
-            let size = texels::grid_size(texture.width, texture.height, settings.texel_grid);
             let mut sums = texels::TexelSums::new(size);
             for (v, ids) in pixels.ids.iter().enumerate() {
                 for (i, &id) in ids.iter().enumerate() {
@@ -1173,33 +1226,32 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             };
             let level = sums.level(&c);
             let c = c.divided(level);
-            change = change.max(c.change());
-            let (corrected, clamped) = c.apply(texture, *factor);
-            let total = match &totals[t] {
-                Some(before) => before.then(&c),
-                None => c.clone(),
+            let (corrected, clamped, moved) = c.apply(texture, *factor);
+            // A NaN change is no convergence.
+            change = if moved.is_nan() {
+                f64::INFINITY
+            } else {
+                change.max(moved)
             };
             let material = &scene.materials[m];
-            fits[t] = Some(TexelFit {
+            let fit = TexelFit {
                 material: material.name.clone(),
+                index: m,
                 grid: [size.0, size.1],
                 pixels: sums.pixels,
                 cells_seen: c.cells_seen(),
-                range: {
-                    let (lo, hi) = total.range();
-                    [lo, hi]
-                },
-                last_change: c.change(),
+                range: [1.0, 1.0],
+                last_change: moved,
                 clamped_texels: clamped,
                 file: crate::scene::export::albedo_texture_file(m, &material.name),
-            });
-            totals[t] = Some(total);
+            };
+            fits[t] = Some((c, fit));
             scene.materials[m].albedo = Albedo::Texture {
                 texture: std::sync::Arc::new(corrected),
                 factor: *factor,
             };
         }
-        before_last = t_texels.elapsed().as_secs_f64();
+        texel_seconds = t_texels.elapsed().as_secs_f64();
         // A round that will not be the last fits as the alternation's first fits do: what it
         // must give is the next round's lighting, not the report's figures.
         let last = change < texels::TEXEL_TOLERANCE || rounds == texels::MAX_TEXEL_ROUNDS;
@@ -1239,42 +1291,66 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             break;
         }
     }
-    // The last round's albedo report, against the albedo as given at the start.
+    // The last round's albedo report, against the albedo as given at the start: the fitted
+    // mean over the same pixels as the given, as rendered now.
+    let now = MaterialPixels::new(
+        &job.fit.with_scene(&scene, job.fit.lights),
+        &seen.views,
+        &seen.masks,
+    );
     let mut albedo_report = estimate
         .report
         .albedo
         .take()
         .expect("the materials' fit reports");
-    for ((a, given), k) in albedo_report
+    for (m, ((a, given), k)) in albedo_report
         .materials
         .iter_mut()
         .zip(&first_report.materials)
         .zip(&multipliers)
+        .enumerate()
     {
         a.given = given.given;
         a.multiplier = k.to_array();
+        if now.counts[m] > 0 {
+            a.fitted = now.seen_albedo[m].as_vec3().to_array();
+        }
     }
     albedo_report.fits = albedo_fits;
     albedo_report.texel_rounds = rounds;
-    albedo_report.texels = fits.into_iter().flatten().collect();
+    albedo_report.texel_notes = notes;
+    albedo_report.texels = fits
+        .into_iter()
+        .flatten()
+        .map(|(c, mut fit)| {
+            let m = fit.index;
+            if let (Some(was), Albedo::Texture { texture, factor }) =
+                (&given[m], &scene.materials[m].albedo)
+            {
+                let (lo, hi) = c.ratio_range(was, texture, *factor);
+                fit.range = [lo, hi];
+            }
+            fit
+        })
+        .collect();
     let report = &mut estimate.report;
     report.albedo = Some(albedo_report);
-    // The fits before the last, and the texel rounds' renders.
-    report.timings.alternation_seconds += before_last;
-    report.timings.total_seconds += t_texels.elapsed().as_secs_f64();
+    // Before the last fit: the first fit whole, the texel rounds (their fits but the last),
+    // and the last round's fits before its last.
+    report.timings.alternation_seconds += first_seconds + texel_seconds;
+    report.timings.total_seconds =
+        job.seen.seconds + first_seconds + t_texels.elapsed().as_secs_f64();
     estimate.materials = Some(scene.materials);
     Ok(estimate)
 }
 
 /// `next`, a fit of [`run_texels`], with what only the fits before it reported: the
-/// selection of rings, the exposures and the time taken before.
+/// selection of rings and the exposures.
 fn carry_over(before: Estimate, mut next: Estimate) -> Estimate {
     let (from, to) = (before.report, &mut next.report);
     to.rings_selection = from.rings_selection;
     to.timings.rings_selection_seconds = from.timings.rings_selection_seconds;
     to.exposure = from.exposure;
-    to.timings.alternation_seconds += from.timings.alternation_seconds;
-    to.timings.total_seconds = from.timings.total_seconds;
     next
 }
 
@@ -1532,6 +1608,7 @@ impl AlbedoFit {
                 },
             texel_rounds: 0,
             texels: Vec::new(),
+            texel_notes: Vec::new(),
             materials: materials
                 .iter()
                 .enumerate()

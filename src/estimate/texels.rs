@@ -48,6 +48,10 @@ pub const MAX_TEXEL_GRID: u32 = 256;
 /// Default weight of the membrane prior, relative to the mean diagonal of the data term.
 pub const DEFAULT_TEXEL_SMOOTHNESS: f64 = 1.0;
 
+/// Largest `--texel-smoothness`: beyond it the prior swamps any capture's pixels (and the
+/// system's scale would overflow).
+pub const MAX_TEXEL_SMOOTHNESS: f64 = 1e6;
+
 /// Pull of every cell toward 1, relative to the mean diagonal of the data term: far below any
 /// seen cell's data, it only decides cells no pixel sees.
 pub const UNSEEN_PULL: f64 = 1e-3;
@@ -58,10 +62,23 @@ pub const TEXEL_TOLERANCE: f64 = 0.02;
 /// Most texel rounds (a correction, then a lighting fit at it).
 pub const MAX_TEXEL_ROUNDS: usize = 3;
 
+/// A texel's albedo as rendered: texel × factor, clamped to [0, 1].
+fn albedo(texel: Vec3, factor: Vec3) -> Vec3 {
+    (texel * factor).clamp(Vec3::ZERO, Vec3::ONE)
+}
+
+/// `a / b` per channel, 1 where `b` is 0 (a channel the texture does not have).
+fn ratio(a: Vec3, b: Vec3) -> DVec3 {
+    let (a, b) = (a.as_dvec3(), b.as_dvec3());
+    DVec3::select(b.cmpgt(DVec3::ZERO), a / b, DVec3::ONE)
+}
+
 /// `report.json`'s `albedo.texels[]`: one texture's correction.
 #[derive(Debug, Clone, Serialize, JsonSchema)]
 pub struct TexelFit {
     pub material: String,
+    /// The material's index in the scene's materials (0: glTF's default material).
+    pub index: usize,
     /// Cells of its correction grid, across and down.
     pub grid: [u32; 2],
     /// Pixels that see the material alone and fed the last round's correction.
@@ -69,31 +86,36 @@ pub struct TexelFit {
     /// Cells those pixels see; the others follow their seen neighbours (the prior) and, far
     /// from any, stay 1.
     pub cells_seen: usize,
-    /// The least and the largest multiplier over the seen cells, all rounds together: the
-    /// texture as fitted against as given.
+    /// The least and the largest ratio of a texel as fitted to as given (per channel, clamps
+    /// included, the material's multiplier not), over the texels the pixels see.
     pub range: [f64; 2],
-    /// The last round's pixel-weighted RMS change of the multipliers ([`TEXEL_TOLERANCE`]).
+    /// The last round's RMS relative change of the texels the pixels see (worst channel),
+    /// clamps included ([`TEXEL_TOLERANCE`]).
     pub last_change: f64,
     /// Texels the bound (texel × factor within [0, 1]) clamped in the last round.
     pub clamped_texels: usize,
-    /// The corrected texture (8-bit sRGB PNG, texels before the factor) as the glTF exports
-    /// refer to it, relative to each: `albedo_textures/…`.
+    /// The corrected texture as the glTF exports refer to it, relative to each:
+    /// `albedo_textures/…` (8-bit sRGB PNG of texel × factor, the factor then 1).
     pub file: String,
 }
 
 /// The cells of a correction grid for a `width` × `height` texture with `cells` along its
-/// longer side: the other side in proportion, each within [`MIN_TEXEL_GRID`] and
-/// [`MAX_TEXEL_GRID`].
-pub fn grid_size(width: u32, height: u32, cells: u32) -> (u32, u32) {
-    let cells = cells.clamp(MIN_TEXEL_GRID, MAX_TEXEL_GRID);
-    let (long, short) = (width.max(height).max(1), width.min(height).max(1));
-    let other = ((cells as u64 * short as u64 + long as u64 / 2) / long as u64) as u32;
-    let other = other.clamp(MIN_TEXEL_GRID, MAX_TEXEL_GRID);
-    if width >= height {
-        (cells, other)
-    } else {
-        (other, cells)
+/// longer side: the other side in proportion, each at most the texture's own and at least
+/// [`MIN_TEXEL_GRID`]; `None` for a texture narrower than that (a palette or a constant: its
+/// material's multiplier is all it can take).
+pub fn grid_size(width: u32, height: u32, cells: u32) -> Option<(u32, u32)> {
+    if width.min(height) < MIN_TEXEL_GRID {
+        return None;
     }
+    let (long, short) = (width.max(height), width.min(height));
+    let along = cells.clamp(MIN_TEXEL_GRID, MAX_TEXEL_GRID).min(long);
+    let other = ((along as u64 * short as u64 + long as u64 / 2) / long as u64) as u32;
+    let other = other.clamp(MIN_TEXEL_GRID, MAX_TEXEL_GRID).min(short);
+    Some(if width >= height {
+        (along, other)
+    } else {
+        (other, along)
+    })
 }
 
 /// The four bilinear taps (cell index, weight) of glTF texture coordinates `uv` on a
@@ -283,25 +305,42 @@ impl Correction {
             .unwrap_or(DVec3::ONE)
     }
 
+    /// Whether a pixel saw any cell under texture coordinates `uv`.
+    fn seen_at(&self, uv: Vec2) -> bool {
+        taps(uv, self.width, self.height)
+            .is_some_and(|t| t.iter().any(|&(a, w)| w > 0.0 && self.seen[a] > 0.0))
+    }
+
+    /// The texture coordinates of texel `i`'s centre in a `w` × `h` texture.
+    fn texel_uv(i: usize, w: u32, h: u32) -> Vec2 {
+        Vec2::new(
+            ((i as u32 % w) as f32 + 0.5) / w as f32,
+            ((i as u32 / w) as f32 + 0.5) / h as f32,
+        )
+    }
+
     /// `texture` with every texel multiplied by the correction at its centre, each channel
-    /// clamped so that texel × `factor` stays within [0, 1]; and how many texels a clamp
-    /// changed.
-    pub fn apply(&self, texture: &Texture, factor: Vec3) -> (Texture, usize) {
+    /// clamped so that texel × `factor` stays within [0, 1]; how many texels a clamp changed;
+    /// and the RMS relative change (worst channel) of the albedo the texels pixels saw render,
+    /// clamps included.
+    pub fn apply(&self, texture: &Texture, factor: Vec3) -> (Texture, usize, f64) {
         let (w, h) = (texture.width, texture.height);
         let ceiling = Vec3::select(factor.cmpgt(Vec3::ZERO), 1.0 / factor, Vec3::INFINITY);
-        let mut clamped = 0;
+        let (mut clamped, mut sq, mut n) = (0, DVec3::ZERO, 0usize);
         let texels = texture
             .texels
             .iter()
             .enumerate()
             .map(|(i, t)| {
-                let uv = Vec2::new(
-                    ((i as u32 % w) as f32 + 0.5) / w as f32,
-                    ((i as u32 / w) as f32 + 0.5) / h as f32,
-                );
+                let uv = Self::texel_uv(i, w, h);
                 let v = *t * self.at(uv).as_vec3();
                 let c = v.clamp(Vec3::ZERO, ceiling);
                 clamped += (c != v) as usize;
+                if self.seen_at(uv) {
+                    let d = ratio(albedo(c, factor), albedo(*t, factor)) - 1.0;
+                    sq += d * d;
+                    n += 1;
+                }
                 c
             })
             .collect();
@@ -310,58 +349,36 @@ impl Correction {
             height: h,
             texels,
         };
-        (texture, clamped)
+        let change = if n > 0 {
+            (sq / n as f64).max_element().sqrt()
+        } else {
+            0.0
+        };
+        (texture, clamped, change)
     }
 
-    /// The seen-weighted RMS of `c − 1`, the largest over channels: how far this correction
-    /// moves the texture where pixels see it.
-    pub fn change(&self) -> f64 {
-        let total: f64 = self.seen.iter().sum();
-        if total <= 0.0 {
-            return 0.0;
+    /// The least and largest ratio (per channel) of `fitted` to `given`, two versions of one
+    /// texture, as rendered with `factor` (clamped to 1), over the texels pixels saw; (1, 1)
+    /// when they saw none.
+    pub fn ratio_range(&self, given: &Texture, fitted: &Texture, factor: Vec3) -> (f64, f64) {
+        let (w, h) = (given.width, given.height);
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for (i, (g, f)) in given.texels.iter().zip(&fitted.texels).enumerate() {
+            if self.seen_at(Self::texel_uv(i, w, h)) {
+                let r = ratio(albedo(*f, factor), albedo(*g, factor));
+                lo = lo.min(r.min_element());
+                hi = hi.max(r.max_element());
+            }
         }
-        let sq = self
-            .cells
-            .iter()
-            .zip(&self.seen)
-            .fold(DVec3::ZERO, |s, (c, &w)| s + (*c - 1.0) * (*c - 1.0) * w);
-        (sq / total).max_element().sqrt()
+        if lo <= hi { (lo, hi) } else { (1.0, 1.0) }
     }
 
-    /// The least and largest multiplier over the cells pixels see, per channel's extreme.
-    pub fn range(&self) -> (f64, f64) {
-        self.cells
-            .iter()
-            .zip(&self.seen)
-            .filter(|(_, w)| **w > 0.0)
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (c, _)| {
-                (lo.min(c.min_element()), hi.max(c.max_element()))
-            })
-    }
-
-    /// The correction divided by `k` per channel (the anchors' ratio, which is the lighting's
-    /// error and not the texture's).
+    /// The correction divided by `k` per channel.
     pub fn divided(mut self, k: DVec3) -> Correction {
         for c in &mut self.cells {
             *c /= k;
         }
         self
-    }
-
-    /// This correction followed by `next` on the same grid: the cells' product, seen as
-    /// `next` saw them.
-    pub fn then(&self, next: &Correction) -> Correction {
-        Correction {
-            cells: self
-                .cells
-                .iter()
-                .zip(&next.cells)
-                .map(|(a, b)| *a * *b)
-                .collect(),
-            seen: next.seen.clone(),
-            width: next.width,
-            height: next.height,
-        }
     }
 
     /// Cells pixels see.
@@ -413,11 +430,18 @@ mod tests {
 
     #[test]
     fn grid_follows_the_aspect_within_bounds() {
-        assert_eq!(grid_size(256, 256, 32), (32, 32));
-        assert_eq!(grid_size(512, 256, 32), (32, 16));
-        assert_eq!(grid_size(100, 400, 32), (8, 32));
-        assert_eq!(grid_size(4096, 16, 32), (32, MIN_TEXEL_GRID));
-        assert_eq!(grid_size(8, 8, 1000), (MAX_TEXEL_GRID, MAX_TEXEL_GRID));
+        assert_eq!(grid_size(256, 256, 32), Some((32, 32)));
+        assert_eq!(grid_size(512, 256, 32), Some((32, 16)));
+        assert_eq!(grid_size(100, 400, 32), Some((8, 32)));
+        assert_eq!(grid_size(4096, 16, 32), Some((32, MIN_TEXEL_GRID)));
+        assert_eq!(
+            grid_size(4096, 4096, 1000),
+            Some((MAX_TEXEL_GRID, MAX_TEXEL_GRID))
+        );
+        // Never finer than the texture; none for a texture narrower than the least grid.
+        assert_eq!(grid_size(8, 8, 32), Some((8, 8)));
+        assert_eq!(grid_size(1, 1, 32), None);
+        assert_eq!(grid_size(64, 2, 32), None);
     }
 
     /// A known correction on the grid (a darkened blob, one multiplier per cell and channel,
@@ -504,7 +528,8 @@ mod tests {
             cells: vec![DVec3::splat(1.5); 16],
             seen: vec![1.0; 16],
         };
-        let (t, clamped) = c.apply(&texture, Vec3::new(1.0, 1.0, 2.0));
+        let factor = Vec3::new(1.0, 1.0, 2.0);
+        let (t, clamped, change) = c.apply(&texture, factor);
         assert_eq!(clamped, 2);
         assert!(
             (t.texels[0] - Vec3::new(0.75, 0.75, 0.5))
@@ -513,7 +538,14 @@ mod tests {
                 < 1e-6
         );
         assert!((t.texels[1] - Vec3::new(1.0, 1.0, 0.5)).abs().max_element() < 1e-6);
-        assert!((c.change() - 0.5).abs() < 1e-12);
-        assert_eq!(c.range(), (1.5, 1.5));
+        // What the rendered albedo moved, clamps included: red and green ×1.5 and ×1/0.9,
+        // blue (at albedo 1 before and after) not at all.
+        let want = ((0.5f64.powi(2) + (1.0 / 0.9 - 1.0f64).powi(2)) / 2.0).sqrt();
+        assert!((change - want).abs() < 1e-6, "{change}");
+        let (lo, hi) = c.ratio_range(&texture, &t, factor);
+        assert!(
+            (lo - 1.0).abs() < 1e-6 && (hi - 1.5).abs() < 1e-6,
+            "{lo} {hi}"
+        );
     }
 }

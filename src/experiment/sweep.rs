@@ -963,7 +963,7 @@ fn check_memory(
             None => Rings::Auto(axes.rings.clone()),
         };
         let need = trial_settings(settings, t.solver, t.spp, rings, t.spheres, t.fit_albedo)
-            .memory_needed(pixels, scene.settings.max_bounces, scene.materials.len());
+            .memory_needed(pixels, scene.settings.max_bounces, &scene.materials);
         crate::memory::reserve(need, || format!("trial {}", id(t)))?;
     }
     Ok(())

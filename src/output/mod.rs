@@ -191,6 +191,7 @@ fn remove_stale(dir: &Path, views: &[&str], spheres: bool, references: bool) -> 
     for d in [dir, spheres_dir.as_path()] {
         remove_dir(&d.join("mitsuba"))?;
         remove_dir(&d.join("blender_textures"))?;
+        remove_dir(&d.join("albedo_textures"))?;
     }
     if spheres {
         stale_views(&spheres_dir, views)?;

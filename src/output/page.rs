@@ -714,8 +714,8 @@ fn texels_section(
     let _ = writeln!(
         h,
         "<h2>Texels (--fit-albedo texels)</h2><p class=\"note\">{} round(s) of a correction \
-         per texture (a coarse grid of multipliers, smooth, its mean over the material's pixels \
-         kept at 1) and a fit of the materials' albedo and the lighting at it. The change is \
+         per texture (a coarse grid of multipliers, smooth, keeping the sum of the material's \
+         re-rendered pixels) and a fit of the materials' albedo and the lighting at it. The change is \
          the fitted texture over the given, less 1 (mean of the channels): shading baked into \
          the given texture shows as a brightened patch.</p><table><tr><th>material</th>\
          <th>grid</th><th>cells seen</th><th>pixels</th><th>least multiplier</th>\
@@ -741,7 +741,11 @@ fn texels_section(
     h.push_str("</table>\n");
     for (i, fit) in fits.iter().enumerate() {
         let name = fit["material"].as_str().unwrap_or("");
-        let Some(m) = scene.materials.iter().position(|m| m.name == name) else {
+        let Some(m) = fit["index"]
+            .as_u64()
+            .map(|m| m as usize)
+            .filter(|&m| m < scene.materials.len().min(fitted.len()))
+        else {
             continue;
         };
         use crate::scene::Albedo;

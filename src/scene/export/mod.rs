@@ -183,7 +183,8 @@ fn put_albedo(
     }
     for ((m, g), gm) in materials[1..].iter().zip(&given[1..]).zip(list.iter_mut()) {
         let (factor, textured) = factor_of(m);
-        if factor == factor_of(g).0 {
+        if factor == factor_of(g).0 || texture_changed(g, m) {
+            // A corrected texture carries its factor ([`put_textures`]).
             continue;
         }
         let file_textured = gm
@@ -225,57 +226,50 @@ fn put_albedo(
     Ok(notes)
 }
 
-/// Writes each texture the fit corrected (`fitted`'s texture is not `given`'s) into
-/// `dir` ([`albedo_texture_file`]: 8-bit sRGB PNG, texels before the factor, as glTF's
-/// baseColorTexture holds them) and points the glTF material's baseColorTexture at it (a new
-/// image and texture, the old texture's sampler and the material's texCoord kept). Returns
-/// what the file could not take: a material the glTF gives no texture (its texture came from
-/// the sidecar) keeps the file's albedo, the corrected texture being written all the same.
+/// Whether `fitted`'s texture is not `given`'s (`--fit-albedo texels` corrected it).
+fn texture_changed(given: &super::Material, fitted: &super::Material) -> bool {
+    use super::Albedo;
+    match (&given.albedo, &fitted.albedo) {
+        (Albedo::Texture { texture: was, .. }, Albedo::Texture { texture, .. }) => {
+            !std::sync::Arc::ptr_eq(was, texture)
+        }
+        _ => false,
+    }
+}
+
+/// Writes each texture the fit corrected ([`texture_changed`]) into `dir`
+/// ([`albedo_texture_file`]: 8-bit sRGB PNG of texel × factor, clamped to [0, 1] as lightprobe
+/// renders it) and points the glTF material's baseColorTexture at it (a new image and texture,
+/// the old texture's sampler and the material's texCoord kept), its baseColorFactor RGB set
+/// to 1 (alpha kept). Returns what the file could not take: a material the glTF gives no
+/// texture (its texture came from the sidecar) and one whose alpha its texture holds (the PNG
+/// has none) keep the file's; the corrected texture is written all the same.
 fn put_textures(
     doc: &mut Value,
     dir: &Path,
     given: &[super::Material],
     fitted: &[super::Material],
 ) -> Result<Vec<String>> {
-    use super::Albedo;
     let mut notes = Vec::new();
     for (m, (f, g)) in fitted.iter().zip(given).enumerate() {
-        let (Albedo::Texture { texture, .. }, Albedo::Texture { texture: was, .. }) =
-            (&f.albedo, &g.albedo)
-        else {
-            continue;
-        };
-        if std::sync::Arc::ptr_eq(texture, was) {
+        if !texture_changed(g, f) {
             continue;
         }
-        let file = albedo_texture_file(m, &f.name);
-        let image = crate::imageio::Image {
-            width: texture.width,
-            height: texture.height,
-            rgb: texture.texels.clone(),
-            alpha: None,
+        let super::Albedo::Texture { texture, factor } = &f.albedo else {
+            continue;
         };
+        let file = albedo_texture_file(m, &f.name);
         let path = dir.join(&file);
         if let Some(parent) = path.parent() {
             std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
         }
-        crate::imageio::write_png(&path, &image, 1.0)?;
+        crate::imageio::write_png(&path, &albedo_image(texture, *factor), 1.0)?;
         // materials[0] is glTF's default material, which has no texture in the file.
         let Some(slot) = m.checked_sub(1) else {
             continue;
         };
-        let sampler = doc
-            .pointer(&format!(
-                "/materials/{slot}/pbrMetallicRoughness/baseColorTexture/index"
-            ))
-            .and_then(Value::as_u64)
-            .and_then(|t| doc.pointer(&format!("/textures/{t}/sampler")).cloned());
-        if doc
-            .pointer(&format!(
-                "/materials/{slot}/pbrMetallicRoughness/baseColorTexture"
-            ))
-            .is_none()
-        {
+        let base = format!("/materials/{slot}/pbrMetallicRoughness");
+        if doc.pointer(&format!("{base}/baseColorTexture")).is_none() {
             notes.push(format!(
                 "material {:?}: its texture came from the sidecar, not the glTF; the \
                  corrected texture is {file}, which the glTF does not use",
@@ -283,38 +277,64 @@ fn put_textures(
             ));
             continue;
         }
-        let push = |doc: &mut Value, key: &str, item: Value| -> Option<usize> {
-            let obj = doc.as_object_mut()?;
-            let list = obj.entry(key).or_insert_with(|| json!([])).as_array_mut()?;
-            list.push(item);
-            Some(list.len() - 1)
-        };
-        let mut texture_item =
-            json!({ "source": Value::Null, "name": format!("lightprobe {file}") });
-        let image_index = push(
-            doc,
-            "images",
-            json!({ "uri": file, "mimeType": "image/png" }),
-        );
-        let Some(image_index) = image_index else {
+        let alpha_mode = doc
+            .pointer(&format!("/materials/{slot}/alphaMode"))
+            .and_then(Value::as_str)
+            .unwrap_or("OPAQUE");
+        if alpha_mode != "OPAQUE" {
             notes.push(format!(
-                "material {:?}: the glTF's images are not a list; the corrected texture is {file}",
+                "material {:?}: its alpha ({alpha_mode}) lives in its texture, which lightprobe \
+                 reads without alpha; the glTF keeps its own texture, the corrected one is {file}",
                 f.name
             ));
             continue;
-        };
-        texture_item["source"] = json!(image_index);
-        if let Some(s) = sampler {
-            texture_item["sampler"] = s;
         }
-        let Some(texture_index) = push(doc, "textures", texture_item) else {
-            notes.push(format!("material {:?}: the glTF's textures are not a list; the corrected texture is {file}", f.name));
+        let sampler = doc
+            .pointer(&format!("{base}/baseColorTexture/index"))
+            .and_then(Value::as_u64)
+            .and_then(|t| doc.pointer(&format!("/textures/{t}/sampler")).cloned());
+        let push = |doc: &mut Value, key: &str, item: Value| -> Option<usize> {
+            let list = doc
+                .as_object_mut()?
+                .entry(key)
+                .or_insert_with(|| json!([]))
+                .as_array_mut()?;
+            list.push(item);
+            Some(list.len() - 1)
+        };
+        let not_lists = || {
+            format!(
+                "material {:?}: the glTF's images or textures are not lists; the corrected \
+                 texture is {file}, which the glTF does not use",
+                f.name
+            )
+        };
+        let Some(image) = push(
+            doc,
+            "images",
+            json!({ "uri": file, "mimeType": "image/png" }),
+        ) else {
+            notes.push(not_lists());
             continue;
         };
-        if let Some(index) = doc.pointer_mut(&format!(
-            "/materials/{slot}/pbrMetallicRoughness/baseColorTexture/index"
-        )) {
-            *index = json!(texture_index);
+        let mut item = json!({ "source": image, "name": format!("lightprobe {file}") });
+        if let Some(s) = sampler {
+            item["sampler"] = s;
+        }
+        let Some(index) = push(doc, "textures", item) else {
+            notes.push(not_lists());
+            continue;
+        };
+        if let Some(i) = doc.pointer_mut(&format!("{base}/baseColorTexture/index")) {
+            *i = json!(index);
+        }
+        if let Some(pbr) = doc.pointer_mut(&base).and_then(Value::as_object_mut) {
+            let alpha = pbr
+                .get("baseColorFactor")
+                .and_then(|v| v.get(3))
+                .and_then(Value::as_f64)
+                .unwrap_or(1.0);
+            pbr.insert("baseColorFactor".into(), json!([1.0, 1.0, 1.0, alpha]));
         }
     }
     Ok(notes)
