@@ -93,6 +93,14 @@ def main():
         albedo = report.get("albedo")
         row = {
             "rel_mae": spheres["rel_mae"],
+            # The sphere lights against the true ones: centre error over distance, power ratio.
+            "lights": [
+                {
+                    "centre_error_fraction_of_distance": r["centre_error_fraction_of_distance"],
+                    "power_ratio": r["power_ratio"],
+                }
+                for r in spheres.get("recovery") or []
+            ],
             "fit_test_residual_over_noise": (report.get("fit_test") or {}).get("residual_over_noise"),
             "total_seconds": report["timings"]["total_seconds"],
         }
@@ -103,8 +111,21 @@ def main():
                 table = next(m for m in albedo["materials"] if m["name"] == "table")
                 multiplier = table["multiplier"]
                 row["albedo"] = {m["name"]: {"given": m["given"], "fitted": m["fitted"], "status": m["status"]} for m in albedo["materials"]}
+                row["albedo_converged"] = albedo["converged"]
+                row["albedo_last_change"] = albedo["last_change"]
+            # The other materials were given exactly: their worst channel's error as fitted.
+            if albedo:
+                row["others_worst_error"] = max(
+                    abs(f / g - 1.0)
+                    for m in albedo["materials"]
+                    if m["name"] not in ("table", "")
+                    for f, g in zip(m["fitted"], m["given"])
+                    if g > 0
+                )
                 for fit in albedo.get("texels", []):
+                    # The exported texture holds texel × factor (its glTF factor is 1).
                     texture = read_linear(dest / fit["file"])
+                    multiplier = [1.0, 1.0, 1.0]
                     row["texels"] = fit
                     row["texel_rounds"] = albedo["texel_rounds"]
             row["table_texture_error"] = texture_errors(maker, texture, multiplier)
