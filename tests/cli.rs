@@ -1407,6 +1407,37 @@ fn check_results_page(out: &Path) {
     }
 }
 
+/// References of `scene` rendered into `dir/refs` under a warm 5-ring sky (a light a 5-ring
+/// fit can match, with a key from one side).
+fn sky_references(dir: &Path, scene: &Path) -> PathBuf {
+    let grid = lightprobe::envmap::RingGrid::new(5);
+    let sky: Vec<glam::Vec3> = (0..grid.cell_count() as u32)
+        .map(|c| {
+            let d = grid.center(c);
+            let warm =
+                glam::Vec3::new(3.0, 2.4, 1.6) * d.dot(glam::Vec3::new(-0.5, 0.8, 0.3)).max(0.0);
+            glam::Vec3::new(0.3, 0.4, 0.6) * (0.4 + d.y.max(0.0)) + warm
+        })
+        .collect();
+    let env = dir.join("sky.ron");
+    lightprobe::envmap::Envmap::new(5, sky)
+        .unwrap()
+        .save(&env)
+        .unwrap();
+    let refs = dir.join("refs");
+    let o = run(&[
+        "render-reference",
+        scene.to_str().unwrap(),
+        "--out",
+        refs.to_str().unwrap(),
+        "--envmap",
+        env.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    refs
+}
+
 #[test]
 fn estimate_fits_the_albedo_and_writes_it_back() {
     // References rendered under a 5-ring sky (a light the 5-ring fit can match) with the
@@ -1422,31 +1453,7 @@ fn estimate_fits_the_albedo_and_writes_it_back() {
         ),
     )
     .unwrap();
-    let grid = lightprobe::envmap::RingGrid::new(5);
-    let sky: Vec<glam::Vec3> = (0..grid.cell_count() as u32)
-        .map(|c| {
-            let d = grid.center(c);
-            let warm =
-                glam::Vec3::new(3.0, 2.4, 1.6) * d.dot(glam::Vec3::new(-0.5, 0.8, 0.3)).max(0.0);
-            glam::Vec3::new(0.3, 0.4, 0.6) * (0.4 + d.y.max(0.0)) + warm
-        })
-        .collect();
-    let env = tmp.path().join("sky.ron");
-    lightprobe::envmap::Envmap::new(5, sky)
-        .unwrap()
-        .save(&env)
-        .unwrap();
-    let refs = tmp.path().join("refs");
-    let o = run(&[
-        "render-reference",
-        scene.to_str().unwrap(),
-        "--out",
-        refs.to_str().unwrap(),
-        "--envmap",
-        env.to_str().unwrap(),
-        "--quiet",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let refs = sky_references(tmp.path(), &scene);
     let out = tmp.path().join("out");
     let o = run(&[
         "estimate",
@@ -1534,31 +1541,7 @@ fn estimate_takes_a_baked_shadow_out_of_a_texture() {
         sidecar(&format!("albedo: {{ \"table\": Map({map:?}) }},")),
     )
     .unwrap();
-    let grid = lightprobe::envmap::RingGrid::new(5);
-    let sky: Vec<glam::Vec3> = (0..grid.cell_count() as u32)
-        .map(|c| {
-            let d = grid.center(c);
-            let warm =
-                glam::Vec3::new(3.0, 2.4, 1.6) * d.dot(glam::Vec3::new(-0.5, 0.8, 0.3)).max(0.0);
-            glam::Vec3::new(0.3, 0.4, 0.6) * (0.4 + d.y.max(0.0)) + warm
-        })
-        .collect();
-    let env = tmp.path().join("sky.ron");
-    lightprobe::envmap::Envmap::new(5, sky)
-        .unwrap()
-        .save(&env)
-        .unwrap();
-    let refs = tmp.path().join("refs");
-    let o = run(&[
-        "render-reference",
-        truth.to_str().unwrap(),
-        "--out",
-        refs.to_str().unwrap(),
-        "--envmap",
-        env.to_str().unwrap(),
-        "--quiet",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let refs = sky_references(tmp.path(), &truth);
     let out = tmp.path().join("out");
     let estimate = |extra: &[&str]| {
         let mut args = vec![
