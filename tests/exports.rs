@@ -387,3 +387,78 @@ fn a_corrected_texture_goes_into_the_gltf_and_comes_back() {
         }
     }
 }
+
+#[test]
+fn a_corrected_texture_with_alpha_leaves_the_gltf_its_own_and_the_fitted_factor() {
+    // The table made alphaMode MASK: its alpha lives in its texture, which lightprobe reads
+    // without alpha, so the glTF keeps its own texture and takes the fitted factor instead,
+    // with a note naming the corrected texture.
+    use lightprobe::scene::Texture;
+    use lightprobe::scene::export;
+    let given = tabletop();
+    let bytes = std::fs::read(&given.gltf).unwrap();
+    let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    let mut doc: serde_json::Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+    let table = given
+        .materials
+        .iter()
+        .position(|m| m.name == "table")
+        .unwrap();
+    doc["materials"][table - 1]["alphaMode"] = "MASK".into();
+    // Reassemble the GLB: the JSON chunk padded with spaces, the binary chunk as it was.
+    let mut json = serde_json::to_vec(&doc).unwrap();
+    json.resize(json.len().next_multiple_of(4), b' ');
+    let bin = &bytes[20 + len..];
+    let mut glb = Vec::new();
+    glb.extend_from_slice(b"glTF");
+    glb.extend_from_slice(&2u32.to_le_bytes());
+    glb.extend_from_slice(&((12 + 8 + json.len() + bin.len()) as u32).to_le_bytes());
+    glb.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    glb.extend_from_slice(b"JSON");
+    glb.extend_from_slice(&json);
+    glb.extend_from_slice(bin);
+    let dir = tempfile::tempdir().unwrap();
+    let source = dir.path().join("masked.glb");
+    std::fs::write(&source, &glb).unwrap();
+    let Albedo::Texture { texture, factor } = &given.materials[table].albedo else {
+        panic!("the bundled table is textured");
+    };
+    let mut fitted = given.materials.clone();
+    let fitted_factor = *factor * Vec3::new(0.8, 0.9, 0.7);
+    fitted[table].albedo = Albedo::Texture {
+        texture: std::sync::Arc::new(Texture {
+            texels: texture.texels.iter().map(|t| *t * 0.9).collect(),
+            ..(**texture).clone()
+        }),
+        factor: fitted_factor,
+    };
+    let out = dir.path().join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let (written, notes) = export::write_with_lights(
+        &source,
+        &out,
+        &[],
+        &[],
+        None,
+        Some((&given.materials, &fitted)),
+    )
+    .unwrap();
+    let file = export::albedo_texture_file(table, "table");
+    assert!(
+        notes
+            .iter()
+            .any(|n| n.contains("MASK") && n.contains(&file)),
+        "{notes:?}"
+    );
+    assert!(out.join(&file).is_file());
+    let bytes = std::fs::read(&written).unwrap();
+    let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    let doc: serde_json::Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+    let pbr = &doc["materials"][table - 1]["pbrMetallicRoughness"];
+    assert_eq!(pbr["baseColorTexture"]["index"], 0);
+    assert_eq!(doc["images"].as_array().unwrap().len(), 1);
+    for c in 0..3 {
+        let f = pbr["baseColorFactor"][c].as_f64().unwrap() as f32;
+        assert!((f - fitted_factor[c]).abs() < 1e-6, "{pbr}");
+    }
+}

@@ -710,8 +710,8 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
     }
     if a.fit == lightprobe::estimate::albedo::FitAlbedo::Texels && a.texel_rounds == 0 {
         lines.push(
-            "texels: no texture was corrected (no fitted or trusted material seen by the views \
-             has one); only the materials' albedo was fitted"
+            "texels: no texture was corrected (why, per material, below; none listed: no fitted \
+             or trusted material has a texture); only the materials' albedo was fitted"
                 .into(),
         );
     }

@@ -1222,6 +1222,13 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 }
             }
             let Some(c) = sums.solve(settings.texel_smoothness) else {
+                if rounds == 1 {
+                    notes.push(format!(
+                        "material {:?}: its correction's system could not be solved (nothing \
+                         lit, or not positive definite); its texture is kept as given",
+                        scene.materials[m].name
+                    ));
+                }
                 continue;
             };
             let level = sums.level(&c);
@@ -1250,6 +1257,13 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 texture: std::sync::Arc::new(corrected),
                 factor: *factor,
             };
+        }
+        if fits.iter().all(Option::is_none) {
+            // Nothing corrected: the materials' fit stands.
+            if let Some(a) = estimate.report.albedo.as_mut() {
+                a.texel_notes = notes;
+            }
+            return Ok(estimate);
         }
         texel_seconds = t_texels.elapsed().as_secs_f64();
         // A round that will not be the last fits as the alternation's first fits do: what it

@@ -715,11 +715,13 @@ fn texels_section(
         h,
         "<h2>Texels (--fit-albedo texels)</h2><p class=\"note\">{} round(s) of a correction \
          per texture (a coarse grid of multipliers, smooth, keeping the sum of the material's \
-         re-rendered pixels) and a fit of the materials' albedo and the lighting at it. The change is \
-         the fitted texture over the given, less 1 (mean of the channels): shading baked into \
-         the given texture shows as a brightened patch.</p><table><tr><th>material</th>\
-         <th>grid</th><th>cells seen</th><th>pixels</th><th>least multiplier</th>\
-         <th>largest</th><th>last change</th><th>texels clamped</th></tr>",
+         re-rendered pixels) and a fit of the materials' albedo and the lighting at it. The \
+         table's ratios are of the texels alone (fitted over given, where pixels see them); the \
+         change map is of the albedo as rendered, fitted over given less 1 (mean of the \
+         channels), the material's multiplier included: shading baked into the given texture \
+         shows as a brightened patch.</p><table><tr><th>material</th><th>grid</th>\
+         <th>cells seen</th><th>pixels</th><th>least texel ratio</th><th>largest</th>\
+         <th>last change</th><th>texels clamped</th></tr>",
         span(r, "albedo.texel_rounds", Format::Integer),
     );
     for (i, fit) in fits.iter().enumerate() {

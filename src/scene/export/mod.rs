@@ -168,6 +168,9 @@ fn put_albedo(
         super::Albedo::Constant(c) => (*c, false),
         super::Albedo::Texture { factor, .. } => (*factor, true),
     };
+    let lists = ["images", "textures"]
+        .iter()
+        .all(|k| doc.get(k).is_none_or(Value::is_array));
     let list = doc.get_mut("materials").and_then(Value::as_array_mut);
     let list = match list {
         Some(l) => l,
@@ -183,7 +186,7 @@ fn put_albedo(
     }
     for ((m, g), gm) in materials[1..].iter().zip(&given[1..]).zip(list.iter_mut()) {
         let (factor, textured) = factor_of(m);
-        if factor == factor_of(g).0 || texture_changed(g, m) {
+        if factor == factor_of(g).0 || (texture_changed(g, m) && takes_texture(gm, lists)) {
             // A corrected texture carries its factor ([`put_textures`]).
             continue;
         }
@@ -224,6 +227,20 @@ fn put_albedo(
         );
     }
     Ok(notes)
+}
+
+/// Whether [`put_textures`] points glTF material `gm` at a corrected texture: it has a
+/// baseColorTexture, no alpha of its own (alphaMode OPAQUE, the default), and the file's
+/// images and textures are lists (`lists`).
+fn takes_texture(gm: &Value, lists: bool) -> bool {
+    lists
+        && gm
+            .pointer("/pbrMetallicRoughness/baseColorTexture")
+            .is_some()
+        && gm
+            .get("alphaMode")
+            .and_then(Value::as_str)
+            .is_none_or(|a| a == "OPAQUE")
 }
 
 /// Whether `fitted`'s texture is not `given`'s (`--fit-albedo texels` corrected it).
@@ -269,22 +286,31 @@ fn put_textures(
             continue;
         };
         let base = format!("/materials/{slot}/pbrMetallicRoughness");
-        if doc.pointer(&format!("{base}/baseColorTexture")).is_none() {
+        let lists = ["images", "textures"]
+            .iter()
+            .all(|k| doc.get(k).is_none_or(Value::is_array));
+        let material = doc.pointer(&format!("/materials/{slot}")).cloned();
+        if !material.as_ref().is_some_and(|gm| takes_texture(gm, lists)) {
+            let why = match material
+                .as_ref()
+                .and_then(|gm| gm.get("alphaMode"))
+                .and_then(Value::as_str)
+            {
+                _ if material
+                    .as_ref()
+                    .and_then(|gm| gm.pointer("/pbrMetallicRoughness/baseColorTexture"))
+                    .is_none() =>
+                {
+                    "its texture came from the sidecar, not the glTF".to_string()
+                }
+                Some(a) if a != "OPAQUE" => format!(
+                    "its alpha ({a}) lives in its texture, which lightprobe reads without alpha"
+                ),
+                _ => "the glTF's images or textures are not lists".to_string(),
+            };
             notes.push(format!(
-                "material {:?}: its texture came from the sidecar, not the glTF; the \
-                 corrected texture is {file}, which the glTF does not use",
-                f.name
-            ));
-            continue;
-        }
-        let alpha_mode = doc
-            .pointer(&format!("/materials/{slot}/alphaMode"))
-            .and_then(Value::as_str)
-            .unwrap_or("OPAQUE");
-        if alpha_mode != "OPAQUE" {
-            notes.push(format!(
-                "material {:?}: its alpha ({alpha_mode}) lives in its texture, which lightprobe \
-                 reads without alpha; the glTF keeps its own texture, the corrected one is {file}",
+                "material {:?}: {why}; the glTF keeps its own texture (with the fitted factor \
+                 where it has one), the corrected texture is {file}",
                 f.name
             ));
             continue;
