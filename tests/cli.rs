@@ -10,6 +10,8 @@ fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_lightprobe"))
 }
 
+mod common;
+
 fn run(args: &[&str]) -> Output {
     bin().args(args).output().expect("the binary runs")
 }
@@ -1496,9 +1498,7 @@ fn estimate_fits_the_albedo_and_writes_it_back() {
         }
     }
     // The glTF written beside the estimate carries the fitted albedo.
-    let glb = std::fs::read(out.join("scene.glb")).unwrap();
-    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
-    let doc: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let doc = common::glb_json(&out.join("scene.glb"));
     let written = doc["materials"]
         .as_array()
         .unwrap()
@@ -1589,9 +1589,7 @@ fn estimate_takes_a_baked_shadow_out_of_a_texture() {
     let file = t["file"].as_str().unwrap();
     assert!(out.join(file).is_file(), "{file}");
     // The written glTF uses it for the table.
-    let glb = std::fs::read(out.join("scene.glb")).unwrap();
-    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
-    let doc: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let doc = common::glb_json(&out.join("scene.glb"));
     let table = doc["materials"]
         .as_array()
         .unwrap()

@@ -371,9 +371,7 @@ fn a_corrected_texture_goes_into_the_gltf_and_comes_back() {
         .fold(0.0f32, f32::max);
     assert!(worst < 0.06, "worst texel off by {worst}");
     // The other materials are as they were, and the file keeps its own image.
-    let bytes = std::fs::read(&written).unwrap();
-    let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
-    let doc: serde_json::Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+    let doc = common::glb_json(&written);
     assert_eq!(doc["images"].as_array().unwrap().len(), 2);
     assert_eq!(doc["images"][1]["uri"], file.as_str());
     let t = doc["materials"][table - 1]["pbrMetallicRoughness"]["baseColorTexture"]["index"]
@@ -451,9 +449,7 @@ fn a_corrected_texture_with_alpha_leaves_the_gltf_its_own_and_the_fitted_factor(
         "{notes:?}"
     );
     assert!(out.join(&file).is_file());
-    let bytes = std::fs::read(&written).unwrap();
-    let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
-    let doc: serde_json::Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+    let doc = common::glb_json(&written);
     let pbr = &doc["materials"][table - 1]["pbrMetallicRoughness"];
     assert_eq!(pbr["baseColorTexture"]["index"], 0);
     assert_eq!(doc["images"].as_array().unwrap().len(), 1);

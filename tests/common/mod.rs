@@ -1,4 +1,4 @@
-//! Test geometry shared by the integration tests.
+//! Test geometry and file readers shared by the integration tests.
 #![allow(dead_code)]
 
 use glam::Vec3;
@@ -84,4 +84,11 @@ pub fn icosphere(c: Vec3, r: f32, levels: u32) -> Mesh {
     let indices: Vec<u32> = f.into_iter().flatten().collect();
     m.push(&positions, Some(&v), None, &indices, 0);
     m
+}
+
+/// The JSON chunk of the GLB at `path`.
+pub fn glb_json(path: &std::path::Path) -> serde_json::Value {
+    let bytes = std::fs::read(path).unwrap();
+    let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    serde_json::from_slice(&bytes[20..20 + len]).unwrap()
 }

@@ -168,9 +168,7 @@ fn put_albedo(
         super::Albedo::Constant(c) => (*c, false),
         super::Albedo::Texture { factor, .. } => (*factor, true),
     };
-    let lists = ["images", "textures"]
-        .iter()
-        .all(|k| doc.get(k).is_none_or(Value::is_array));
+    let lists = lists_ok(doc);
     let list = doc.get_mut("materials").and_then(Value::as_array_mut);
     let list = match list {
         Some(l) => l,
@@ -227,6 +225,13 @@ fn put_albedo(
         );
     }
     Ok(notes)
+}
+
+/// Whether the glTF's images and textures are lists (or absent), as [`put_textures`] needs.
+fn lists_ok(doc: &Value) -> bool {
+    ["images", "textures"]
+        .iter()
+        .all(|k| doc.get(k).is_none_or(Value::is_array))
 }
 
 /// Whether [`put_textures`] points glTF material `gm` at a corrected texture: it has a
@@ -286,9 +291,7 @@ fn put_textures(
             continue;
         };
         let base = format!("/materials/{slot}/pbrMetallicRoughness");
-        let lists = ["images", "textures"]
-            .iter()
-            .all(|k| doc.get(k).is_none_or(Value::is_array));
+        let lists = lists_ok(doc);
         let material = doc.pointer(&format!("/materials/{slot}")).cloned();
         if !material.as_ref().is_some_and(|gm| takes_texture(gm, lists)) {
             let why = match material
