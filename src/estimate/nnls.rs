@@ -4,7 +4,12 @@
 //! conditions to a stated tolerance. Also the paper's baseline: projected gradient descent
 //! with a backtracking (Armijo) line search.
 
-use faer::linalg::solvers::Solve;
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::ldlt::update;
+use faer::linalg::triangular_solve::{
+    solve_unit_lower_triangular_in_place, solve_unit_upper_triangular_in_place,
+};
+use faer::{Mat, Par};
 use std::time::{Duration, Instant};
 
 /// The outcome of a solve.
@@ -57,21 +62,87 @@ pub fn kkt_violation(g: &[f64], b: &[f64], x: &[f64]) -> f64 {
     worst / scale
 }
 
-/// Least squares on the passive set `p`: solves `G_PP s = b_P` (with a tiny ridge for
-/// numerical safety).
-fn solve_passive(g: &[f64], b: &[f64], n: usize, p: &[usize]) -> Option<Vec<f64>> {
-    let k = p.len();
-    let max_diag = p.iter().map(|&i| g[i * n + i]).fold(0.0, f64::max);
-    let ridge = 1e-13 * max_diag;
-    let a = faer::Mat::<f64>::from_fn(k, k, |r, c| {
-        g[p[r] * n + p[c]] + if r == c { ridge } else { 0.0 }
-    });
-    let rhs = faer::Mat::<f64>::from_fn(k, 1, |r, _| b[p[r]]);
-    // Not numerically positive definite: the caller drops a variable and tries again.
-    let llt = a.llt(faer::Side::Lower).ok()?;
-    let s = llt.solve(&rhs);
-    let s: Vec<f64> = (0..k).map(|r| s[(r, 0)]).collect();
-    s.iter().all(|v| v.is_finite()).then_some(s)
+/// The passive set's Gram `G_PP`, plus a tiny ridge for numerical safety, as a factor
+/// `L D Lᵀ` kept in the order its variables were freed. Freeing a variable appends a row (one
+/// triangular solve); fixing variables at zero deletes their rows and columns (faer's
+/// rank-update deletion). Each is O(k²) for k passive variables, where factoring the set
+/// again at every step of the active-set method costs O(k³).
+struct PassiveFactor {
+    /// `n × n`; the top-left `k × k` block is the factor: unit L strictly below the
+    /// diagonal, D on it.
+    ld: Mat<f64>,
+    /// The passive variables, in the factor's order.
+    order: Vec<usize>,
+    ridge: f64,
+}
+
+impl PassiveFactor {
+    fn new(n: usize, ridge: f64) -> Self {
+        PassiveFactor {
+            ld: Mat::zeros(n, n),
+            order: Vec::new(),
+            ridge,
+        }
+    }
+
+    /// Frees variable `j`. False (the factor unchanged) when `G_PP` with it is not
+    /// numerically positive definite: its column depends on the others.
+    fn push(&mut self, g: &[f64], j: usize) -> bool {
+        let (n, k) = (self.ld.nrows(), self.order.len());
+        let mut z = Mat::from_fn(k, 1, |r, _| g[self.order[r] * n + j]);
+        solve_unit_lower_triangular_in_place(
+            self.ld.as_ref().submatrix(0, 0, k, k),
+            z.as_mut(),
+            Par::Seq,
+        );
+        let mut d = g[j * n + j] + self.ridge;
+        for r in 0..k {
+            let l = z[(r, 0)] / self.ld[(r, r)];
+            d -= z[(r, 0)] * l;
+            self.ld[(k, r)] = l;
+        }
+        if !(d > 0.0 && d.is_finite()) {
+            return false;
+        }
+        self.ld[(k, k)] = d;
+        self.order.push(j);
+        true
+    }
+
+    /// Fixes the variables `gone` (all passive) at zero.
+    fn remove(&mut self, gone: &[usize]) {
+        let k = self.order.len();
+        let mut at: Vec<usize> = gone
+            .iter()
+            .map(|j| self.order.iter().position(|v| v == j).expect("passive"))
+            .collect();
+        let mut buf = MemBuffer::new(update::delete_rows_and_cols_clobber_scratch::<f64>(
+            k,
+            at.len(),
+        ));
+        update::delete_rows_and_cols_clobber(
+            self.ld.as_mut().submatrix_mut(0, 0, k, k),
+            &mut at,
+            Par::Seq,
+            MemStack::new(&mut buf),
+        );
+        self.order.retain(|v| !gone.contains(v));
+    }
+
+    /// The least-squares solution on the passive set, `G_PP s = b_P`, in the factor's order;
+    /// `None` if not finite.
+    fn solve(&self, b: &[f64]) -> Option<Vec<f64>> {
+        let k = self.order.len();
+        let l = self.ld.as_ref().submatrix(0, 0, k, k);
+        let mut s = Mat::from_fn(k, 1, |r, _| b[self.order[r]]);
+        solve_unit_lower_triangular_in_place(l, s.as_mut(), Par::Seq);
+        for r in 0..k {
+            s[(r, 0)] /= l[(r, r)];
+        }
+        solve_unit_upper_triangular_in_place(l.transpose(), s.as_mut(), Par::Seq);
+        let s: Vec<f64> = (0..k).map(|r| s[(r, 0)]).collect();
+        s.iter().all(|v| v.is_finite()).then_some(s)
+    }
 }
 
 /// FNNLS: exact NNLS by active sets. `tol` is relative to `max|b|`; stops after `max_iter`
@@ -82,7 +153,6 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
     let start = Instant::now();
     let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     let mut x = vec![0.0; n];
-    let mut passive = vec![false; n];
     let mut objective_trace = Vec::new();
     let mut iterations = 0;
     let mut converged = false;
@@ -96,40 +166,52 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
         };
     }
     let tol_abs = tol * scale;
+    let max_diag = (0..n).map(|i| g[i * n + i]).fold(0.0, f64::max);
+    let mut factor = PassiveFactor::new(n, 1e-13 * max_diag);
+    let mut passive = vec![false; n];
+    // Variables whose column proved numerically dependent on the passive set's: not freed
+    // again (each try would fail the same way).
+    let mut dependent = vec![false; n];
+    // G x, kept with x (zero off the passive set, so a sum over its rows).
+    let mut gx = vec![0.0; n];
     loop {
-        let gx = matvec(g, &x);
-        let w: Vec<f64> = (0..n).map(|i| b[i] - gx[i]).collect();
         // The most promising variable not yet free.
         let candidate = (0..n)
-            .filter(|&i| !passive[i])
-            .max_by(|&i, &j| w[i].total_cmp(&w[j]));
-        let Some(j) = candidate.filter(|&j| w[j] > tol_abs) else {
-            converged = true;
+            .filter(|&i| !passive[i] && !dependent[i])
+            .max_by(|&i, &j| (b[i] - gx[i]).total_cmp(&(b[j] - gx[j])));
+        let Some(j) = candidate.filter(|&j| b[j] - gx[j] > tol_abs) else {
+            // Optimal unless a dependent variable would still lower the objective.
+            converged = (0..n).all(|i| !dependent[i] || b[i] - gx[i] <= tol_abs);
             break;
         };
         if iterations >= max_iter || start.elapsed() > time_limit {
             break;
         }
         iterations += 1;
+        if !factor.push(g, j) {
+            dependent[j] = true;
+            continue;
+        }
         passive[j] = true;
         // Inner loop: keep the passive solution feasible.
         loop {
-            let p: Vec<usize> = (0..n).filter(|&i| passive[i]).collect();
-            let Some(s) = solve_passive(g, b, n, &p) else {
-                // Numerically dependent column: drop the newest variable and stop adding it.
+            let Some(s) = factor.solve(b) else {
+                factor.remove(&[j]);
                 passive[j] = false;
+                x[j] = 0.0;
+                dependent[j] = true;
                 break;
             };
             if s.iter().all(|&v| v > 0.0) {
-                for (k, &i) in p.iter().enumerate() {
+                for (k, &i) in factor.order.iter().enumerate() {
                     x[i] = s[k];
                 }
                 break;
             }
-            // Step from x toward s as far as feasibility allows, then free the variables
+            // Step from x toward s as far as feasibility allows, then fix the variables
             // that hit zero.
             let mut alpha = 1.0f64;
-            for (k, &i) in p.iter().enumerate() {
+            for (k, &i) in factor.order.iter().enumerate() {
                 if s[k] <= 0.0 {
                     let a = x[i] / (x[i] - s[k]);
                     if a < alpha {
@@ -137,20 +219,28 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
                     }
                 }
             }
-            for (k, &i) in p.iter().enumerate() {
+            let mut gone = Vec::new();
+            for (k, &i) in factor.order.iter().enumerate() {
                 x[i] += alpha * (s[k] - x[i]);
                 if x[i] <= 1e-15 * scale.max(1.0)
                     || (s[k] <= 0.0 && (x[i] - 0.0).abs() <= f64::EPSILON * x[i].abs().max(1.0))
                 {
                     x[i] = 0.0;
                     passive[i] = false;
+                    gone.push(i);
                 }
             }
-            if !p.iter().any(|&i| passive[i]) {
+            factor.remove(&gone);
+            if factor.order.is_empty() {
                 break;
             }
         }
-        objective_trace.push(objective(g, b, &x));
+        gx.fill(0.0);
+        for &i in &factor.order {
+            let row = &g[i * n..(i + 1) * n];
+            gx.iter_mut().zip(row).for_each(|(a, &v)| *a += x[i] * v);
+        }
+        objective_trace.push(0.5 * dot(&x, &gx) - dot(b, &x));
     }
     let kkt = kkt_violation(g, b, &x);
     Solution {
@@ -316,6 +406,30 @@ mod tests {
         for (a, e) in s.x.iter().zip(&x_true) {
             assert!((a - e).abs() < 1e-8, "{a} vs {e}");
         }
+    }
+
+    #[test]
+    fn nnls_stays_exact_through_many_freed_and_fixed_variables() {
+        // Wide problems with noise: the active set gains and loses many variables, each a
+        // row appended to or deleted from the passive factor.
+        for seed in 10..14 {
+            let (g, b, _) = problem(120, 60, seed);
+            let s = nnls(&g, &b, 1e-10, 10_000, Duration::from_secs(10));
+            assert!(s.converged && s.kkt_violation < 1e-8, "seed {seed}");
+            let free = s.x.iter().filter(|&&v| v > 0.0).count();
+            assert!(free > 5 && free < 60, "seed {seed}: {free} free");
+        }
+        // Two identical columns: the second is dependent on the first once that is free,
+        // and the optimum is still found.
+        let (g0, b0, _) = problem(40, 6, 5);
+        let n = 7;
+        let at = |i: usize| if i == 6 { 2 } else { i };
+        let g: Vec<f64> = (0..n * n).map(|k| g0[at(k / n) * 6 + at(k % n)]).collect();
+        let b: Vec<f64> = (0..n).map(|i| b0[at(i)]).collect();
+        let s = nnls(&g, &b, 1e-10, 1000, Duration::from_secs(10));
+        let exact = nnls(&g0, &b0, 1e-10, 1000, Duration::from_secs(10));
+        let (f, fe) = (objective(&g, &b, &s.x), objective(&g0, &b0, &exact.x));
+        assert!((f - fe).abs() <= 1e-9 * fe.abs(), "{f} vs {fe}");
     }
 
     #[test]
