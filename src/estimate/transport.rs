@@ -88,6 +88,9 @@ pub struct CellAccumulator<'a> {
     pub grids: &'a [RingGrid],
     /// Ring count of the grid whose cells the emitters are (the parts' sampling envmap).
     pub sampling_rings: u32,
+    /// Deliveries a pixel is expected to make (room reserved once, not grown sample by
+    /// sample).
+    pub expected: usize,
 }
 
 /// A pixel's transport row: (cell, weight per unit radiance), by increasing cell.
@@ -106,7 +109,7 @@ impl Accumulator for CellAccumulator<'_> {
     type Pixel = CellPixel;
     fn new_pixel(&self) -> Self::Pixel {
         CellPixel {
-            delivered: Vec::new(),
+            delivered: Vec::with_capacity(self.expected),
             rows: Vec::new(),
         }
     }
@@ -136,19 +139,15 @@ impl Accumulator for CellAccumulator<'_> {
             .grids
             .iter()
             .map(|g| {
-                let entries: Vec<(u32, Vec3)> = if g.rings() == self.sampling_rings {
-                    delivered.iter().map(|&(c, _, w)| (c, w)).collect()
+                if g.rings() == self.sampling_rings {
+                    merge_by_cell_dense(delivered.iter().map(|&(c, _, w)| (c, w)), g, inv)
                 } else {
-                    delivered
+                    let binned = delivered
                         .iter()
                         .zip(&polar)
-                        .map(|(&(_, _, w), &(y, theta, phi))| (g.lookup_polar(y, theta, phi), w))
-                        .collect()
-                };
-                let mut row = merge_by_cell_dense(entries, g.cell_count());
-                row.retain(|e| e.1 != Vec3::ZERO);
-                row.iter_mut().for_each(|e| e.1 *= inv);
-                row
+                        .map(|(&(_, _, w), &(y, t, p))| (g.lookup_polar(y, t, p), w));
+                    merge_by_cell_dense(binned, g, inv)
+                }
             })
             .collect();
     }
@@ -449,7 +448,7 @@ impl SparseRow {
         // sum's way cheaper, and keep it if it is.
         let least = nnz.iter().copied().max().unwrap_or(0).min(cells);
         let sum = (parts.len() > 1 && Self::cost(&nnz, least).1)
-            .then(|| merge_by_cell(parts.iter().flatten().copied().collect()))
+            .then(|| merge_sorted(&parts))
             .filter(|sum| Self::cost(&nnz, sum.len()).1);
         SparseRow { parts, sum }
     }
@@ -592,9 +591,13 @@ pub fn accumulate(
         .map(|p| Lights::env(p.sampling.clone()))
         .collect();
     let renderers: Vec<Renderer> = lights.iter().map(|l| renderer.with_lights(l)).collect();
+    // A sample's camera ray can escape, and each vertex delivers a light sample and a
+    // scattered ray that escapes.
+    let part = &parts[0].settings;
     let acc = CellAccumulator {
         grids,
         sampling_rings: parts[0].sampling.grid.rings(),
+        expected: (part.spp * (2 * part.max_bounces + 1)) as usize,
     };
     let set_of = |(v, i): (usize, u32)| {
         if masks[v][i as usize] {
@@ -718,19 +721,24 @@ pub fn progress_units(
     kept as u64 * parts as u64
 }
 
-/// [`merge_by_cell`] of entries whose cells are below `cells`, the same sums in the same
-/// order, by a dense scratch row per thread rather than a sort of the entries: a pixel's
-/// deliveries at hundreds of samples are many times its distinct cells.
-fn merge_by_cell_dense(entries: Vec<(u32, Vec3)>, cells: usize) -> Vec<(u32, Vec3)> {
+/// Entries in `grid`'s cells summed by cell (in the order given), times `scale`, by
+/// increasing cell, without the cells whose sum is zero. By a dense scratch row per thread
+/// rather than a sort of the entries: a pixel's deliveries are many times its distinct cells.
+fn merge_by_cell_dense(
+    entries: impl Iterator<Item = (u32, Vec3)>,
+    grid: &RingGrid,
+    scale: f32,
+) -> CellRow {
     thread_local! {
-        static SCRATCH: std::cell::RefCell<(Vec<Vec3>, Vec<bool>)> = Default::default();
+        static SCRATCH: std::cell::RefCell<(Vec<Vec3>, Vec<bool>, Vec<u32>)> = Default::default();
     }
-    SCRATCH.with_borrow_mut(|(sum, seen)| {
+    let cells = grid.cell_count();
+    SCRATCH.with_borrow_mut(|(sum, seen, touched)| {
         if sum.len() < cells {
             sum.resize(cells, Vec3::ZERO);
             seen.resize(cells, false);
         }
-        let mut touched: Vec<u32> = Vec::new();
+        touched.clear();
         for (c, w) in entries {
             let i = c as usize;
             if !seen[i] {
@@ -742,27 +750,55 @@ fn merge_by_cell_dense(entries: Vec<(u32, Vec3)>, cells: usize) -> Vec<(u32, Vec
             }
         }
         touched.sort_unstable();
-        touched
-            .into_iter()
-            .map(|c| {
-                let i = c as usize;
-                seen[i] = false;
-                (c, std::mem::replace(&mut sum[i], Vec3::ZERO))
-            })
-            .collect()
+        let mut row = Vec::with_capacity(touched.len());
+        for &c in touched.iter() {
+            let i = c as usize;
+            seen[i] = false;
+            let w = std::mem::replace(&mut sum[i], Vec3::ZERO);
+            if w != Vec3::ZERO {
+                row.push((c, w * scale));
+            }
+        }
+        row
     })
 }
 
-/// (cell, weight) entries summed by cell, by increasing cell; a cell's weights are summed in
-/// the order given (the sort is stable), so sums do not depend on how they were gathered.
-fn merge_by_cell<T: Copy + std::ops::AddAssign>(mut entries: Vec<(u32, T)>) -> Vec<(u32, T)> {
-    entries.sort_by_key(|e| e.0);
-    let mut out: Vec<(u32, T)> = Vec::with_capacity(entries.len());
-    for (c, w) in entries {
-        match out.last_mut() {
-            Some(last) if last.0 == c => last.1 += w,
-            _ => out.push((c, w)),
+/// The rows `rows` (each by increasing cell) summed by cell, a cell's weights in the rows'
+/// order, by increasing cell.
+fn merge_sorted(rows: &[Sparse]) -> Sparse {
+    let mut out: Sparse = rows.first().cloned().unwrap_or_default();
+    let mut next = Vec::new();
+    for row in &rows[1..] {
+        next.clear();
+        next.reserve(out.len() + row.len());
+        let (mut a, mut b) = (out.iter().peekable(), row.iter().peekable());
+        loop {
+            match (a.peek(), b.peek()) {
+                (Some(&&(ca, wa)), Some(&&(cb, wb))) => {
+                    if ca < cb {
+                        next.push((ca, wa));
+                        a.next();
+                    } else if cb < ca {
+                        next.push((cb, wb));
+                        b.next();
+                    } else {
+                        next.push((ca, wa + wb));
+                        a.next();
+                        b.next();
+                    }
+                }
+                (Some(&&e), None) => {
+                    next.push(e);
+                    a.next();
+                }
+                (None, Some(&&e)) => {
+                    next.push(e);
+                    b.next();
+                }
+                (None, None) => break,
+            }
         }
+        std::mem::swap(&mut out, &mut next);
     }
     out
 }
@@ -906,7 +942,7 @@ mod tests {
                 .iter()
                 .map(|l| SparseRow {
                     parts: l.clone(),
-                    sum: (parts > 1).then(|| merge_by_cell(l.iter().flatten().copied().collect())),
+                    sum: (parts > 1).then(|| merge_sorted(l)),
                 })
                 .collect();
             sparse.add_sparse(&direct, &y[start..end]);
@@ -929,6 +965,49 @@ mod tests {
         }
         // Not all zero, or the comparison proves nothing.
         assert!(raw_cross(&dense, 0).iter().any(|v| *v > 0.1));
+    }
+
+    /// (cell, weight) entries summed by cell in the order given (the sort is stable), by
+    /// increasing cell: what the merges compute, the obvious way.
+    fn merge_by_cell<T: Copy + std::ops::AddAssign>(mut entries: Vec<(u32, T)>) -> Vec<(u32, T)> {
+        entries.sort_by_key(|e| e.0);
+        let mut out: Vec<(u32, T)> = Vec::new();
+        for (c, w) in entries {
+            match out.last_mut() {
+                Some(last) if last.0 == c => last.1 += w,
+                _ => out.push((c, w)),
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn merges_give_the_sorted_sums_bit_for_bit() {
+        let grid = RingGrid::new(9);
+        let mut rng = Rng::new(3);
+        for _ in 0..50 {
+            let len = (rng.next_f32() * 200.0) as usize;
+            let entries: Vec<(u32, Vec3)> = (0..len)
+                .map(|_| {
+                    let c = (rng.next_f32() * 20.0) as u32 * 4;
+                    let w = Vec3::new(rng.next_f32(), rng.next_f32(), 0.0) - 0.3;
+                    (c, w)
+                })
+                .collect();
+            let mut expected = merge_by_cell(entries.clone());
+            expected.retain(|e| e.1 != Vec3::ZERO);
+            expected.iter_mut().for_each(|e| e.1 *= 0.25);
+            assert_eq!(
+                merge_by_cell_dense(entries.iter().copied(), &grid, 0.25),
+                expected
+            );
+            let rows: Vec<Sparse> = entries
+                .chunks(len / 3 + 1)
+                .map(|c| merge_by_cell(c.iter().map(|&(c, w)| (c, w.as_dvec3())).collect()))
+                .collect();
+            let flat: Vec<(u32, DVec3)> = rows.iter().flatten().copied().collect();
+            assert_eq!(merge_sorted(&rows), merge_by_cell(flat));
+        }
     }
 
     #[test]
