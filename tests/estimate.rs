@@ -140,6 +140,7 @@ fn binned<'a>(
     estimate::spheres::Observations {
         cameras,
         masks,
+        evaluated: masks,
         references,
         bin: 4,
         holdout: false,
@@ -491,6 +492,7 @@ fn sphere_light_radiance_is_recovered_given_its_geometry_and_wrong_geometry_show
     let obs = estimate::spheres::Observations {
         cameras: &cams,
         masks: &masks,
+        evaluated: &masks,
         references: &refs,
         bin: 1,
         holdout: false,
@@ -691,6 +693,7 @@ fn select_model(
     let obs = estimate::spheres::Observations {
         cameras: &cams,
         masks,
+        evaluated: masks,
         references: refs,
         bin: 4,
         holdout: true,
@@ -1093,6 +1096,7 @@ fn degenerate_sphere_fits_are_reported_not_hidden() {
         let obs = Observations {
             references: &refs,
             masks: &masks,
+            evaluated: &masks,
             ..obs
         };
         let env = envmap_towards(&[(far.center - center).normalize()]);

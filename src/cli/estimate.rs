@@ -755,6 +755,12 @@ fn spheres_summary(s: &job::SpheresReport, envmap_rel_mae: Option<f64>) -> Vec<S
             s.renders,
         ));
     }
+    if s.fit_pixels < s.seen_pixels {
+        lines.push(format!(
+            "{} fitted on {} of the {} seen pixels (whole 4×4 blocks spread over every view; its relMAE is over all of them)",
+            s.model, s.fit_pixels, s.seen_pixels
+        ));
+    }
     for (j, f) in s.lights.iter().enumerate() {
         // 95% intervals: ±1.96 σ, ×/÷ e^(1.96 σ) for the logarithmic ones, and for the
         // direction a cone of 2.448 σ (σ per axis: the 95% radius of a 2-D normal).

@@ -349,7 +349,7 @@ impl EstimateSettings {
     /// job renders beside them (estimate, noise floor, representation limit, a candidate's
     /// validation), 16 bytes each; with sphere lights, the walked camera paths they keep
     /// ([`super::spheres::PathCache`]: up to `max_bounces` vertices of 64 bytes for each of
-    /// 80 samples per pixel), which grow with the pixels; with `--fit-albedo`, the sums kept
+    /// 80 samples per pixel), for at most [`super::spheres::FIT_PIXELS`] pixels; with `--fit-albedo`, the sums kept
     /// per material of the scene's `materials` ([`albedo::material_grid`]) with one channel's
     /// dense copies, and a material index per pixel; with texels, their renders and sums and
     /// the corrected textures.
@@ -387,7 +387,7 @@ impl EstimateSettings {
             .collect();
         let parts = self.rounds.max(1) as usize;
         let paths = if self.model.max_lights() > 0 {
-            pixels * 80 * (max_bounces as u64 * 64 + 8)
+            pixels.min(super::spheres::FIT_PIXELS as u64) * 80 * (max_bounces as u64 * 64 + 8)
         } else {
             0
         };
@@ -714,6 +714,11 @@ pub struct SpheresReport {
     pub renders: usize,
     /// The true lights matched, brightest first.
     pub recovery: Vec<SphereRecovery>,
+    /// Pixels the fit compared: every seen pixel up to a limit, else whole 4×4 blocks of them
+    /// spread over every view, as many as the limit holds.
+    pub fit_pixels: usize,
+    /// Pixels the views see (the masks'), where the re-render is compared.
+    pub seen_pixels: usize,
     pub fit_seconds: f64,
     pub rerender_seconds: f64,
 }
@@ -2085,6 +2090,9 @@ const ALBEDO_RENDER_SEED: u64 = 131_071;
 /// Seed offset of the texel rounds' renders from the evaluation's.
 const TEXEL_RENDER_SEED: u64 = 262_147;
 
+/// Side in pixels of the blocks the sphere fit sums ([`Observations::bin`]).
+const SPHERE_BIN: u32 = 4;
+
 /// The sphere-light models the settings ask for, started from the envmap estimate.
 fn fit_spheres(
     job: &Job,
@@ -2103,11 +2111,13 @@ fn fit_spheres(
     let truth = &job.truth.lights.spheres;
     let scene = (job.center, job.size);
     let paths = PathCache::default();
+    let fitted = super::spheres::fit_masks(&seen.views, &seen.masks, SPHERE_BIN);
     let obs = Observations {
         cameras: &seen.views,
-        masks: &seen.masks,
+        masks: &fitted,
+        evaluated: &seen.masks,
         references: &seen.references,
-        bin: 4,
+        bin: SPHERE_BIN,
         holdout: choose,
         background: None,
         paths: Some(&paths),
@@ -2432,6 +2442,8 @@ fn spheres_report(so: &SphereOutcome) -> SpheresReport {
         objective_trace: so.fit.history.clone(),
         renders: so.fit.renders,
         recovery: so.recovery.clone(),
+        fit_pixels: so.fit_pixels,
+        seen_pixels: so.seen_pixels,
         fit_seconds: so.fit.seconds,
         rerender_seconds: so.rerender_seconds,
     }

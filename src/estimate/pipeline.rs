@@ -546,6 +546,9 @@ pub struct SphereOutcome {
     /// Against the true lights, when known.
     pub recovery: Vec<SphereRecovery>,
     pub rerender_seconds: f64,
+    /// Pixels the fit compared ([`spheres::fit_masks`]), and pixels the views see.
+    pub fit_pixels: usize,
+    pub seen_pixels: usize,
 }
 
 impl SphereOutcome {
@@ -813,9 +816,12 @@ fn outcome_of(
             &evaluation_settings(render),
             progress,
         );
-        errors = compare_views(&renders, obs.references, obs.masks)?;
+        errors = compare_views(&renders, obs.references, obs.evaluated)?;
     }
+    let count = |masks: &[Vec<bool>]| masks.iter().flatten().filter(|&&k| k).count();
     Ok(SphereOutcome {
+        fit_pixels: count(obs.masks),
+        seen_pixels: count(obs.evaluated),
         recovery: recovery::recover_spheres(&lights, truth, center),
         fit,
         renders,

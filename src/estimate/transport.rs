@@ -72,6 +72,11 @@ impl Accumulator for PerEmitterAccumulator {
         let inv = 1.0 / spp as f32;
         pixel.iter_mut().for_each(|v| *v *= inv);
     }
+    /// No row: a render of a few pixels of a large view allocates nothing for the others
+    /// (callers read only the pixels they asked for).
+    fn left_out(&self) -> Vec<Vec3> {
+        Vec::new()
+    }
 }
 
 /// Accumulates a pixel's transport rows sparsely, one per target grid: the (cell, weight per

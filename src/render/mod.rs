@@ -101,6 +101,13 @@ pub trait Accumulator: Sync {
     fn add(&self, pixel: &mut Self::Pixel, emitter: Emitter, dir: Vec3, weight: Vec3);
     /// Turns the sum over `spp` samples into the pixel's estimate.
     fn finish(&self, pixel: &mut Self::Pixel, spp: u32);
+    /// What a render gives a pixel it was not asked for (its `wanted` filter): by default the
+    /// empty estimate.
+    fn left_out(&self) -> Self::Pixel {
+        let mut px = self.new_pixel();
+        self.finish(&mut px, 1);
+        px
+    }
 }
 
 /// Accumulates radiance: weight × the emitter's radiance, averaged over samples.

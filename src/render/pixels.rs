@@ -56,6 +56,9 @@ pub trait Kernel {
     fn hides_emitters(&self) -> bool;
     /// Records a pixel whose samples are skipped by the one rule.
     fn skip(&mut self, p: &Pixel);
+    /// Records a pixel the caller did not ask for ([`View::wanted`]): nothing is walked or
+    /// kept for it.
+    fn leave_out(&mut self, p: &Pixel);
     /// A pixel whose samples follow.
     fn start(&mut self, p: &Pixel);
     /// The next (at most [`LANES`]) camera samples of the pixel: unit directions and samplers.
@@ -114,8 +117,11 @@ fn drive_on<R: Fn(f32, f32) -> Vec3, K: Kernel>(view: &View<R>, tile: Tile, kern
                 index: y * view.camera.width + x,
                 corners: pixel_corners(view.ray_dir, x, y),
             };
-            let unwanted = view.wanted.is_some_and(|w| !w(p.index));
-            if unwanted || (kernel.blind(&p) && kernel.hides_emitters()) {
+            if view.wanted.is_some_and(|w| !w(p.index)) {
+                kernel.leave_out(&p);
+                continue;
+            }
+            if kernel.blind(&p) && kernel.hides_emitters() {
                 kernel.skip(&p);
                 continue;
             }
@@ -295,6 +301,12 @@ impl<'a, A: Accumulator> Pixels<'a, A> {
         self.out.push((p.index, px, 0.0));
     }
 
+    /// A pixel not asked for: the accumulator's [`Accumulator::left_out`] pixel.
+    #[inline(always)]
+    fn leave_out(&mut self, p: &Pixel) {
+        self.out.push((p.index, self.acc.left_out(), 0.0));
+    }
+
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
         self.lights_ahead = pyramid_meets_lights(self.lights, self.origin, &p.corners);
@@ -356,6 +368,10 @@ impl<A: Accumulator> Kernel for Trace<'_, A> {
     #[inline(always)]
     fn skip(&mut self, p: &Pixel) {
         self.pixels.skip(p);
+    }
+    #[inline(always)]
+    fn leave_out(&mut self, p: &Pixel) {
+        self.pixels.leave_out(p);
     }
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
@@ -420,15 +436,19 @@ impl<'a> Walk<'a> {
             bundle: Bundle::default(),
             verts: Vec::new(),
             out: TilePaths {
-                samples: Vec::with_capacity(pixels * tracer.settings.spp as usize),
+                samples: Vec::new(),
                 vertices: Vec::new(),
                 blind: Vec::with_capacity(pixels),
             },
         }
     }
 
-    /// The tile's walked paths.
-    pub fn into_paths(self) -> TilePaths {
+    /// The tile's walked paths, in as little memory as they need (they are kept, and a
+    /// tile may hold few of the pixels asked for).
+    pub fn into_paths(mut self) -> TilePaths {
+        self.out.samples.shrink_to_fit();
+        self.out.vertices.shrink_to_fit();
+        self.out.blind.shrink_to_fit();
         self.out
     }
 }
@@ -450,6 +470,8 @@ impl Kernel for Walk<'_> {
         let n = self.out.samples.len() + self.tracer.settings.spp as usize;
         self.out.samples.resize(n, (f32::INFINITY, 0));
     }
+    #[inline(always)]
+    fn leave_out(&mut self, _: &Pixel) {}
     #[inline(always)]
     fn start(&mut self, _: &Pixel) {}
     #[inline(always)]
@@ -523,6 +545,11 @@ impl<A: Accumulator> Kernel for Light<'_, A> {
         // Its walks were recorded as escapes, with no vertices.
         self.sample += self.tracer.settings.spp as usize;
         self.pixels.skip(p);
+    }
+    #[inline(always)]
+    fn leave_out(&mut self, p: &Pixel) {
+        // Nothing was walked for it.
+        self.pixels.leave_out(p);
     }
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
