@@ -1992,6 +1992,80 @@ fn check(
 }
 
 #[test]
+fn a_sphere_fit_asked_for_fewer_pixels_fits_whole_blocks_and_scores_every_pixel() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tmp.path().join("scene.ron");
+    std::fs::write(
+        &scene,
+        format!(
+            "Scene(gltf: {:?}, image: (width: 96, height: 72), lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))], render: (spp: 16, max_bounces: 2, seed: 1))",
+            bundled_glb()
+        ),
+    )
+    .unwrap();
+    let out = tmp.path().join("out");
+    let estimate = |extra: &[&str]| {
+        let mut args = vec![
+            "estimate",
+            scene.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--rings",
+            "3",
+            "--spp",
+            "16",
+        ];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    for (extra, expected) in [
+        (
+            &["--model", "spheres:1", "--sphere-pixels", "100"][..],
+            "--sphere-pixels must be at least 1024, got 100",
+        ),
+        (
+            &["--sphere-pixels", "5000"][..],
+            "with --model envmap there is none",
+        ),
+    ] {
+        let o = estimate(extra);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && stderr.contains(expected),
+            "{extra:?}: {stderr}"
+        );
+    }
+    let o = estimate(&["--model", "spheres:1", "--sphere-pixels", "1024"]);
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let s = &report["spheres"];
+    let (fit, seen) = (
+        s["fit_pixels"].as_u64().unwrap(),
+        s["seen_pixels"].as_u64().unwrap(),
+    );
+    // Whole 4×4 blocks up to the limit; the re-render is scored on every seen pixel.
+    assert!(fit <= 1024 && fit > 1024 - 16 && seen > 3 * fit, "{s}");
+    let scored: u64 = s["views"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v["pixels"].as_u64().unwrap())
+        .sum();
+    assert_eq!(scored, seen, "{s}");
+    assert!(
+        stdout.contains(&format!("fitted on {fit} of the {seen} seen pixels")),
+        "{stdout}"
+    );
+    // Still close to the one light.
+    let error = s["recovery"][0]["centre_error_fraction_of_distance"]
+        .as_f64()
+        .unwrap();
+    assert!(error < 0.1, "{s}");
+}
+
+#[test]
 fn report_json_follows_its_committed_schema() {
     // The envmap alone, and the model chosen from the data (sphere candidates, the
     // selection, fitted lights with their statuses): every field the report can hold.

@@ -122,6 +122,12 @@ pub struct Args {
     /// together (relative to a cell's own pixels; 0 = not at all). [default: 1]
     #[arg(long)]
     texel_smoothness: Option<f64>,
+    /// Sphere models: most pixels the fit compares (at least 1024). A capture that sees more
+    /// is fitted on whole 4×4 blocks of its pixels spread over every view, and scored on all
+    /// of them; each fitted pixel keeps about 11 KB of camera paths (at 2 bounces) and is lit
+    /// by each of the fit's hundreds of renders. [default: 32768]
+    #[arg(long)]
+    sphere_pixels: Option<usize>,
     /// Materials whose albedo is known (comma-separated glTF material names): kept as given,
     /// they fix the scale between albedo and light that images cannot tell (default: the
     /// fitted materials' pixel-weighted geometric-mean multiplier is kept at 1, so the light's
@@ -238,6 +244,9 @@ impl Args {
             texel_smoothness: self
                 .texel_smoothness
                 .unwrap_or(lightprobe::estimate::texels::DEFAULT_TEXEL_SMOOTHNESS),
+            sphere_pixels: self
+                .sphere_pixels
+                .unwrap_or(lightprobe::estimate::spheres::FIT_PIXELS),
         }
     }
 
@@ -271,6 +280,7 @@ impl Args {
                 anyhow::anyhow!("--rings-candidates must be {expected}, got {got}")
             }
             "texel grid" => anyhow::anyhow!("--texel-grid must be {expected}, got {got}"),
+            "sphere pixels" => anyhow::anyhow!("--sphere-pixels must be {expected}, got {got}"),
             "texel smoothness" => {
                 anyhow::anyhow!("--texel-smoothness must be {expected}, got {got}")
             }
@@ -296,6 +306,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if !texels && (a.texel_grid.is_some() || a.texel_smoothness.is_some()) {
         anyhow::bail!(
             "--texel-grid and --texel-smoothness shape the texel corrections of --fit-albedo texels; without it they do nothing"
+        );
+    }
+    if a.sphere_pixels.is_some() && a.model.max_lights() == 0 {
+        anyhow::bail!(
+            "--sphere-pixels limits the pixels a sphere-light fit compares; with --model envmap there is none (use --model spheres, spheres:K or auto)"
         );
     }
     let settings = a.settings(&scene);

@@ -130,6 +130,8 @@ pub struct EstimateSettings {
     pub texel_grid: u32,
     /// [`FitAlbedo::Texels`]: weight of the correction's membrane prior ([`texels`]).
     pub texel_smoothness: f64,
+    /// Most pixels a sphere fit compares ([`super::spheres::fit_masks`]).
+    pub sphere_pixels: usize,
 }
 
 /// How the references' exposures relate.
@@ -200,6 +202,7 @@ impl EstimateSettings {
             trust_albedo: Vec::new(),
             texel_grid: texels::DEFAULT_TEXEL_GRID,
             texel_smoothness: texels::DEFAULT_TEXEL_SMOOTHNESS,
+            sphere_pixels: super::spheres::FIT_PIXELS,
         }
     }
 
@@ -306,6 +309,13 @@ impl EstimateSettings {
                     .into(),
             ));
         }
+        if self.sphere_pixels < super::spheres::MIN_FIT_PIXELS {
+            return setting(
+                "sphere pixels",
+                format!("at least {}", super::spheres::MIN_FIT_PIXELS),
+                self.sphere_pixels.to_string(),
+            );
+        }
         if self.texel_smoothness > texels::MAX_TEXEL_SMOOTHNESS {
             return setting(
                 "texel smoothness",
@@ -349,7 +359,7 @@ impl EstimateSettings {
     /// job renders beside them (estimate, noise floor, representation limit, a candidate's
     /// validation), 16 bytes each; with sphere lights, the walked camera paths they keep
     /// ([`super::spheres::PathCache`]: up to `max_bounces` vertices of 64 bytes for each of
-    /// 80 samples per pixel), for at most [`super::spheres::FIT_PIXELS`] pixels; with `--fit-albedo`, the sums kept
+    /// 80 samples per pixel), for at most `sphere_pixels` pixels; with `--fit-albedo`, the sums kept
     /// per material of the scene's `materials` ([`albedo::material_grid`]) with one channel's
     /// dense copies, and a material index per pixel; with texels, their renders and sums and
     /// the corrected textures.
@@ -387,7 +397,7 @@ impl EstimateSettings {
             .collect();
         let parts = self.rounds.max(1) as usize;
         let paths = if self.model.max_lights() > 0 {
-            pixels.min(super::spheres::FIT_PIXELS as u64) * 80 * (max_bounces as u64 * 64 + 8)
+            pixels.min(self.sphere_pixels as u64) * 80 * (max_bounces as u64 * 64 + 8)
         } else {
             0
         };
@@ -2111,7 +2121,7 @@ fn fit_spheres(
     let truth = &job.truth.lights.spheres;
     let scene = (job.center, job.size);
     let paths = PathCache::default();
-    let fitted = super::spheres::fit_masks(&seen.views, &seen.masks, SPHERE_BIN);
+    let fitted = super::spheres::fit_masks(&seen.views, &seen.masks, SPHERE_BIN, s.sphere_pixels);
     let obs = Observations {
         cameras: &seen.views,
         masks: &fitted,

@@ -49,20 +49,26 @@ pub struct Observations<'a> {
     pub paths: Option<&'a PathCache>,
 }
 
-/// Most pixels a sphere fit compares ([`fit_masks`]). Each keeps its walked camera paths
-/// (about 11 KB at 2 bounces: 360 MB for this many) and is lit again by each of the fit's
-/// hundreds of renders: past this, pixels cost memory and time in proportion while the
-/// lights' few parameters are already pinned down by these. The bundled scene's 10,600
-/// seen pixels are all compared.
+/// Most pixels a sphere fit compares by default ([`fit_masks`], `--sphere-pixels`). Each
+/// keeps its walked camera paths (about 11 KB at 2 bounces: 360 MB for this many) and is lit
+/// again by each of the fit's hundreds of renders: past this, pixels cost memory and time in
+/// proportion. The bundled scene's 10,600 seen pixels are all compared.
 pub const FIT_PIXELS: usize = 1 << 15;
 
-/// The pixels of `masks` a sphere fit compares: all of them when they are at most
-/// [`FIT_PIXELS`]; else whole `bin × bin` blocks (the fit sums pixels per block), those of
-/// smallest hash of (view, block) while they fit in FIT_PIXELS: spread over every view, and
-/// the same in every run.
-pub fn fit_masks(cameras: &[&Camera], masks: &[Vec<bool>], bin: u32) -> Vec<Vec<bool>> {
+/// Fewest pixels a sphere fit may be asked to compare: 64 blocks of 4×4.
+pub const MIN_FIT_PIXELS: usize = 1 << 10;
+
+/// The pixels of `masks` a sphere fit compares: all of them when they are at most `most`;
+/// else whole `bin × bin` blocks (the fit sums pixels per block), those of smallest hash of
+/// (view, block) while they fit in `most`: spread over every view, and the same in every run.
+pub fn fit_masks(
+    cameras: &[&Camera],
+    masks: &[Vec<bool>],
+    bin: u32,
+    most: usize,
+) -> Vec<Vec<bool>> {
     let seen: usize = masks.iter().map(|m| m.iter().filter(|&&k| k).count()).sum();
-    if seen <= FIT_PIXELS {
+    if seen <= most {
         return masks.to_vec();
     }
     let bin = bin.max(1);
@@ -96,7 +102,7 @@ pub fn fit_masks(cameras: &[&Camera], masks: &[Vec<bool>], bin: u32) -> Vec<Vec<
         .collect();
     let mut total = 0;
     for &(_, v, b, n) in &blocks {
-        if total + n > FIT_PIXELS {
+        if total + n > most {
             break;
         }
         total += n;
@@ -1961,7 +1967,7 @@ mod tests {
             .collect();
         let count = |m: &[Vec<bool>]| m.iter().flatten().filter(|&&k| k).count();
         assert!(count(&masks) > 2 * FIT_PIXELS);
-        let fit = fit_masks(&cams, &masks, 4);
+        let fit = fit_masks(&cams, &masks, 4, FIT_PIXELS);
         let kept = count(&fit);
         assert!(kept <= FIT_PIXELS && kept > FIT_PIXELS - 16, "{kept}");
         for (v, (f, m)) in fit.iter().zip(&masks).enumerate() {
@@ -1980,9 +1986,9 @@ mod tests {
             }
         }
         // The same every time; a small capture is kept whole.
-        assert_eq!(fit_masks(&cams, &masks, 4), fit);
+        assert_eq!(fit_masks(&cams, &masks, 4, FIT_PIXELS), fit);
         let small: Vec<Vec<bool>> = masks[..1].to_vec();
-        assert_eq!(fit_masks(&cams[..1], &small, 4), small);
+        assert_eq!(fit_masks(&cams[..1], &small, 4, FIT_PIXELS), small);
     }
 
     #[test]

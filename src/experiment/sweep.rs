@@ -1009,6 +1009,7 @@ fn trial_settings(
         },
         texel_grid: crate::estimate::texels::DEFAULT_TEXEL_GRID,
         texel_smoothness: crate::estimate::texels::DEFAULT_TEXEL_SMOOTHNESS,
+        sphere_pixels: crate::estimate::spheres::FIT_PIXELS,
     }
 }
 
