@@ -1998,7 +1998,7 @@ fn a_sphere_fit_asked_for_fewer_pixels_fits_whole_blocks_and_scores_every_pixel(
     std::fs::write(
         &scene,
         format!(
-            "Scene(gltf: {:?}, image: (width: 96, height: 72), lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))], render: (spp: 16, max_bounces: 2, seed: 1))",
+            "Scene(gltf: {:?}, image: (width: 160, height: 120), lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))], render: (spp: 16, max_bounces: 2, seed: 1))",
             bundled_glb()
         ),
     )
@@ -2020,8 +2020,8 @@ fn a_sphere_fit_asked_for_fewer_pixels_fits_whole_blocks_and_scores_every_pixel(
     };
     for (extra, expected) in [
         (
-            &["--model", "spheres:1", "--sphere-pixels", "100"][..],
-            "--sphere-pixels must be at least 1024, got 100",
+            &["--model", "spheres:1", "--sphere-pixels", "1000"][..],
+            "--sphere-pixels must be at least 4096, got 1000",
         ),
         (
             &["--sphere-pixels", "5000"][..],
@@ -2035,7 +2035,7 @@ fn a_sphere_fit_asked_for_fewer_pixels_fits_whole_blocks_and_scores_every_pixel(
             "{extra:?}: {stderr}"
         );
     }
-    let o = estimate(&["--model", "spheres:1", "--sphere-pixels", "1024"]);
+    let o = estimate(&["--model", "spheres:1", "--sphere-pixels", "4096"]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let report: serde_json::Value =
@@ -2046,7 +2046,7 @@ fn a_sphere_fit_asked_for_fewer_pixels_fits_whole_blocks_and_scores_every_pixel(
         s["seen_pixels"].as_u64().unwrap(),
     );
     // Whole 4×4 blocks up to the limit; the re-render is scored on every seen pixel.
-    assert!(fit <= 1024 && fit > 1024 - 16 && seen > 3 * fit, "{s}");
+    assert!(fit <= 4096 && fit > 4096 - 16 && seen > 3 * fit, "{s}");
     let scored: u64 = s["views"]
         .as_array()
         .unwrap()

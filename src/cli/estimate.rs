@@ -122,7 +122,7 @@ pub struct Args {
     /// together (relative to a cell's own pixels; 0 = not at all). [default: 1]
     #[arg(long)]
     texel_smoothness: Option<f64>,
-    /// Sphere models: most pixels the fit compares (at least 1024). A capture that sees more
+    /// Sphere models: most pixels the fit compares (at least 4096). A capture that sees more
     /// is fitted on whole 4×4 blocks of its pixels spread over every view, and scored on all
     /// of them; each fitted pixel keeps about 11 KB of camera paths (at 2 bounces) and is lit
     /// by each of the fit's hundreds of renders. [default: 32768]

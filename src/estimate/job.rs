@@ -2209,7 +2209,8 @@ fn fit_spheres(
         seconds += combined.fit.seconds;
         models.push(combined);
     }
-    // The 95% intervals, for the model the estimate ends with (on every pixel).
+    // The 95% intervals, for the model the estimate ends with (on every pixel the fit
+    // compares, held-out ones included).
     let intervals = |so: &mut SphereOutcome| {
         let grid = so.fit.background.as_ref().map(|b| b.grid.clone());
         let all = Observations {

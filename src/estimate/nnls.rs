@@ -166,6 +166,8 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
         };
     }
     let tol_abs = tol * scale;
+    // The ridge scales with G's largest diagonal (it scaled with the passive set's when that
+    // set was factored afresh at each step).
     let max_diag = (0..n).map(|i| g[i * n + i]).fold(0.0, f64::max);
     let mut factor = PassiveFactor::new(n, 1e-13 * max_diag);
     let mut passive = vec![false; n];
@@ -194,12 +196,18 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
         }
         passive[j] = true;
         // Inner loop: keep the passive solution feasible.
+        let mut broken = false;
         loop {
             let Some(s) = factor.solve(b) else {
-                factor.remove(&[j]);
-                passive[j] = false;
-                x[j] = 0.0;
-                dependent[j] = true;
+                if passive[j] {
+                    factor.remove(&[j]);
+                    passive[j] = false;
+                    x[j] = 0.0;
+                    dependent[j] = true;
+                } else {
+                    // Not finite without the newest variable either: stop, not converged.
+                    broken = true;
+                }
                 break;
             };
             if s.iter().all(|&v| v > 0.0) {
@@ -231,9 +239,16 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
                 }
             }
             factor.remove(&gone);
+            if !gone.is_empty() {
+                // A column dependent on the variables just fixed may not be on the rest.
+                dependent.fill(false);
+            }
             if factor.order.is_empty() {
                 break;
             }
+        }
+        if broken {
+            break;
         }
         gx.fill(0.0);
         for &i in &factor.order {
@@ -430,6 +445,35 @@ mod tests {
         let exact = nnls(&g0, &b0, 1e-10, 1000, Duration::from_secs(10));
         let (f, fe) = (objective(&g, &b, &s.x), objective(&g0, &b0, &exact.x));
         assert!((f - fe).abs() <= 1e-9 * fe.abs(), "{f} vs {fe}");
+    }
+
+    #[test]
+    fn the_passive_factor_solves_after_rows_are_added_and_deleted() {
+        let (g, b, _) = problem(40, 8, 21);
+        let n = 8;
+        let mut f = PassiveFactor::new(n, 0.0);
+        for j in [3, 0, 6, 1, 7, 2] {
+            assert!(f.push(&g, j));
+        }
+        f.remove(&[0, 7]);
+        assert!(f.push(&g, 5));
+        f.remove(&[3]);
+        assert_eq!(f.order, vec![6, 1, 2, 5]);
+        // G_PP s = b_P on the set left.
+        let s = f.solve(&b).unwrap();
+        for (r, &i) in f.order.iter().enumerate() {
+            let lhs: f64 = f.order.iter().zip(&s).map(|(&j, v)| g[i * n + j] * v).sum();
+            assert!((lhs - b[i]).abs() < 1e-9 * b[i].abs().max(1.0), "row {r}");
+        }
+        // An indefinite Gram (a noisy cross product can be one): the third column's pivot
+        // is negative, it is refused and the factor is left as it was.
+        let g = [1.0, 0.5, 0.9, 0.5, 1.0, 0.9, 0.9, 0.9, 1.0];
+        let mut f = PassiveFactor::new(3, 0.0);
+        assert!(f.push(&g, 0) && f.push(&g, 1));
+        assert!(!f.push(&g, 2));
+        assert_eq!(f.order, vec![0, 1]);
+        let s = f.solve(&[1.0, 1.0, 0.0]).unwrap();
+        assert!((s[0] - 2.0 / 3.0).abs() < 1e-12 && (s[1] - 2.0 / 3.0).abs() < 1e-12);
     }
 
     #[test]

@@ -55,8 +55,9 @@ pub struct Observations<'a> {
 /// proportion. The bundled scene's 10,600 seen pixels are all compared.
 pub const FIT_PIXELS: usize = 1 << 15;
 
-/// Fewest pixels a sphere fit may be asked to compare: 64 blocks of 4×4.
-pub const MIN_FIT_PIXELS: usize = 1 << 10;
+/// Fewest pixels a sphere fit may be asked to compare: 256 blocks of 4×4, more rows than
+/// a 9-ring background has cells (`--model auto` fits one behind the lights).
+pub const MIN_FIT_PIXELS: usize = 1 << 12;
 
 /// The pixels of `masks` a sphere fit compares: all of them when they are at most `most`;
 /// else whole `bin × bin` blocks (the fit sums pixels per block), those of smallest hash of
@@ -1540,7 +1541,14 @@ fn residual_envmap(
         .zip(obs.references)
         .enumerate()
         .map(|(v, (cam, reference))| {
-            let pred = with.render_radiance(cam, 3000 + v as u64, settings, &|_| {});
+            // Only the pixels the fit compares (a large capture's others would cost a render
+            // of every view per light added).
+            let mask = &obs.masks[v];
+            let fitted = |i: u32| mask[i as usize];
+            let acc = crate::render::RadianceAccumulator(&l);
+            let frame =
+                with.render_some(cam, 3000 + v as u64, settings, &acc, Some(&fitted), &|_| {});
+            let pred = frame.into_image();
             Image {
                 rgb: reference
                     .rgb

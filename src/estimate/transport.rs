@@ -118,6 +118,13 @@ impl Accumulator for CellAccumulator<'_> {
             rows: Vec::new(),
         }
     }
+    /// Nothing reserved, no rows: [`accumulate`] reads only the pixels it asked for.
+    fn left_out(&self) -> Self::Pixel {
+        CellPixel {
+            delivered: Vec::new(),
+            rows: Vec::new(),
+        }
+    }
     #[inline]
     fn add(&self, pixel: &mut Self::Pixel, emitter: Emitter, dir: Vec3, weight: Vec3) {
         if let Emitter::EnvCell(c) = emitter {
@@ -773,7 +780,7 @@ fn merge_by_cell_dense(
 fn merge_sorted(rows: &[Sparse]) -> Sparse {
     let mut out: Sparse = rows.first().cloned().unwrap_or_default();
     let mut next = Vec::new();
-    for row in &rows[1..] {
+    for row in rows.iter().skip(1) {
         next.clear();
         next.reserve(out.len() + row.len());
         let (mut a, mut b) = (out.iter().peekable(), row.iter().peekable());

@@ -257,7 +257,7 @@ impl<'a> Renderer<'a> {
     }
 
     /// [`Renderer::render`], of only the pixels `wanted` flags (by index) if given: the others
-    /// get the accumulator's empty pixel and coverage 0, the flagged ones what `render` gives
+    /// get the accumulator's `left_out` pixel and coverage 0, the flagged ones what `render` gives
     /// them. `progress` counts every pixel of a finished tile, flagged or not.
     pub fn render_some<A: Accumulator>(
         &self,
@@ -282,7 +282,7 @@ impl<'a> Renderer<'a> {
     /// Renders one tile of `camera` (one of [`tiles`]) on this thread: its pixels in visiting
     /// order, each as [`Renderer::render`] computes it (a pixel's random streams depend on its
     /// index, not on its tile), except that pixels `wanted` refuses are skipped (no sample,
-    /// the accumulator's empty pixel, coverage 0). For reductions that never hold a whole
+    /// the accumulator's `left_out` pixel, coverage 0). For reductions that never hold a whole
     /// frame.
     #[allow(clippy::too_many_arguments)]
     pub fn render_tile<A: Accumulator>(
@@ -342,7 +342,7 @@ impl<'a> Renderer<'a> {
     /// Lights `paths` (walked by [`Renderer::trace_paths`] from `camera`) with this renderer's
     /// lights: the image [`Renderer::render`] makes with the paths' seed, samples and bounces
     /// and `settings`' strategy and emitter options, without tracing a camera path again.
-    /// Pixels the walk left out get the accumulator's empty pixel and coverage 0.
+    /// Pixels the walk left out get the accumulator's `left_out` pixel and coverage 0.
     pub fn render_paths<A: Accumulator>(
         &self,
         paths: &Paths,

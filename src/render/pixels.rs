@@ -56,8 +56,8 @@ pub trait Kernel {
     fn hides_emitters(&self) -> bool;
     /// Records a pixel whose samples are skipped by the one rule.
     fn skip(&mut self, p: &Pixel);
-    /// Records a pixel the caller did not ask for ([`View::wanted`]): nothing is walked or
-    /// kept for it.
+    /// Records a pixel the caller did not ask for ([`View::wanted`]): nothing is walked for
+    /// it, and a lighting kernel gives it the accumulator's [`Accumulator::left_out`] pixel.
     fn leave_out(&mut self, p: &Pixel);
     /// A pixel whose samples follow.
     fn start(&mut self, p: &Pixel);
