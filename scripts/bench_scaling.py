@@ -35,6 +35,19 @@ def peak_kib(cmd):
     return secs, int(m.group(1)), p.stdout
 
 
+def write_scene(path, glb, w, h, spp):
+    """The bundled scene's two views at w × h under its two sphere lights; returns path."""
+    with open(path, "w") as f:
+        f.write(
+            f'Scene(gltf: "{glb}", views: ["cam_front", "cam_side"], '
+            f"image: (width: {w}, height: {h}), lights: ["
+            "Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0)), "
+            "Sphere(center: (2.5, 1.8, -1.5), radius: 0.2, radiance: (150.0, 170.0, 200.0))], "
+            f"render: (spp: {spp}, max_bounces: 2, seed: 1))"
+        )
+    return path
+
+
 def fit_line(xs, ys):
     """Least-squares (intercept, slope) of ys against xs."""
     n = len(xs)
@@ -49,15 +62,7 @@ def slopes(a, glb, tmp):
     per sample; the transport's intercept is what it spends per pixel whatever the samples
     (the pilot's share aside, its reduction to normal equations)."""
     w, h = (int(v) for v in a.slope_size.split("x"))
-    ron = os.path.join(tmp, f"slope{w}.ron")
-    with open(ron, "w") as f:
-        f.write(
-            f'Scene(gltf: "{glb}", views: ["cam_front", "cam_side"], '
-            f"image: (width: {w}, height: {h}), lights: ["
-            "Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0)), "
-            "Sphere(center: (2.5, 1.8, -1.5), radius: 0.2, radiance: (150.0, 170.0, 200.0))], "
-            f"render: (spp: {a.ref_spp}, max_bounces: 2, seed: 1))"
-        )
+    ron = write_scene(os.path.join(tmp, f"slope{w}.ron"), glb, w, h, a.ref_spp)
     refs = os.path.join(tmp, f"slope-refs{w}")
     peak_kib([a.bin, "render-reference", ron, "--out", refs, "--quiet"])
     out = []
@@ -108,15 +113,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         for size in a.sizes.split(","):
             w, h = (int(v) for v in size.split("x"))
-            ron = os.path.join(tmp, f"s{w}.ron")
-            with open(ron, "w") as f:
-                f.write(
-                    f'Scene(gltf: "{glb}", views: ["cam_front", "cam_side"], '
-                    f"image: (width: {w}, height: {h}), lights: ["
-                    "Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0)), "
-                    "Sphere(center: (2.5, 1.8, -1.5), radius: 0.2, radiance: (150.0, 170.0, 200.0))], "
-                    f"render: (spp: {a.ref_spp}, max_bounces: 2, seed: 1))"
-                )
+            ron = write_scene(os.path.join(tmp, f"s{w}.ron"), glb, w, h, a.ref_spp)
             for rings in (int(r) for r in a.rings.split(",")):
                 out = os.path.join(tmp, f"e{w}-{rings}")
                 secs, kib, stdout = peak_kib(
