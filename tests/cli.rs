@@ -21,13 +21,27 @@ fn bundled_glb() -> PathBuf {
 }
 
 /// A small, fast variant of the bundled scene in `dir`, with `extra` fields appended.
-fn small_scene(dir: &Path, extra: &str) -> PathBuf {
-    let text = format!(
-        "Scene(\n    gltf: {:?},\n    image: (width: 32, height: 24),\n    lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))],\n    render: (spp: 4, max_bounces: 2, seed: 1),\n{extra})\n",
+/// The bundled scene's key light.
+const KEY_LIGHT: &str =
+    "Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))";
+
+/// A sidecar of the bundled glTF at `width × height` and `spp`, with `lights` (none: the
+/// field is left out) and `extra` fields.
+fn bundled_sidecar((width, height): (u32, u32), spp: u32, lights: &str, extra: &str) -> String {
+    let lights = if lights.is_empty() {
+        String::new()
+    } else {
+        format!("    lights: [{lights}],\n")
+    };
+    format!(
+        "Scene(\n    gltf: {:?},\n    image: (width: {width}, height: {height}),\n{lights}    render: (spp: {spp}, max_bounces: 2, seed: 1),\n{extra})\n",
         bundled_glb()
-    );
+    )
+}
+
+fn small_scene(dir: &Path, extra: &str) -> PathBuf {
     let p = dir.join("scene.ron");
-    std::fs::write(&p, text).unwrap();
+    std::fs::write(&p, bundled_sidecar((32, 24), 4, KEY_LIGHT, extra)).unwrap();
     p
 }
 
@@ -1447,14 +1461,7 @@ fn estimate_fits_the_albedo_and_writes_it_back() {
     // and go into the written glTF and the page.
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene.ron");
-    std::fs::write(
-        &scene,
-        format!(
-            "Scene(\n    gltf: {:?},\n    image: (width: 96, height: 72),\n    render: (spp: 128, max_bounces: 2, seed: 1),\n)\n",
-            bundled_glb()
-        ),
-    )
-    .unwrap();
+    std::fs::write(&scene, bundled_sidecar((96, 72), 128, "", "")).unwrap();
     let refs = sky_references(tmp.path(), &scene);
     let out = tmp.path().join("out");
     let o = run(&[
@@ -1526,12 +1533,7 @@ fn estimate_takes_a_baked_shadow_out_of_a_texture() {
     // 1/0.4), write it beside the glTF, point the glTF at it, and show it on the page.
     let tmp = tempfile::tempdir().unwrap();
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let sidecar = |albedo: &str| {
-        format!(
-            "Scene(\n    gltf: {:?},\n    image: (width: 96, height: 72),\n    {albedo}\n    render: (spp: 128, max_bounces: 2, seed: 1),\n)\n",
-            bundled_glb()
-        )
-    };
+    let sidecar = |albedo: &str| bundled_sidecar((96, 72), 128, "", albedo);
     let truth = tmp.path().join("truth.ron");
     std::fs::write(&truth, sidecar("")).unwrap();
     let baked = tmp.path().join("baked.ron");
@@ -1995,14 +1997,7 @@ fn check(
 fn a_sphere_fit_asked_for_fewer_pixels_fits_whole_blocks_and_scores_every_pixel() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("scene.ron");
-    std::fs::write(
-        &scene,
-        format!(
-            "Scene(gltf: {:?}, image: (width: 160, height: 120), lights: [Sphere(center: (-1.8, 3.2, 1.5), radius: 0.25, radiance: (400.0, 360.0, 300.0))], render: (spp: 16, max_bounces: 2, seed: 1))",
-            bundled_glb()
-        ),
-    )
-    .unwrap();
+    std::fs::write(&scene, bundled_sidecar((160, 120), 16, KEY_LIGHT, "")).unwrap();
     let out = tmp.path().join("out");
     let estimate = |extra: &[&str]| {
         let mut args = vec![

@@ -171,8 +171,8 @@ pub fn nnls(g: &[f64], b: &[f64], tol: f64, max_iter: usize, time_limit: Duratio
     let max_diag = (0..n).map(|i| g[i * n + i]).fold(0.0, f64::max);
     let mut factor = PassiveFactor::new(n, 1e-13 * max_diag);
     let mut passive = vec![false; n];
-    // Variables whose column proved numerically dependent on the passive set's: not freed
-    // again (each try would fail the same way).
+    // Variables whose column proved numerically dependent on the passive set's: not tried
+    // again until a variable of that set is fixed at zero.
     let mut dependent = vec![false; n];
     // G x, kept with x (zero off the passive set, so a sum over its rows).
     let mut gx = vec![0.0; n];

@@ -73,6 +73,7 @@ pub fn fit_masks(
         return masks.to_vec();
     }
     let bin = bin.max(1);
+    let blocks_in = |cam: &Camera| (cam.width.div_ceil(bin) * cam.height.div_ceil(bin)) as usize;
     let block_of = |cam: &Camera, i: usize| {
         let (x, y) = (i as u32 % cam.width, i as u32 / cam.width);
         ((y / bin) * cam.width.div_ceil(bin) + x / bin) as usize
@@ -80,8 +81,7 @@ pub fn fit_masks(
     // (hash, view, block, pixels seen in it) of every block with a seen pixel.
     let mut blocks: Vec<(u64, usize, usize, usize)> = Vec::new();
     for (v, (cam, mask)) in cameras.iter().zip(masks).enumerate() {
-        let mut count =
-            vec![0usize; cam.width.div_ceil(bin) as usize * cam.height.div_ceil(bin) as usize];
+        let mut count = vec![0usize; blocks_in(cam)];
         for (i, _) in mask.iter().enumerate().filter(|(_, k)| **k) {
             count[block_of(cam, i)] += 1;
         }
@@ -97,10 +97,7 @@ pub fn fit_masks(
         );
     }
     blocks.sort_unstable();
-    let mut chosen: Vec<Vec<bool>> = cameras
-        .iter()
-        .map(|c| vec![false; c.width.div_ceil(bin) as usize * c.height.div_ceil(bin) as usize])
-        .collect();
+    let mut chosen: Vec<Vec<bool>> = cameras.iter().map(|c| vec![false; blocks_in(c)]).collect();
     let mut total = 0;
     for &(_, v, b, n) in &blocks {
         if total + n > most {
