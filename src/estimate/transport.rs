@@ -371,12 +371,7 @@ impl NormalEquations {
     /// updated in parallel, each row's entries in row order: the sums do not depend on the
     /// thread count.
     fn add_sparse(&mut self, rows: &[SparseRow], y: &[DVec3]) {
-        let n = self.cells;
-        // Block boundaries at equal shares of the triangle's area.
-        const BLOCKS: usize = 16;
-        let edges: Vec<usize> = (0..=BLOCKS)
-            .map(|b| ((n as f64) * (b as f64 / BLOCKS as f64).sqrt()).round() as usize)
-            .collect();
+        let edges = block_edges(self.cells);
         let mut blocks: Vec<&mut [DVec3]> = Vec::with_capacity(BLOCKS);
         let mut rest = &mut self.cross[..];
         for w in edges.windows(2) {
@@ -385,52 +380,45 @@ impl NormalEquations {
             rest = b;
         }
         let one_part = self.parts < 2;
-        blocks
-            .into_par_iter()
-            .zip(edges.par_windows(2))
-            .for_each(|(dst, w)| {
-                let (lo, hi, base) = (w[0] as u32, w[1] as u32, tri(w[0]));
-                // Adds sign × la ⊗ lb to the block's rows (entries at or left of the diagonal).
-                let mut outer = |la: &Sparse, lb: &Sparse, sign: f64| {
-                    // lb[..end]: the entries at or left of the diagonal of row i.
-                    let first = la.partition_point(|e| e.0 < lo);
-                    let mut end = lb.partition_point(|e| e.0 < lo);
-                    for &(i, wi) in &la[first..] {
-                        if i >= hi {
-                            break;
-                        }
-                        while end < lb.len() && lb[end].0 <= i {
-                            end += 1;
-                        }
-                        let row = &mut dst[tri(i as usize) - base..];
-                        let wi = wi * sign;
-                        for &(j, wj) in &lb[..end] {
-                            row[j as usize] += wi * wj;
+        blocks.into_par_iter().enumerate().for_each(|(block, dst)| {
+            let base = tri(edges[block]);
+            // Adds sign × la ⊗ lb to the block's rows (entries at or left of the diagonal).
+            let mut outer = |(la, sa): Blocked, (lb, sb): Blocked, sign: f64| {
+                // lb[..end]: the entries at or left of the diagonal of row i.
+                let mut end = sb[block] as usize;
+                for &(i, wi) in &la[sa[block] as usize..sa[block + 1] as usize] {
+                    while end < lb.len() && lb[end].0 <= i {
+                        end += 1;
+                    }
+                    let row = &mut dst[tri(i as usize) - base..];
+                    let wi = wi * sign;
+                    for &(j, wj) in &lb[..end] {
+                        row[j as usize] += wi * wj;
+                    }
+                }
+            };
+            for r in rows {
+                match r.sum() {
+                    // SᵀS − Σ_a T_aᵀT_a.
+                    Some(sum) => {
+                        outer(sum, sum, 1.0);
+                        for a in 0..r.parts.len() {
+                            outer(r.part(a), r.part(a), -1.0);
                         }
                     }
-                };
-                for r in rows {
-                    match &r.sum {
-                        // SᵀS − Σ_a T_aᵀT_a.
-                        Some(sum) => {
-                            outer(sum, sum, 1.0);
-                            for la in &r.parts {
-                                outer(la, la, -1.0);
-                            }
-                        }
-                        None if one_part => outer(&r.parts[0], &r.parts[0], 1.0),
-                        None => {
-                            for (a, la) in r.parts.iter().enumerate() {
-                                for (b, lb) in r.parts.iter().enumerate() {
-                                    if a != b {
-                                        outer(la, lb, 1.0);
-                                    }
+                    None if one_part => outer(r.part(0), r.part(0), 1.0),
+                    None => {
+                        for a in 0..r.parts.len() {
+                            for b in 0..r.parts.len() {
+                                if a != b {
+                                    outer(r.part(a), r.part(b), 1.0);
                                 }
                             }
                         }
                     }
                 }
-            });
+            }
+        });
         for (r, y) in rows.iter().zip(y) {
             for &(i, w) in r.parts.iter().flatten() {
                 self.sty[i as usize] += w * *y;
@@ -448,7 +436,16 @@ impl NormalEquations {
 struct SparseRow {
     parts: Vec<Sparse>,
     sum: Option<Sparse>,
+    /// Per part, then of the sum: where each Gram block's cells ([`block_edges`]) begin
+    /// among its entries (the last, its length). Found once per row, not once per block.
+    starts: Vec<BlockStarts>,
 }
+
+/// Index of the first entry of each of the [`BLOCKS`] Gram blocks, then the entry count.
+type BlockStarts = [u32; BLOCKS + 1];
+
+/// A sparse list and its [`BlockStarts`].
+type Blocked<'a> = (&'a [(u32, DVec3)], &'a BlockStarts);
 
 impl SparseRow {
     fn new<'r>(rows: impl Iterator<Item = &'r CellRow>, cells: usize) -> Self {
@@ -462,7 +459,38 @@ impl SparseRow {
         let sum = (parts.len() > 1 && Self::cost(&nnz, least).1)
             .then(|| merge_sorted(&parts))
             .filter(|sum| Self::cost(&nnz, sum.len()).1);
-        SparseRow { parts, sum }
+        Self::with_sum(parts, sum, cells)
+    }
+
+    /// The row of these parts, summed by way of `sum` where given, for `cells` cells.
+    fn with_sum(parts: Vec<Sparse>, sum: Option<Sparse>, cells: usize) -> Self {
+        let edges = block_edges(cells);
+        let starts = parts
+            .iter()
+            .chain(&sum)
+            .map(|list| {
+                let mut at = [0u32; BLOCKS + 1];
+                let mut k = 0;
+                for (b, &edge) in edges.iter().enumerate() {
+                    while k < list.len() && (list[k].0 as usize) < edge {
+                        k += 1;
+                    }
+                    at[b] = k as u32;
+                }
+                at[BLOCKS] = list.len() as u32;
+                at
+            })
+            .collect();
+        SparseRow { parts, sum, starts }
+    }
+
+    fn part(&self, a: usize) -> Blocked<'_> {
+        (&self.parts[a], &self.starts[a])
+    }
+
+    fn sum(&self) -> Option<Blocked<'_>> {
+        let starts = self.starts.get(self.parts.len())?;
+        self.sum.as_deref().map(|s| (s, starts))
     }
 
     /// Pairs visited for parts of `nnz` non-zeros whose sum has `sum` (at most), and whether
@@ -478,6 +506,17 @@ impl SparseRow {
         let via_sum = half(sum) + own;
         (direct.min(via_sum), via_sum < direct)
     }
+}
+
+/// Blocks of Gram rows the sparse updates split the packed triangle into, updated in
+/// parallel (each by one thread, its rows' entries in row order: the sums do not depend on
+/// the thread count).
+const BLOCKS: usize = 16;
+
+/// The first Gram row of each block and the cell count: blocks of equal shares of the
+/// triangle's area.
+fn block_edges(cells: usize) -> [usize; BLOCKS + 1] {
+    std::array::from_fn(|b| ((cells as f64) * (b as f64 / BLOCKS as f64).sqrt()).round() as usize)
 }
 
 /// Entries in the packed lower triangle of an `n × n` matrix before row `n`: row i starts
@@ -945,16 +984,12 @@ mod tests {
             // Directly, and by way of the sum.
             let direct: Vec<SparseRow> = lists
                 .iter()
-                .map(|l| SparseRow {
-                    parts: l.clone(),
-                    sum: None,
-                })
+                .map(|l| SparseRow::with_sum(l.clone(), None, cells))
                 .collect();
             let via_sum: Vec<SparseRow> = lists
                 .iter()
-                .map(|l| SparseRow {
-                    parts: l.clone(),
-                    sum: (parts > 1).then(|| merge_sorted(l)),
+                .map(|l| {
+                    SparseRow::with_sum(l.clone(), (parts > 1).then(|| merge_sorted(l)), cells)
                 })
                 .collect();
             sparse.add_sparse(&direct, &y[start..end]);
