@@ -38,6 +38,7 @@ fn settings(spp: u32, max_bounces: u32, strategy: Strategy) -> RenderSettings {
         seed: 7,
         strategy,
         hide_emitters: true,
+        camera_sees_lights: true,
         every_light: false,
     }
 }
@@ -551,4 +552,62 @@ fn pixels_that_see_no_geometry_show_what_lies_behind() {
             );
         }
     }
+}
+
+#[test]
+fn camera_rays_can_pass_through_lights() {
+    // A dark light just in front of the camera hides the middle of the view (black, with
+    // hidden emitters). With `camera_sees_lights` off, camera rays pass through it and the
+    // plane behind shows as it does without that light: the sphere fit's trial lights never
+    // black out what a view sees.
+    let key = SphereLight {
+        center: Vec3::new(0.0, 3.0, 0.0),
+        radius: 0.3,
+        radiance: Vec3::splat(100.0),
+    };
+    let dark = SphereLight {
+        center: Vec3::new(0.0, 0.9, 2.1),
+        radius: 0.08,
+        radiance: Vec3::ZERO,
+    };
+    let cam = Camera::look_at("cam", Vec3::new(0.0, 1.0, 2.5), Vec3::ZERO, 0.8, 16, 16);
+    let render = |lights: Vec<SphereLight>, sees: bool| {
+        let sc = scene(plane(50.0, 0.0), Vec3::splat(0.5), cam.clone(), lights);
+        let lights = Lights::new(sc.lights.clone());
+        let st = RenderSettings {
+            camera_sees_lights: sees,
+            every_light: true,
+            ..settings(256, 1, Strategy::Mis)
+        };
+        Renderer::new(&sc, &lights).render_radiance(&cam, 0, &st, &|_| {})
+    };
+    let seen = render(vec![key, dark], true);
+    let through = render(vec![key, dark], false);
+    let without = render(vec![key], true);
+    let hidden: Vec<usize> = (0..seen.rgb.len())
+        .filter(|&i| seen.rgb[i] == Vec3::ZERO)
+        .collect();
+    assert!(
+        hidden.len() >= 16,
+        "the dark light hides {} pixels",
+        hidden.len()
+    );
+    let mean = |img: &lightprobe::imageio::Image| {
+        hidden.iter().map(|&i| img.rgb[i].x as f64).sum::<f64>() / hidden.len() as f64
+    };
+    assert!(mean(&without) > 0.05, "the plane behind is lit");
+    assert!(
+        (mean(&through) / mean(&without) - 1.0).abs() < 0.02,
+        "{} through the light against {} without it",
+        mean(&through),
+        mean(&without)
+    );
+    // Elsewhere the two agree too (the dark light casts no shadow on what the view sees).
+    let rest = |img: &lightprobe::imageio::Image| -> f64 {
+        (0..img.rgb.len())
+            .filter(|i| !hidden.contains(i))
+            .map(|i| img.rgb[i].x as f64)
+            .sum()
+    };
+    assert!((rest(&through) / rest(&without) - 1.0).abs() < 0.02);
 }

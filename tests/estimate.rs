@@ -100,6 +100,7 @@ fn settings(spp: u32, seed: u64) -> RenderSettings {
         seed,
         strategy: Strategy::Mis,
         hide_emitters: true,
+        camera_sees_lights: true,
         every_light: false,
     }
 }

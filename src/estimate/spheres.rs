@@ -1133,6 +1133,8 @@ impl SphereSettings {
             spp,
             seed: render.seed.wrapping_add(offset),
             every_light: true,
+            // A trial light crossing a view must not black out what the view sees there.
+            camera_sees_lights: false,
             ..*render
         };
         SphereSettings {

@@ -59,6 +59,12 @@ pub struct RenderSettings {
     /// Emitters seen directly by the camera render black (they still occlude), like
     /// Mitsuba's `hide_emitters`.
     pub hide_emitters: bool,
+    /// Camera rays meet sphere lights (seen, or black with `hide_emitters`, hiding what is
+    /// behind them). Off in the sphere fit's renders: the references' compared pixels never
+    /// see a light (they hold geometry), and a trial light crossing a view would black out
+    /// what the view sees there, a wall between a start and the light's true place (a
+    /// scan's lamp beside a camera: the error rose fivefold half-way to it).
+    pub camera_sees_lights: bool,
     /// Next-event estimation samples every light at every vertex (a shadow ray each) instead
     /// of picking one. Picking costs little when one light dominates, but tosses a coin
     /// between lights of similar weight, and its variance is of the order of the signal: the
@@ -75,6 +81,7 @@ impl RenderSettings {
             seed: s.seed,
             strategy: Strategy::Mis,
             hide_emitters: true,
+            camera_sees_lights: true,
             every_light: false,
         }
     }
@@ -87,6 +94,7 @@ impl RenderSettings {
             seed: 1,
             strategy: Strategy::Mis,
             hide_emitters: true,
+            camera_sees_lights: true,
             every_light: false,
         }
     }

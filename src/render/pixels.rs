@@ -276,6 +276,8 @@ struct Pixels<'a, A: Accumulator> {
     /// Whether a camera ray of the open pixel can meet a sphere light
     /// ([`pyramid_meets_lights`]).
     lights_ahead: bool,
+    /// [`super::RenderSettings::camera_sees_lights`].
+    sees_lights: bool,
     open: Option<Open<A::Pixel>>,
     out: Vec<Done<A::Pixel>>,
 }
@@ -288,6 +290,7 @@ impl<'a, A: Accumulator> Pixels<'a, A> {
             lights: tracer.lights,
             origin: camera.origin_world,
             lights_ahead: false,
+            sees_lights: tracer.settings.camera_sees_lights,
             open: None,
             out: Vec::with_capacity(tile_pixels(tile)),
         }
@@ -309,7 +312,8 @@ impl<'a, A: Accumulator> Pixels<'a, A> {
 
     #[inline(always)]
     fn start(&mut self, p: &Pixel) {
-        self.lights_ahead = pyramid_meets_lights(self.lights, self.origin, &p.corners);
+        self.lights_ahead =
+            self.sees_lights && pyramid_meets_lights(self.lights, self.origin, &p.corners);
         self.open = Some(Open {
             px: self.acc.new_pixel(),
             hits: 0,
