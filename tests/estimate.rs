@@ -147,6 +147,7 @@ fn binned<'a>(
         holdout: false,
         background: None,
         paths: None,
+        progress: None,
     }
 }
 
@@ -499,6 +500,7 @@ fn sphere_light_radiance_is_recovered_given_its_geometry_and_wrong_geometry_show
         holdout: false,
         background: None,
         paths: None,
+        progress: None,
     };
     let solve = |geometry: SphereLight| {
         let p = estimate::spheres::sphere_problem(&r, &obs, &[geometry], &st);
@@ -700,6 +702,7 @@ fn select_model(
         holdout: true,
         background: None,
         paths: Some(&paths),
+        progress: None,
     };
     let spheres = pipeline::run_sphere_models(
         r,
@@ -1184,6 +1187,74 @@ fn progress_declares_exactly_the_work_it_reports() {
         for (name, declared, done) in phases {
             assert_eq!(done, declared, "{solver:?}, phase {name}");
         }
+    }
+}
+
+#[test]
+fn sphere_fits_report_their_progress_as_they_go() {
+    // A sphere model's phase counts its fit's renders, not only its re-render: with no
+    // re-render at all (--fit-only) the bar still moves, many times, while the fit runs, and
+    // every phase still reports exactly what it declared.
+    use lightprobe::estimate::job::{self, EstimateSettings, Job, LightModel, References};
+    let scene = Scene::load(std::path::Path::new(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/scenes/tabletop/tabletop.ron"
+    )))
+    .unwrap();
+    let lights = Lights::new(scene.lights.clone());
+    let renderer = Renderer::new(&scene, &lights);
+    let render = RenderSettings {
+        spp: 4,
+        ..RenderSettings::from_scene(&scene.settings)
+    };
+    let seen = job::observe(&renderer, &render, References::Render, &()).unwrap();
+    for (model, evaluate) in [
+        (LightModel::Spheres(Some(1)), false),
+        (LightModel::Spheres(None), true),
+    ] {
+        let settings = EstimateSettings {
+            model,
+            evaluate,
+            spp: 8,
+            ..EstimateSettings::new(&scene.settings)
+        };
+        let rec = Recorder::default();
+        let calls = std::sync::atomic::AtomicUsize::new(0);
+        let counting = Counting(&rec, &calls);
+        job::run(&Job::new(&renderer, &seen, &render, &settings), &counting).unwrap();
+        let phases = rec.0.into_inner().unwrap();
+        assert!(
+            phases.iter().any(|p| p.0 == "sphere lights"),
+            "{model:?}: {phases:?}"
+        );
+        for (name, declared, done) in phases {
+            assert_eq!(done, declared, "{model:?}, phase {name}");
+        }
+        let moved = calls.into_inner();
+        assert!(
+            moved >= 20,
+            "{model:?}: the sphere phases moved {moved} times"
+        );
+    }
+}
+
+/// Counts the advances of the sphere phases (those `Recorder` passes on).
+struct Counting<'a>(&'a Recorder, &'a std::sync::atomic::AtomicUsize);
+
+impl lightprobe::estimate::job::Progress for Counting<'_> {
+    fn phase(&self, name: &str, units: u64) {
+        self.0.phase(name, units);
+    }
+    fn advance(&self, units: u64) {
+        let phases = self.0.0.lock().unwrap();
+        let sphere = phases
+            .last()
+            .is_some_and(|p| p.0.contains("sphere") || p.0.contains("refit"));
+        drop(phases);
+        if sphere {
+            self.1.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        self.0.advance(units);
     }
 }
 

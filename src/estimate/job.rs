@@ -22,6 +22,7 @@
 //! ```
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use glam::Vec3;
@@ -2103,6 +2104,78 @@ const TEXEL_RENDER_SEED: u64 = 262_147;
 /// Side in pixels of the blocks the sphere fit sums ([`Observations::bin`]).
 const SPHERE_BIN: u32 = 4;
 
+/// Pixel samples a sphere fit lights per light and compared pixel, about: the measured fits
+/// made 84–135 renders per light (the scan's `spheres:2` and the bundled scene's), at 8–64
+/// samples a pixel.
+const FIT_SAMPLES_PER_LIGHT: u64 = 4_000;
+
+/// A progress phase of sphere models: per model, its fit (counted by the pixel samples its
+/// renders light, up to an estimate of the whole fit) and its re-render of `pixels` at
+/// `spp`. The bar then moves while a fit runs instead of waiting for the re-render.
+struct FitProgress<'a> {
+    progress: &'a dyn Progress,
+    spp: u64,
+    /// Units the phase declared, and those reported so far.
+    total: u64,
+    reported: AtomicU64,
+    /// Fit samples the phase counts at most, and those lit so far.
+    budget: u64,
+    lit: AtomicU64,
+}
+
+impl<'a> FitProgress<'a> {
+    /// Starts phase `name` of models of `lights` lights each, fitted on `fit_pixels`.
+    fn start(
+        progress: &'a dyn Progress,
+        name: &str,
+        lights: &[usize],
+        (pixels, spp): (u64, u64),
+        fit_pixels: u64,
+    ) -> Self {
+        let budget = lights.iter().sum::<usize>() as u64 * FIT_SAMPLES_PER_LIGHT * fit_pixels;
+        let total = lights.len() as u64 * pixels * spp + budget;
+        progress.phase(name, total);
+        FitProgress {
+            progress,
+            spp,
+            total,
+            reported: AtomicU64::new(0),
+            budget,
+            lit: AtomicU64::new(0),
+        }
+    }
+
+    fn report(&self, units: u64) {
+        self.reported.fetch_add(units, Ordering::Relaxed);
+        self.progress.advance(units);
+    }
+
+    /// A fit's render lit `samples` pixel samples.
+    fn fitted(&self, samples: u64) {
+        let before = self.lit.fetch_add(samples, Ordering::Relaxed);
+        let counted = self.budget.saturating_sub(before).min(samples);
+        if counted > 0 {
+            self.report(counted);
+        }
+    }
+
+    /// A re-render finished `pixels` more pixels.
+    fn rendered(&self, pixels: u64) {
+        self.report(pixels * self.spp);
+    }
+
+    /// The phase's work is done: what it did not report (fits shorter than their estimate,
+    /// models the choice did not need, re-renders not asked for) is reported now.
+    fn finish(&self) {
+        let left = self
+            .total
+            .saturating_sub(self.reported.load(Ordering::Relaxed));
+        if left > 0 {
+            self.report(left);
+        }
+    }
+}
+
 /// The sphere-light models the settings ask for, started from the envmap estimate.
 fn fit_spheres(
     job: &Job,
@@ -2131,6 +2204,7 @@ fn fit_spheres(
         holdout: choose,
         background: None,
         paths: Some(&paths),
+        progress: None,
     };
     let in_spheres = |e: Error| Error::Stage {
         stage: "sphere-light model",
@@ -2158,11 +2232,27 @@ fn fit_spheres(
         *sufficient.borrow_mut() = Some((name, all[all.len() - 1].rel_mae() / f));
         true
     };
-    progress.phase("sphere lights", pixels * max_lights as u64);
+    let eval_spp = pipeline::evaluation_settings(job.render).spp as u64;
+    let fit_pixels = fitted.iter().flatten().filter(|&&k| k).count() as u64;
+    let sizes: Vec<usize> = if choose {
+        (1..=max_lights).collect()
+    } else {
+        vec![max_lights]
+    };
+    let bar = FitProgress::start(
+        progress,
+        "sphere lights",
+        &sizes,
+        (pixels, eval_spp),
+        fit_pixels,
+    );
     let mut models = pipeline::run_sphere_models(
         job.fit,
         job.truth,
-        &obs,
+        &Observations {
+            progress: Some(&|k| bar.fitted(k)),
+            ..obs
+        },
         &envmap.fit.envmap,
         truth,
         scene,
@@ -2172,9 +2262,10 @@ fn fit_spheres(
         s.evaluate,
         // A model whose lights merged is no candidate of the selection ([`select_model`]).
         &|so| so.fit.lights().len() == so.fit.requested && enough(&so.renders, so.fit.model_name()),
-        &|k| progress.advance(k),
+        &|k| bar.rendered(k),
     )
     .map_err(in_spheres)?;
+    bar.finish();
     // Nested fits: the last one's time includes the others'.
     let mut seconds = models.last().map_or(0.0, |m| m.fit.seconds);
     // The envmap comes after the sphere models in parameter count.
@@ -2192,20 +2283,30 @@ fn fit_spheres(
         Vec::new()
     };
     for base in &bases {
-        progress.phase(&format!("spheres:{} + envmap", base.requested), pixels);
+        let bar = FitProgress::start(
+            progress,
+            &format!("spheres:{} + envmap", base.requested),
+            &[base.requested],
+            (pixels, eval_spp),
+            fit_pixels,
+        );
         let combined = pipeline::run_with_background(
             job.fit,
             job.truth,
-            &obs,
+            &Observations {
+                progress: Some(&|k| bar.fitted(k)),
+                ..obs
+            },
             base,
             rings,
             truth,
             scene,
             job.render,
             true,
-            &|k| progress.advance(k),
+            &|k| bar.rendered(k),
         )
         .map_err(in_spheres)?;
+        bar.finish();
         seconds += combined.fit.seconds;
         models.push(combined);
     }
@@ -2255,19 +2356,29 @@ fn fit_spheres(
     };
     // Chosen on held-out pixels: fitted again on all of them, whose paths are walked anew.
     paths.clear();
-    progress.phase("refit on all pixels", pixels);
+    let bar = FitProgress::start(
+        progress,
+        "refit on all pixels",
+        &[models[i].fit.requested],
+        (pixels, eval_spp),
+        fit_pixels,
+    );
     let mut refit = pipeline::refit_on_all_pixels(
         job.fit,
         job.truth,
-        &obs,
+        &Observations {
+            progress: Some(&|k| bar.fitted(k)),
+            ..obs
+        },
         &models[i].fit,
         truth,
         job.center,
         job.render,
         true,
-        &|k| progress.advance(k),
+        &|k| bar.rendered(k),
     )
     .map_err(in_spheres)?;
+    bar.finish();
     seconds += refit.fit.seconds - models[i].fit.seconds + intervals(&mut refit);
     // The candidates are reported as the estimate ends them: the chosen one refitted.
     models[i] = refit.clone();

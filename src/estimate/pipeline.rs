@@ -614,7 +614,7 @@ pub fn run_sphere_models(
         return Err(e);
     }
     // Models the sequence did not need to fit: their re-renders' share of the progress.
-    if evaluate {
+    if evaluate && all {
         let pixels: u64 = obs
             .cameras
             .iter()

@@ -47,6 +47,9 @@ pub struct Observations<'a> {
     pub background: Option<&'a RingGrid>,
     /// Camera paths kept between renders (None: every render traces its own).
     pub paths: Option<&'a PathCache>,
+    /// Told the pixel samples each of the fit's renders lit (compared pixels × spp), for a
+    /// progress bar that moves while a fit runs.
+    pub progress: Option<&'a (dyn Fn(u64) + Sync)>,
 }
 
 /// Most pixels a sphere fit compares by default ([`fit_masks`], `--sphere-pixels`). Each
@@ -280,10 +283,12 @@ fn transport(
         let mut tb: [Vec<f32>; 3] = std::array::from_fn(|_| vec![0.0; bins * k]);
         let mut yb: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; bins]);
         let mut used = vec![false; bins];
+        let mut lit = 0u64;
         for (i, row) in frame.pixels.iter().enumerate() {
             if !fitted(i as u32) {
                 continue;
             }
+            lit += 1;
             let (x, yy) = (i as u32 % w, i as u32 / w);
             let b = (yy / bin) as usize * bw + (x / bin) as usize;
             used[b] = true;
@@ -300,6 +305,9 @@ fn transport(
                 t[ch].extend_from_slice(&tb[ch][b * k..(b + 1) * k]);
                 y[ch].push(yb[ch][b]);
             }
+        }
+        if let Some(progress) = obs.progress {
+            progress(lit * settings.spp as u64);
         }
     }
     SphereProblem {
@@ -511,9 +519,10 @@ pub fn refine(
 ) -> Refined {
     // A light rendered alone is always sampled as under `every_light` (a pick would draw its
     // direction from other numbers), so the whole fit is: every trial then compares the same
-    // estimator.
+    // estimator. Camera rays pass through the trial lights ([`SphereSettings::new`]).
     let every = |at: RenderSettings| RenderSettings {
         every_light: true,
+        camera_sees_lights: false,
         ..at
     };
     let settings = &RefineSettings {
@@ -1628,6 +1637,7 @@ pub fn uncertainty(
     let at = RenderSettings {
         seed: residual.seed.wrapping_add(7_919),
         every_light: true,
+        camera_sees_lights: false,
         ..*residual
     };
     // The products below cost unknowns² × rows: a fine background (25 rings: 2,214 radiance

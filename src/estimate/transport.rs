@@ -464,6 +464,14 @@ impl SparseRow {
 
     /// The row of these parts, summed by way of `sum` where given, for `cells` cells.
     fn with_sum(parts: Vec<Sparse>, sum: Option<Sparse>, cells: usize) -> Self {
+        debug_assert!(
+            parts
+                .iter()
+                .chain(&sum)
+                .flatten()
+                .all(|e| (e.0 as usize) < cells),
+            "a cell outside the grid"
+        );
         let edges = block_edges(cells);
         let starts = parts
             .iter()
@@ -923,13 +931,14 @@ mod tests {
     fn sparse_and_dense_updates_give_the_same_sums() {
         // Three parts (and one) of mostly-zero rows, channels scaled differently; the same
         // rows in two chunks by each path.
-        for parts in [3, 1] {
-            same_sums_by_both_paths(parts);
+        // 12 cells leave most of the 16 Gram blocks empty; 100 fill every one.
+        for (parts, cells) in [(3, 12), (1, 12), (3, 100)] {
+            same_sums_by_both_paths(parts, cells);
         }
     }
 
-    fn same_sums_by_both_paths(parts: usize) {
-        let (rows, cells) = (50, 12);
+    fn same_sums_by_both_paths(parts: usize, cells: usize) {
+        let rows = 50;
         let mut rng = Rng::new(11);
         let t: Vec<Vec<f64>> = (0..parts)
             .map(|_| {

@@ -422,10 +422,11 @@ impl Tracer<'_> {
     /// segments reach, handed to `acc`. An emitter in front of a vertex ends the path there.
     /// The paths advance together, a vertex at a time, so that the light samples of their
     /// vertices at one depth are drawn together ([`Lights::sample_lanes`]). Returns how many
-    /// camera rays saw scene geometry before any emitter. `lights_ahead` false promises that
-    /// no camera ray meets a sphere light (the pixel's pyramid misses them all,
-    /// [`super::pixels::pyramid_meets_lights`]), which spares each its sphere tests. `added` is
-    /// scratch space.
+    /// camera rays saw scene geometry before any emitter they test. `lights_ahead` false
+    /// skips the camera rays' sphere tests: no camera ray meets a sphere light (the pixel's
+    /// pyramid misses them all, [`super::pixels::pyramid_meets_lights`]), or they are to pass
+    /// through lights ([`super::RenderSettings::camera_sees_lights`]). `added` is scratch
+    /// space.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     pub fn light<A: Accumulator>(

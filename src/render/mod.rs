@@ -60,10 +60,11 @@ pub struct RenderSettings {
     /// Mitsuba's `hide_emitters`.
     pub hide_emitters: bool,
     /// Camera rays meet sphere lights (seen, or black with `hide_emitters`, hiding what is
-    /// behind them). Off in the sphere fit's renders: the references' compared pixels never
-    /// see a light (they hold geometry), and a trial light crossing a view would black out
-    /// what the view sees there, a wall between a start and the light's true place (a
-    /// scan's lamp beside a camera: the error rose fivefold half-way to it).
+    /// behind them). Off in the sphere fit's renders: a trial light crossing a view would
+    /// black out what the view sees there, a wall between a start and the light's true place
+    /// (a scan's lamp beside a camera: the error rose fivefold on the way to it). What a fit
+    /// gives up is small: a rendered reference leaves out the pixels a light covers whole
+    /// (alpha 0), a photograph's lamp is mostly saturated (left out).
     pub camera_sees_lights: bool,
     /// Next-event estimation samples every light at every vertex (a shadow ray each) instead
     /// of picking one. Picking costs little when one light dominates, but tosses a coin

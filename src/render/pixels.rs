@@ -273,8 +273,8 @@ struct Pixels<'a, A: Accumulator> {
     /// The lights and the camera origin, for [`pyramid_meets_lights`].
     lights: &'a Lights,
     origin: Vec3,
-    /// Whether a camera ray of the open pixel can meet a sphere light
-    /// ([`pyramid_meets_lights`]).
+    /// Whether the camera rays of the open pixel test sphere lights: they can meet one
+    /// ([`pyramid_meets_lights`]) and are to ([`super::RenderSettings::camera_sees_lights`]).
     lights_ahead: bool,
     /// [`super::RenderSettings::camera_sees_lights`].
     sees_lights: bool,
