@@ -1152,18 +1152,21 @@ impl lightprobe::estimate::job::Progress for Recorder {
     }
 }
 
-#[test]
-fn progress_declares_exactly_the_work_it_reports() {
-    // Every unit a phase reports done was declared when it started, and all of them are
-    // reported by its end: a bar neither stops short (it stopped at 28% with the oracle)
-    // nor sits at 100% while work remains. The envmap's phases with a held-out choice of
-    // rings, the oracle, masks that leave tiles out, NNLS (pilot and parts) and gradient.
-    use lightprobe::estimate::job::{self, EstimateSettings, Job, References, Rings};
-    let scene = Scene::load(std::path::Path::new(concat!(
+fn bundled_scene() -> Scene {
+    Scene::load(Path::new(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/scenes/tabletop/tabletop.ron"
     )))
-    .unwrap();
+    .unwrap()
+}
+
+/// Runs an estimate with `settings` on the bundled scene, its references rendered at 4 spp.
+fn on_bundled_scene(
+    settings: &lightprobe::estimate::job::EstimateSettings,
+    progress: &dyn lightprobe::estimate::job::Progress,
+) {
+    use lightprobe::estimate::job::{self, Job, References};
+    let scene = bundled_scene();
     let lights = Lights::new(scene.lights.clone());
     let renderer = Renderer::new(&scene, &lights);
     let render = RenderSettings {
@@ -1171,6 +1174,16 @@ fn progress_declares_exactly_the_work_it_reports() {
         ..RenderSettings::from_scene(&scene.settings)
     };
     let seen = job::observe(&renderer, &render, References::Render, &()).unwrap();
+    job::run(&Job::new(&renderer, &seen, &render, settings), progress).unwrap();
+}
+
+#[test]
+fn progress_declares_exactly_the_work_it_reports() {
+    // Every unit a phase reports done was declared when it started, and all of them are
+    // reported by its end: a bar neither stops short (it stopped at 28% with the oracle)
+    // nor sits at 100% while work remains. The envmap's phases with a held-out choice of
+    // rings, the oracle, masks that leave tiles out, NNLS (pilot and parts) and gradient.
+    use lightprobe::estimate::job::{EstimateSettings, Rings};
     for solver in [Solver::Nnls, Solver::Gradient] {
         let settings = EstimateSettings {
             rings: Rings::Auto(vec![3, 5]),
@@ -1178,10 +1191,10 @@ fn progress_declares_exactly_the_work_it_reports() {
             solver,
             rounds: solver.default_rounds(),
             oracle: true,
-            ..EstimateSettings::new(&scene.settings)
+            ..EstimateSettings::new(&bundled_scene().settings)
         };
         let rec = Recorder::default();
-        job::run(&Job::new(&renderer, &seen, &render, &settings), &rec).unwrap();
+        on_bundled_scene(&settings, &rec);
         let phases = rec.0.into_inner().unwrap();
         assert_eq!(phases.len(), 2, "{phases:?}");
         for (name, declared, done) in phases {
@@ -1195,19 +1208,7 @@ fn sphere_fits_report_their_progress_as_they_go() {
     // A sphere model's phase counts its fit's renders, not only its re-render: with no
     // re-render at all (--fit-only) the bar still moves, many times, while the fit runs, and
     // every phase still reports exactly what it declared.
-    use lightprobe::estimate::job::{self, EstimateSettings, Job, LightModel, References};
-    let scene = Scene::load(std::path::Path::new(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/scenes/tabletop/tabletop.ron"
-    )))
-    .unwrap();
-    let lights = Lights::new(scene.lights.clone());
-    let renderer = Renderer::new(&scene, &lights);
-    let render = RenderSettings {
-        spp: 4,
-        ..RenderSettings::from_scene(&scene.settings)
-    };
-    let seen = job::observe(&renderer, &render, References::Render, &()).unwrap();
+    use lightprobe::estimate::job::{EstimateSettings, LightModel};
     for (model, evaluate) in [
         (LightModel::Spheres(Some(1)), false),
         (LightModel::Spheres(None), true),
@@ -1216,12 +1217,11 @@ fn sphere_fits_report_their_progress_as_they_go() {
             model,
             evaluate,
             spp: 8,
-            ..EstimateSettings::new(&scene.settings)
+            ..EstimateSettings::new(&bundled_scene().settings)
         };
         let rec = Recorder::default();
         let calls = std::sync::atomic::AtomicUsize::new(0);
-        let counting = Counting(&rec, &calls);
-        job::run(&Job::new(&renderer, &seen, &render, &settings), &counting).unwrap();
+        on_bundled_scene(&settings, &Counting(&rec, &calls));
         let phases = rec.0.into_inner().unwrap();
         assert!(
             phases.iter().any(|p| p.0 == "sphere lights"),
