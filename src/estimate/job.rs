@@ -2109,6 +2109,10 @@ const SPHERE_BIN: u32 = 4;
 /// samples a pixel.
 const FIT_SAMPLES_PER_LIGHT: u64 = 4_000;
 
+/// The same for a refinement from fitted lights (no start search; on all pixels, or with a
+/// background).
+const REFIT_SAMPLES_PER_LIGHT: u64 = 1_000;
+
 /// A progress phase of sphere models: per model, its fit (counted by the pixel samples its
 /// renders light, up to an estimate of the whole fit) and its re-render of `pixels` at
 /// `spp`. The bar then moves while a fit runs instead of waiting for the re-render.
@@ -2124,15 +2128,16 @@ struct FitProgress<'a> {
 }
 
 impl<'a> FitProgress<'a> {
-    /// Starts phase `name` of models of `lights` lights each, fitted on `fit_pixels`.
+    /// Starts phase `name` of models of `lights` lights each, a light's fit lighting about
+    /// `per_light` pixel samples, each model re-rendered on `pixels` at `spp` (0: not).
     fn start(
         progress: &'a dyn Progress,
         name: &str,
         lights: &[usize],
         (pixels, spp): (u64, u64),
-        fit_pixels: u64,
+        per_light: u64,
     ) -> Self {
-        let budget = lights.iter().sum::<usize>() as u64 * FIT_SAMPLES_PER_LIGHT * fit_pixels;
+        let budget = lights.iter().sum::<usize>() as u64 * per_light;
         let total = lights.len() as u64 * pixels * spp + budget;
         progress.phase(name, total);
         FitProgress {
@@ -2232,8 +2237,22 @@ fn fit_spheres(
         *sufficient.borrow_mut() = Some((name, all[all.len() - 1].rel_mae() / f));
         true
     };
-    let eval_spp = pipeline::evaluation_settings(job.render).spp as u64;
-    let fit_pixels = fitted.iter().flatten().filter(|&&k| k).count() as u64;
+    // The bar's units: pixel samples of the fits' renders and of the re-renders.
+    let eval_spp = if s.evaluate {
+        pipeline::evaluation_settings(job.render).spp as u64
+    } else {
+        0
+    };
+    let compared = |holdout: bool| -> u64 {
+        let kept = |(v, i): (usize, usize)| !(holdout && super::is_held_out((v, i as u32)));
+        let per_view = fitted.iter().enumerate().map(|(v, mask)| {
+            (mask.iter().enumerate())
+                .filter(|&(i, &k)| k && kept((v, i)))
+                .count() as u64
+        });
+        per_view.sum()
+    };
+    let (held_in, all_fitted) = (compared(choose), compared(false));
     let sizes: Vec<usize> = if choose {
         (1..=max_lights).collect()
     } else {
@@ -2244,7 +2263,7 @@ fn fit_spheres(
         "sphere lights",
         &sizes,
         (pixels, eval_spp),
-        fit_pixels,
+        FIT_SAMPLES_PER_LIGHT * held_in,
     );
     let mut models = pipeline::run_sphere_models(
         job.fit,
@@ -2288,7 +2307,7 @@ fn fit_spheres(
             &format!("spheres:{} + envmap", base.requested),
             &[base.requested],
             (pixels, eval_spp),
-            fit_pixels,
+            REFIT_SAMPLES_PER_LIGHT * held_in,
         );
         let combined = pipeline::run_with_background(
             job.fit,
@@ -2361,7 +2380,7 @@ fn fit_spheres(
         "refit on all pixels",
         &[models[i].fit.requested],
         (pixels, eval_spp),
-        fit_pixels,
+        REFIT_SAMPLES_PER_LIGHT * all_fitted,
     );
     let mut refit = pipeline::refit_on_all_pixels(
         job.fit,
