@@ -2243,16 +2243,12 @@ fn fit_spheres(
     } else {
         0
     };
-    let compared = |holdout: bool| -> u64 {
-        let kept = |(v, i): (usize, usize)| !(holdout && super::is_held_out((v, i as u32)));
-        let per_view = fitted.iter().enumerate().map(|(v, mask)| {
-            (mask.iter().enumerate())
-                .filter(|&(i, &k)| k && kept((v, i)))
-                .count() as u64
-        });
-        per_view.sum()
-    };
-    let (held_in, all_fitted) = (compared(choose), compared(false));
+    let held_in = obs.compared_pixels();
+    let all_fitted = Observations {
+        holdout: false,
+        ..obs
+    }
+    .compared_pixels();
     let sizes: Vec<usize> = if choose {
         (1..=max_lights).collect()
     } else {

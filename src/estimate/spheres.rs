@@ -52,6 +52,23 @@ pub struct Observations<'a> {
     pub progress: Option<&'a (dyn Fn(u64) + Sync)>,
 }
 
+impl Observations<'_> {
+    /// Whether the fit compares pixel `i` of view `v`: in its mask, and not held out.
+    pub fn compares(&self, v: usize, i: u32) -> bool {
+        self.masks[v][i as usize] && !(self.holdout && is_held_out((v, i)))
+    }
+
+    /// How many pixels the fit compares, over every view.
+    pub fn compared_pixels(&self) -> u64 {
+        let per_view = self.masks.iter().enumerate().map(|(v, mask)| {
+            (0..mask.len() as u32)
+                .filter(|&i| self.compares(v, i))
+                .count() as u64
+        });
+        per_view.sum()
+    }
+}
+
 /// Most pixels a sphere fit compares by default ([`fit_masks`], `--sphere-pixels`). Each
 /// keeps its walked camera paths (about 11 KB at 2 bounces: 360 MB for this many) and is lit
 /// again by each of the fit's hundreds of renders: past this, pixels cost memory and time in
@@ -268,7 +285,7 @@ fn transport(
     for (v, (cam, mask)) in obs.cameras.iter().zip(obs.masks).enumerate() {
         let stream = 2000 + v as u64;
         // Only the pixels the fit compares are rendered.
-        let fitted = |i: u32| mask[i as usize] && !(obs.holdout && is_held_out((v, i)));
+        let fitted = |i: u32| obs.compares(v, i);
         let frame = match obs.paths.filter(|_| settings.spp <= PathCache::MAX_SPP) {
             Some(cache) => {
                 let wanted = || (0..mask.len() as u32).map(fitted).collect();
