@@ -302,14 +302,6 @@ impl EstimateSettings {
                     .into(),
             ));
         }
-        if self.fit_albedo == Some(FitAlbedo::Texels) && self.exposure == Exposure::PerView {
-            return Err(Error::Invalid(
-                "fitting texels beside per-view exposures is not supported yet: fit them with \
-                 --fit-albedo materials, or give references at one exposure (scaled by the \
-                 exposures that fit reports)"
-                    .into(),
-            ));
-        }
         if self.sphere_pixels < super::spheres::MIN_FIT_PIXELS {
             return setting(
                 "sphere pixels",
@@ -1184,6 +1176,14 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
         })
         .collect();
     let seen = job.seen;
+    // `--exposure per-view`: each view's exposure so far (relative to their geometric mean).
+    // The texels are fitted to the references over them, and each round's fit starts from
+    // references scaled by them, so it fits what is left (near 1) and the exposures multiply.
+    let mut exposures: Option<Vec<f64>> = first
+        .report
+        .exposure
+        .as_ref()
+        .map(|e| e.relative.iter().map(|v| v.exposure).collect());
     let units: u64 = seen.views.iter().map(|c| (c.width * c.height) as u64).sum();
     progress.phase("material maps", units);
     let pixels = MaterialPixels::new(job.fit, &seen.views, &seen.masks);
@@ -1219,6 +1219,8 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             };
             fit.render_views(&seen.views, &settings, &|n| progress.advance(n))
         });
+        let scaled = exposures.as_ref().map(|e| seen.with_exposures(e));
+        let references = &scaled.as_ref().unwrap_or(seen).references;
         let mut change = 0.0f64;
         for (t, &(m, size)) in targets.iter().enumerate() {
             let Albedo::Texture { texture, factor } = &scene.materials[m].albedo else {
@@ -1230,7 +1232,7 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                     if id as usize == m {
                         sums.add(
                             pixels.uv[v][i],
-                            seen.references[v].rgb[i],
+                            references[v].rgb[i],
                             x1[v].rgb[i],
                             x2[v].rgb[i],
                         );
@@ -1293,16 +1295,24 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             (EstimateSettings { rings, ..round }, render)
         };
         let (fit, truth) = renderers_in(job, &scene);
-        let next = run_materials(
+        let mut next = run_materials(
             &Job {
                 fit: &fit,
                 truth: &truth,
+                seen: scaled.as_ref().unwrap_or(seen),
                 settings: &round,
                 render: &render,
                 ..*job
             },
             progress,
         )?;
+        if let (Some(e), Some(report)) = (exposures.as_mut(), next.report.exposure.as_mut()) {
+            for (e, v) in e.iter_mut().zip(report.relative.iter_mut()) {
+                *e *= v.exposure;
+                v.exposure = *e;
+            }
+            report.fits += estimate.report.exposure.as_ref().map_or(0, |p| p.fits);
+        }
         let report = next
             .report
             .albedo
@@ -1375,12 +1385,14 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
 }
 
 /// `next`, a fit of [`run_texels`], with what only the fits before it reported: the
-/// selection of rings and the exposures.
+/// selection of rings, and the exposures where `next` fitted none.
 fn carry_over(before: Estimate, mut next: Estimate) -> Estimate {
     let (from, to) = (before.report, &mut next.report);
     to.rings_selection = from.rings_selection;
     to.timings.rings_selection_seconds = from.timings.rings_selection_seconds;
-    to.exposure = from.exposure;
+    if to.exposure.is_none() {
+        to.exposure = from.exposure;
+    }
     next
 }
 
