@@ -1913,93 +1913,156 @@ fn a_white_light_comes_back_white_when_the_channels_are_fitted_together() {
     );
 }
 
-#[test]
-fn shading_baked_into_a_texture_is_taken_out_by_texels() {
-    // The table carries a texture (stripes); the fit's copy has a soft shadow baked into it
-    // (down to 45% in a blob the views see). The references show the true texture under a
-    // 3-ring sky. `--fit-albedo materials` can only rescale the whole texture; `texels` must
-    // take most of the shadow out (texture error over the seen texels well under half the
-    // materials fit's), keep the stripes, and fit the lighting as well as with the true
-    // texture.
-    use lightprobe::estimate::albedo::FitAlbedo;
-    use lightprobe::estimate::job::{self, EstimateSettings, Job, References, Rings};
-    use lightprobe::scene::Texture;
-    let n = 64u32;
-    let stripes: Vec<Vec3> = (0..n * n)
-        .map(|i| {
-            let x = i % n;
-            if (x / 8).is_multiple_of(2) {
-                Vec3::new(0.7, 0.6, 0.45)
-            } else {
-                Vec3::new(0.5, 0.42, 0.3)
-            }
-        })
-        .collect();
-    let shadow = |i: u32| {
+/// The test scene with a striped texture on its table, `true_scene`, and `baked`, the same with
+/// a soft shadow baked into that texture (down to 45% in a blob the views see).
+struct BakedTable {
+    true_scene: Scene,
+    baked: Scene,
+    /// The true texture's texels, `N`×`N`.
+    stripes: Vec<Vec3>,
+}
+
+impl BakedTable {
+    const N: u32 = 64;
+
+    fn new(lights: Vec<SphereLight>) -> Self {
+        use lightprobe::scene::Texture;
+        let n = Self::N;
+        let stripes: Vec<Vec3> = (0..n * n)
+            .map(|i| {
+                if (i % n / 8).is_multiple_of(2) {
+                    Vec3::new(0.7, 0.6, 0.45)
+                } else {
+                    Vec3::new(0.5, 0.42, 0.3)
+                }
+            })
+            .collect();
+        let texture = |texels: Vec<Vec3>| Albedo::Texture {
+            texture: std::sync::Arc::new(Texture {
+                width: n,
+                height: n,
+                texels,
+            }),
+            factor: Vec3::ONE,
+        };
+        let mut sc = scene(lights);
+        // The table with texture coordinates over its 2 m × 2 m, texels 3 cm wide.
+        let mut mesh = lightprobe::scene::Mesh::default();
+        let p = [
+            Vec3::new(-1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, -1.0),
+            Vec3::new(1.0, 0.0, 1.0),
+            Vec3::new(-1.0, 0.0, 1.0),
+        ];
+        let uv = [
+            glam::Vec2::new(0.0, 0.0),
+            glam::Vec2::new(1.0, 0.0),
+            glam::Vec2::new(1.0, 1.0),
+            glam::Vec2::new(0.0, 1.0),
+        ];
+        mesh.push(&p, None, Some(&uv), &[0, 2, 1, 0, 3, 2], 0);
+        let rest = {
+            let mut m = sc.mesh.clone();
+            let first = 2; // the plane's two triangles come first
+            m.triangles.drain(..first);
+            m.triangle_material.drain(..first);
+            m
+        };
+        // Rebuild: the textured plane, then the ball and the box as `scene` made them.
+        let mut whole = mesh;
+        let offset = whole.positions.len() as u32;
+        whole.positions.extend(&rest.positions);
+        whole.normals.extend(&rest.normals);
+        whole.uvs.extend(&rest.uvs);
+        whole.colors.extend(&rest.colors);
+        whole
+            .triangles
+            .extend(rest.triangles.iter().map(|t| t.map(|i| i + offset)));
+        whole.triangle_material.extend(&rest.triangle_material);
+        sc.mesh = whole;
+        sc.materials[0].albedo = texture(stripes.clone());
+        let mut baked = sc.clone();
+        baked.materials[0].albedo = texture(
+            stripes
+                .iter()
+                .enumerate()
+                .map(|(i, t)| *t * Self::shadow(i as u32))
+                .collect(),
+        );
+        BakedTable {
+            true_scene: sc,
+            baked,
+            stripes,
+        }
+    }
+
+    /// The factor baked into texel `i`.
+    fn shadow(i: u32) -> f32 {
+        let n = Self::N;
         let (u, v) = (
             (i % n) as f32 / n as f32 - 0.62,
             (i / n) as f32 / n as f32 - 0.72,
         );
         1.0 - 0.55 * (-(u * u + v * v) / (2.0 * 0.12f32.powi(2))).exp()
-    };
-    let texture = |texels: Vec<Vec3>| Albedo::Texture {
-        texture: std::sync::Arc::new(Texture {
-            width: n,
-            height: n,
-            texels,
-        }),
-        factor: Vec3::ONE,
-    };
-    let mut sc = scene(vec![]);
-    // The table with texture coordinates over its 2 m × 2 m, texels 3 cm wide.
-    let mut mesh = lightprobe::scene::Mesh::default();
-    let p = [
-        Vec3::new(-1.0, 0.0, -1.0),
-        Vec3::new(1.0, 0.0, -1.0),
-        Vec3::new(1.0, 0.0, 1.0),
-        Vec3::new(-1.0, 0.0, 1.0),
-    ];
-    let uv = [
-        glam::Vec2::new(0.0, 0.0),
-        glam::Vec2::new(1.0, 0.0),
-        glam::Vec2::new(1.0, 1.0),
-        glam::Vec2::new(0.0, 1.0),
-    ];
-    mesh.push(&p, None, Some(&uv), &[0, 2, 1, 0, 3, 2], 0);
-    let rest = {
-        let mut m = sc.mesh.clone();
-        let first = 2; // the plane's two triangles come first
-        m.triangles.drain(..first);
-        m.triangle_material.drain(..first);
-        m
-    };
-    // Rebuild: the textured plane, then the ball and the box as `scene` made them.
-    let mut whole = mesh;
-    let offset = whole.positions.len() as u32;
-    whole.positions.extend(&rest.positions);
-    whole.normals.extend(&rest.normals);
-    whole.uvs.extend(&rest.uvs);
-    whole.colors.extend(&rest.colors);
-    whole
-        .triangles
-        .extend(rest.triangles.iter().map(|t| t.map(|i| i + offset)));
-    whole.triangle_material.extend(&rest.triangle_material);
-    sc.mesh = whole;
-    sc.materials[0].albedo = texture(stripes.clone());
+    }
+
+    /// Mean relative error (worst channel) of the table's fitted texture × factor against the
+    /// true texture, over the texels the views see (texture coordinates at their pixel
+    /// centres, rendered by `truth`) and over those inside the shadow (darkened by more than
+    /// 20%).
+    fn texture_error(
+        &self,
+        truth: &Renderer,
+        e: &lightprobe::estimate::job::Estimate,
+    ) -> (f64, f64) {
+        let n = Self::N;
+        let mut seen_texel = vec![false; (n * n) as usize];
+        for cam in &self.true_scene.cameras {
+            let aovs = truth.aovs(cam);
+            let ids = truth.material_ids(cam);
+            for (uv, id) in aovs.uv.iter().zip(ids) {
+                if id == 0 && uv.is_finite() {
+                    let (x, y) = ((uv.x * n as f32) as u32, (uv.y * n as f32) as u32);
+                    seen_texel[(y.min(n - 1) * n + x.min(n - 1)) as usize] = true;
+                }
+            }
+        }
+        let Albedo::Texture { texture, factor } = &e.materials.as_ref().unwrap()[0].albedo else {
+            panic!("the table stays textured");
+        };
+        let (mut all, mut inside) = ((0.0f64, 0usize), (0.0f64, 0usize));
+        for (i, t) in texture.texels.iter().enumerate() {
+            if seen_texel[i] {
+                let rel = (*t * *factor / self.stripes[i] - Vec3::ONE)
+                    .abs()
+                    .max_element() as f64;
+                all = (all.0 + rel, all.1 + 1);
+                if Self::shadow(i as u32) < 0.8 {
+                    inside = (inside.0 + rel, inside.1 + 1);
+                }
+            }
+        }
+        assert!(inside.1 > 100, "the views see the shadow");
+        (all.0 / all.1 as f64, inside.0 / inside.1 as f64)
+    }
+}
+
+#[test]
+fn shading_baked_into_a_texture_is_taken_out_by_texels() {
+    // The references show the true texture under a 3-ring sky. `--fit-albedo materials` can
+    // only rescale the whole texture; `texels` must take most of the shadow out (texture
+    // error over the seen texels well under half the materials fit's), keep the stripes, and
+    // fit the lighting as well as with the true texture.
+    use lightprobe::estimate::albedo::FitAlbedo;
+    use lightprobe::estimate::job::{self, EstimateSettings, Job, References, Rings};
+    let table = BakedTable::new(vec![]);
+    let sc = &table.true_scene;
     let lights = Lights::env(three_ring_sky());
-    let truth = Renderer::new(&sc, &lights);
+    let truth = Renderer::new(sc, &lights);
     let render = settings(256, 1);
-    let (refs, _) = render_all(&truth, &sc, 256, 1);
+    let (refs, _) = render_all(&truth, sc, 256, 1);
     let seen = job::observe(&truth, &render, References::Images(refs), &()).unwrap();
-    let mut baked = sc.clone();
-    baked.materials[0].albedo = texture(
-        stripes
-            .iter()
-            .enumerate()
-            .map(|(i, t)| *t * shadow(i as u32))
-            .collect(),
-    );
-    let fit = truth.with_scene(&baked, &lights);
+    let fit = truth.with_scene(&table.baked, &lights);
     let run = |fit_albedo, fit: &Renderer| {
         let settings = EstimateSettings {
             rings: Rings::Fixed(3),
@@ -2019,41 +2082,13 @@ fn shading_baked_into_a_texture_is_taken_out_by_texels() {
         };
         job::run(&job, &()).unwrap()
     };
-    // Texels the views see (texture coordinates at the views' pixel centres on the table).
-    let mut seen_texel = vec![false; (n * n) as usize];
-    for cam in &sc.cameras {
-        let aovs = truth.aovs(cam);
-        let ids = truth.material_ids(cam);
-        for (uv, id) in aovs.uv.iter().zip(ids) {
-            if id == 0 && uv.is_finite() {
-                let (x, y) = ((uv.x * n as f32) as u32, (uv.y * n as f32) as u32);
-                seen_texel[(y.min(n - 1) * n + x.min(n - 1)) as usize] = true;
-            }
-        }
-    }
-    // Mean relative error (worst channel) of the fitted texture × factor over the seen texels,
-    // and over those inside the shadow (darkened by more than 20%).
-    let texture_error = |e: &lightprobe::estimate::job::Estimate| {
-        let Albedo::Texture { texture, factor } = &e.materials.as_ref().unwrap()[0].albedo else {
-            panic!("the table stays textured");
-        };
-        let (mut all, mut inside) = ((0.0f64, 0usize), (0.0f64, 0usize));
-        for (i, t) in texture.texels.iter().enumerate() {
-            if seen_texel[i] {
-                let rel = (*t * *factor / stripes[i] - Vec3::ONE).abs().max_element() as f64;
-                all = (all.0 + rel, all.1 + 1);
-                if shadow(i as u32) < 0.8 {
-                    inside = (inside.0 + rel, inside.1 + 1);
-                }
-            }
-        }
-        assert!(inside.1 > 100, "the views see the shadow");
-        (all.0 / all.1 as f64, inside.0 / inside.1 as f64)
-    };
     let exact = run(None, &truth).report.rel_mae.unwrap();
     let materials = run(Some(FitAlbedo::Materials), &fit);
     let texels = run(Some(FitAlbedo::Texels), &fit);
-    let (e_materials, e_texels) = (texture_error(&materials), texture_error(&texels));
+    let (e_materials, e_texels) = (
+        table.texture_error(&truth, &materials),
+        table.texture_error(&truth, &texels),
+    );
     let report = texels.report.albedo.as_ref().unwrap();
     let (rel_materials, rel_texels) = (
         materials.report.rel_mae.unwrap(),
@@ -2079,4 +2114,86 @@ fn shading_baked_into_a_texture_is_taken_out_by_texels() {
     // and keeps the level (about 1) outside.
     assert!(fit.range[1] > 1.7 && fit.range[0] > 0.85, "{fit:?}");
     assert!(fit.cells_seen > 100 && fit.clamped_texels == 0, "{fit:?}");
+}
+
+#[test]
+fn texels_are_corrected_beside_per_view_exposures() {
+    // Photographs at two exposures (2 and 0.6) of the table with its true texture under a near
+    // light; the fit's texture has the shadow baked in. `--fit-albedo texels --exposure
+    // per-view` with one sphere light must give back the exposures' ratio, take the shadow out
+    // of the texture as a fit at one exposure does, and fit the light as well.
+    use lightprobe::estimate::albedo::FitAlbedo;
+    use lightprobe::estimate::job::{
+        self, EstimateSettings, Exposure, Job, LightModel, References,
+    };
+    let table = BakedTable::new(vec![NEAR_LIGHT]);
+    let sc = &table.true_scene;
+    let lights = Lights::new(sc.lights.clone());
+    let truth = Renderer::new(sc, &lights);
+    let render = settings(128, 1);
+    let (refs, _) = render_all(&truth, sc, 256, 1);
+    let applied = [2.0f32, 0.6];
+    let mut photos = refs.clone();
+    for (img, s) in photos.iter_mut().zip(applied) {
+        img.rgb.iter_mut().for_each(|p| *p *= s);
+    }
+    let fit = truth.with_scene(&table.baked, &lights);
+    let run = |refs: &[Image], exposure| {
+        let seen = job::observe(&truth, &render, References::Images(refs.to_vec()), &()).unwrap();
+        let settings = EstimateSettings {
+            model: LightModel::Spheres(Some(1)),
+            spp: 256,
+            noise_floor: false,
+            fit_albedo: Some(FitAlbedo::Texels),
+            trust_albedo: vec!["ball".into()],
+            texel_grid: 16,
+            exposure,
+            ..EstimateSettings::new(&sc.settings)
+        };
+        let job = Job {
+            fit: &fit,
+            ..Job::new(&truth, &seen, &render, &settings)
+        };
+        job::run(&job, &()).unwrap()
+    };
+    let shared = run(&refs, Exposure::Shared);
+    let per_view = run(&photos, Exposure::PerView);
+    let report = per_view.report.exposure.as_ref().unwrap();
+    let e: Vec<f64> = report.relative.iter().map(|v| v.exposure).collect();
+    let want = (applied[0] / applied[1]) as f64;
+    assert!(
+        ((e[0] / e[1]) / want - 1.0).abs() < 0.01 && ((e[0] * e[1]).sqrt() - 1.0).abs() < 1e-6,
+        "exposures {e:?}, want ratio {want}"
+    );
+    let (e_shared, e_per_view) = (
+        table.texture_error(&truth, &shared),
+        table.texture_error(&truth, &per_view),
+    );
+    let rel = |e: &job::Estimate| e.spheres.as_ref().unwrap().rel_mae().unwrap();
+    let (rel_shared, rel_per_view) = (rel(&shared), rel(&per_view));
+    eprintln!(
+        "exposures {e:?} ({} fits); texture error (all, in the shadow): one exposure \
+         {e_shared:?}, per view {e_per_view:?}; relMAE {rel_shared:.4}, {rel_per_view:.4}",
+        report.fits
+    );
+    // The shadow (down to 45%, an error of up to 120% as given) is taken out as well.
+    assert!(
+        e_per_view.1 < 0.1 && e_per_view.1 < 1.5 * e_shared.1 + 0.01,
+        "texture error in the shadow: one exposure {e_shared:?}, per view {e_per_view:?}"
+    );
+    assert!(
+        rel_per_view < 1.1 * rel_shared,
+        "relMAE one exposure {rel_shared}, per view {rel_per_view}"
+    );
+    // The light in the unit of the exposures' geometric mean: the one-exposure fit's light
+    // times it.
+    let power =
+        |e: &job::Estimate| estimate::spheres::power(&e.spheres.as_ref().unwrap().fit.lights()[0]);
+    let mean = (applied[0] * applied[1]).sqrt();
+    let ratio = power(&per_view) / (mean * power(&shared));
+    assert!(
+        (ratio - 1.0).abs() < 0.03,
+        "power / (one exposure's × mean exposure) = {ratio}; one exposure's / true {}",
+        power(&shared) / estimate::spheres::power(&NEAR_LIGHT)
+    );
 }
