@@ -706,7 +706,7 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
     }
     for t in &a.texels {
         lines.push(format!(
-            "  {:<14} grid {}×{}, {} of its cells seen by {} px; multipliers {:.2} to {:.2}, last change {:.2}%{}; {}",
+            "  {:<14} grid {}×{}, {} of its cells seen by {} px; multipliers {:.2} to {:.2}{}, last change {:.2}%{}; {}",
             t.material,
             t.grid[0],
             t.grid[1],
@@ -714,6 +714,11 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
             t.pixels,
             t.range[0],
             t.range[1],
+            t.sigma.map_or(String::new(), |[median, largest]| format!(
+                " (σ {:.1}% median, {:.1}% largest)",
+                100.0 * median,
+                100.0 * largest
+            )),
             100.0 * t.last_change,
             if t.clamped_texels > 0 {
                 format!(", {} texels clamped to albedo 1", t.clamped_texels)

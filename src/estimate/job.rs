@@ -1227,17 +1227,21 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 continue;
             };
             let mut sums = texels::TexelSums::new(size);
-            for (v, ids) in pixels.ids.iter().enumerate() {
-                for (i, &id) in ids.iter().enumerate() {
-                    if id as usize == m {
-                        sums.add(
-                            pixels.uv[v][i],
-                            references[v].rgb[i],
-                            x1[v].rgb[i],
-                            x2[v].rgb[i],
-                        );
-                    }
-                }
+            // The material's pixels: texture coordinates, reference, the two re-renders.
+            let (uvs, x1, x2) = (&pixels.uv, &x1, &x2);
+            let material_pixels = || {
+                pixels.ids.iter().enumerate().flat_map(move |(v, ids)| {
+                    ids.iter()
+                        .enumerate()
+                        .filter(move |&(_, &id)| id as usize == m)
+                        .map(move |(i, _)| {
+                            let at = |img: &[Image]| img[v].rgb[i];
+                            (uvs[v][i], at(references), at(x1), at(x2))
+                        })
+                })
+            };
+            for (uv, y, a, b) in material_pixels() {
+                sums.add(uv, y, a, b);
             }
             let Some(c) = sums.solve(settings.texel_smoothness) else {
                 if rounds == 1 {
@@ -1249,6 +1253,12 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 }
                 continue;
             };
+            for (uv, y, a, b) in material_pixels() {
+                sums.add_residual(uv, y, a, b, &c);
+            }
+            let sigma = sums
+                .sigma(settings.texel_smoothness)
+                .and_then(|s| c.relative_sigma(&s));
             let level = sums.level(&c);
             let c = c.divided(level);
             let (corrected, clamped, moved) = c.apply(texture, *factor);
@@ -1268,6 +1278,7 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 range: [1.0, 1.0],
                 last_change: moved,
                 clamped_texels: clamped,
+                sigma,
                 file: crate::scene::export::albedo_texture_file(m, &material.name),
             };
             fits[t] = Some((c, fit));

@@ -56,6 +56,9 @@ pub const MAX_TEXEL_SMOOTHNESS: f64 = 1e6;
 /// seen cell's data, it only decides cells no pixel sees.
 pub const UNSEEN_PULL: f64 = 1e-3;
 
+/// Most cells of a grid whose standard deviations [`TexelSums::sigma`] measures (a 64×64 grid).
+pub const MAX_SIGMA_CELLS: usize = 4096;
+
 /// Pixel-weighted RMS change of a correction below which the texel rounds stop.
 pub const TEXEL_TOLERANCE: f64 = 0.02;
 
@@ -94,6 +97,11 @@ pub struct TexelFit {
     pub last_change: f64,
     /// Texels the bound (texel × factor within [0, 1]) clamped in the last round.
     pub clamped_texels: usize,
+    /// One standard deviation of the last round's correction relative to it, over the cells
+    /// the pixels see (a cell's worst lit channel): the median and the largest. From the
+    /// residuals ([`TexelSums::sigma`]): noise, and misfit as if it were noise. Null for
+    /// grids of more than [`MAX_SIGMA_CELLS`] cells.
+    pub sigma: Option<[f64; 2]>,
     /// The corrected texture as the glTF exports refer to it, relative to each:
     /// `albedo_textures/…` (8-bit sRGB PNG of texel × factor, the factor then 1).
     pub file: String,
@@ -157,6 +165,10 @@ pub struct TexelSums {
     pub seen: Vec<f64>,
     /// Pixels added.
     pub pixels: usize,
+    /// As `gram`, of `Σ_p w_pi w_pj x̄_p² r_p²` with `r_p` a pixel's residual under a fitted
+    /// correction ([`TexelSums::add_residual`]): the spread of the right-hand side, for
+    /// [`TexelSums::sigma`].
+    spread: Vec<[DVec3; 9]>,
 }
 
 impl TexelSums {
@@ -170,6 +182,7 @@ impl TexelSums {
             carried: vec![DVec3::ZERO; n],
             seen: vec![0.0; n],
             pixels: 0,
+            spread: vec![[DVec3::ZERO; 9]; n],
         }
     }
 
@@ -219,6 +232,24 @@ impl TexelSums {
         self.pixels += 1;
     }
 
+    /// Adds the residual of a pixel [`TexelSums::add`] took, under the correction `c` solved
+    /// from these sums: what the references and the re-renders left unexplained, noise and
+    /// misfit both.
+    pub fn add_residual(&mut self, uv: Vec2, y: Vec3, x1: Vec3, x2: Vec3, c: &Correction) {
+        let Some(taps) = taps(uv, self.width, self.height) else {
+            return;
+        };
+        let mean = (x1.as_dvec3() + x2.as_dvec3()) * 0.5;
+        let r = y.as_dvec3() - mean * c.at(uv);
+        let meat = mean * mean * r * r;
+        for &(a, wa) in &taps {
+            for &(b, wb) in &taps {
+                let k = self.slot(a, b);
+                self.spread[a][k] += wa * wb * meat;
+            }
+        }
+    }
+
     /// The factor by which `c` changes the pixels' summed re-render, per channel (1 where
     /// nothing is lit): a correction divided by it keeps the material's level and changes its
     /// pattern only.
@@ -231,41 +262,51 @@ impl TexelSums {
         DVec3::select(total.cmpgt(DVec3::ZERO), moved / total, DVec3::ONE)
     }
 
+    /// Channel `ch`'s system `H = G + μ·(membrane) + ε·I` (lower triangle and upper alike)
+    /// and ε, for membrane weight `smoothness`; `None` when nothing is lit in the channel.
+    fn system(&self, ch: usize, smoothness: f64) -> Option<(SparseColMat<usize, f64>, f64)> {
+        let n = self.gram.len();
+        let seen_cells: Vec<usize> = (0..n).filter(|&a| self.seen[a] > 0.0).collect();
+        let diag = seen_cells.iter().map(|&a| self.gram[a][4][ch]).sum::<f64>()
+            / seen_cells.len().max(1) as f64;
+        if diag <= 0.0 || diag.is_nan() {
+            return None;
+        }
+        let (mu, eps) = (smoothness.max(0.0) * diag, UNSEEN_PULL * diag);
+        let mut triplets = Vec::with_capacity(n * 9);
+        for a in 0..n {
+            let mut row = [0.0f64; 9];
+            for (k, g) in self.gram[a].iter().enumerate() {
+                row[k] = g[ch];
+            }
+            row[4] += eps;
+            for k in [1, 3, 5, 7] {
+                row[4] += mu;
+                row[k] -= mu;
+            }
+            for (k, &v) in row.iter().enumerate() {
+                if v != 0.0 {
+                    triplets.push(Triplet::new(self.neighbour(a, k), a, v));
+                }
+            }
+        }
+        let h = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).ok()?;
+        Some((h, eps))
+    }
+
     /// The correction minimising the module's objective with membrane weight `smoothness`;
     /// `None` when no pixel was added or a channel's system is not positive definite.
     pub fn solve(&self, smoothness: f64) -> Option<Correction> {
         let n = self.gram.len();
-        let seen_cells: Vec<usize> = (0..n).filter(|&a| self.seen[a] > 0.0).collect();
-        if seen_cells.is_empty() {
+        if !self.seen.iter().any(|&s| s > 0.0) {
             return None;
         }
         let mut cells = vec![DVec3::ONE; n];
         for ch in 0..3 {
-            let diag = seen_cells.iter().map(|&a| self.gram[a][4][ch]).sum::<f64>()
-                / seen_cells.len() as f64;
-            if diag <= 0.0 || diag.is_nan() {
-                // Nothing lit in this channel: nothing to correct.
+            // Nothing lit in this channel: nothing to correct.
+            let Some((h, eps)) = self.system(ch, smoothness) else {
                 continue;
-            }
-            let (mu, eps) = (smoothness.max(0.0) * diag, UNSEEN_PULL * diag);
-            let mut triplets = Vec::with_capacity(n * 9);
-            for a in 0..n {
-                let mut row = [0.0f64; 9];
-                for (k, g) in self.gram[a].iter().enumerate() {
-                    row[k] = g[ch];
-                }
-                row[4] += eps;
-                for k in [1, 3, 5, 7] {
-                    row[4] += mu;
-                    row[k] -= mu;
-                }
-                for (k, &v) in row.iter().enumerate() {
-                    if v != 0.0 {
-                        triplets.push(Triplet::new(self.neighbour(a, k), a, v));
-                    }
-                }
-            }
-            let h = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).ok()?;
+            };
             let llt = h.sp_cholesky(faer::Side::Lower).ok()?;
             let b = faer::Mat::<f64>::from_fn(n, 1, |a, _| self.rhs[a][ch] + eps);
             let c = llt.solve(b);
@@ -283,6 +324,51 @@ impl TexelSums {
             cells,
             seen: self.seen.clone(),
         })
+    }
+
+    /// One standard deviation of each cell of `c` (solved with `smoothness`), per channel:
+    /// the sandwich `H⁻¹ S H⁻¹` with S the residuals' spread ([`TexelSums::add_residual`],
+    /// which must have seen every pixel), so it holds whatever noise the references and the
+    /// re-renders carry, and misfit as if it were noise; the prior's bias is not in it. `None`
+    /// beyond [`MAX_SIGMA_CELLS`] cells (the columns of `H⁻¹` are solved for one by one) or
+    /// where a system is not positive definite. 0 in channels with no light.
+    pub fn sigma(&self, smoothness: f64) -> Option<Vec<DVec3>> {
+        let n = self.gram.len();
+        if n > MAX_SIGMA_CELLS {
+            return None;
+        }
+        let mut out = vec![DVec3::ZERO; n];
+        for ch in 0..3 {
+            let Some((h, _)) = self.system(ch, smoothness) else {
+                continue;
+            };
+            let llt = h.sp_cholesky(faer::Side::Lower).ok()?;
+            // Columns of H⁻¹ in blocks; the variance of cell i is xᵢᵀ S xᵢ, x = H⁻¹eᵢ.
+            const BLOCK: usize = 256;
+            for start in (0..n).step_by(BLOCK) {
+                let k = BLOCK.min(n - start);
+                let x = llt.solve(faer::Mat::<f64>::from_fn(n, k, |a, j| {
+                    f64::from(a == start + j)
+                }));
+                for j in 0..k {
+                    let mut v = 0.0;
+                    for a in 0..n {
+                        let xa = x[(a, j)];
+                        if xa == 0.0 {
+                            continue;
+                        }
+                        for (slot, s) in self.spread[a].iter().enumerate() {
+                            v += xa * s[ch] * x[(self.neighbour(a, slot), j)];
+                        }
+                    }
+                    if !v.is_finite() {
+                        return None;
+                    }
+                    out[start + j][ch] = v.max(0.0).sqrt();
+                }
+            }
+        }
+        Some(out)
     }
 }
 
@@ -382,6 +468,26 @@ impl Correction {
     }
 
     /// Cells pixels see.
+    /// The median and the largest of `sigma` (per cell, as [`TexelSums::sigma`] gives)
+    /// relative to the cells, over the cells the pixels see (each cell's worst channel among
+    /// those with a correction above 0); `None` when no cell is seen.
+    pub fn relative_sigma(&self, sigma: &[DVec3]) -> Option<[f64; 2]> {
+        let mut rel: Vec<f64> = (0..self.cells.len())
+            .filter(|&a| self.seen[a] > 0.0)
+            .map(|a| {
+                (0..3)
+                    .filter(|&ch| self.cells[a][ch] > 0.0)
+                    .map(|ch| sigma[a][ch] / self.cells[a][ch])
+                    .fold(0.0f64, f64::max)
+            })
+            .collect();
+        if rel.is_empty() {
+            return None;
+        }
+        rel.sort_by(f64::total_cmp);
+        Some([rel[rel.len() / 2], rel[rel.len() - 1]])
+    }
+
     pub fn cells_seen(&self) -> usize {
         self.seen.iter().filter(|&&w| w > 0.0).count()
     }
@@ -488,6 +594,71 @@ mod tests {
             "{} beside {next}",
             c.cells[hole]
         );
+    }
+
+    /// References with noise (its deviation growing with the pixel's brightness), 200 draws:
+    /// the stated standard deviation of each cell matches the cells' scatter over the draws.
+    /// With a faint prior every cell does; with a firm one (0.3) the prior bends the blob,
+    /// and that misfit in the residuals overstates a few cells (never understates).
+    #[test]
+    fn stated_deviations_match_the_scatter_over_noisy_references() {
+        let (w, h) = (6u32, 5u32);
+        let n = (w * h) as usize;
+        let truth =
+            |uv: Vec2| 1.0 - 0.4 * (-(uv - Vec2::new(0.4, 0.5)).length_squared() / 0.05).exp();
+        let gauss = |seed: &mut u64| {
+            let (u1, u2) = (rng(seed).max(1e-300), rng(seed));
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let draws = 200;
+        for (smoothness, lowest) in [(0.01, 0.7), (0.3, 0.5)] {
+            let (mut sum, mut sum2, mut stated) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+            let mut seed = 17;
+            for _ in 0..draws {
+                // The same pixels every draw (a capture's geometry), new noise.
+                let mut at = 99;
+                let pixels: Vec<(Vec2, Vec3, Vec3)> = (0..3000)
+                    .map(|_| {
+                        let uv = Vec2::new(rng(&mut at) as f32, rng(&mut at) as f32);
+                        let x = Vec3::splat((0.2 + 0.6 * rng(&mut at)) as f32);
+                        let clean = x.x as f64 * truth(uv) as f64;
+                        let y = clean * (1.0 + 0.1 * gauss(&mut seed));
+                        (uv, Vec3::splat(y as f32), x)
+                    })
+                    .collect();
+                let mut sums = TexelSums::new((w, h));
+                for &(uv, y, x) in &pixels {
+                    sums.add(uv, y, x, x);
+                }
+                let c = sums.solve(smoothness).expect("solved");
+                for &(uv, y, x) in &pixels {
+                    sums.add_residual(uv, y, x, x, &c);
+                }
+                let sigma = sums.sigma(smoothness).expect("measured");
+                for a in 0..n {
+                    sum[a] += c.cells[a].x;
+                    sum2[a] += c.cells[a].x * c.cells[a].x;
+                    stated[a] += sigma[a].x / draws as f64;
+                }
+            }
+            let mut ratios: Vec<f64> = (0..n)
+                .map(|a| {
+                    let mean = sum[a] / draws as f64;
+                    let scatter = (sum2[a] / draws as f64 - mean * mean).max(0.0).sqrt();
+                    scatter / stated[a]
+                })
+                .collect();
+            ratios.sort_by(f64::total_cmp);
+            // 200 draws: a deviation's own scatter is about 5%.
+            assert!(
+                (0.85..1.15).contains(&ratios[n / 2]) && ratios[0] > lowest && ratios[n - 1] < 1.4,
+                "smoothness {smoothness}: scatter over stated, sorted: {ratios:?}"
+            );
+        }
+        // Without a residual seen, the spread is nil: no deviation is claimed from nothing.
+        let mut empty = TexelSums::new((w, h));
+        empty.add(Vec2::new(0.5, 0.5), Vec3::ONE, Vec3::ONE, Vec3::ONE);
+        assert!(empty.sigma(0.3).unwrap().iter().all(|s| *s == DVec3::ZERO));
     }
 
     /// Noisy re-renders: the cross product keeps the fit unbiased where the square of one

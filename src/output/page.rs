@@ -719,16 +719,17 @@ fn texels_section(
          table's ratios are of the texels alone (fitted over given, where pixels see them); the \
          change map is of the albedo as rendered, fitted over given less 1 (mean of the \
          channels), the material's multiplier included: shading baked into the given texture \
-         shows as a brightened patch.</p><table><tr><th>material</th><th>grid</th>\
+         shows as a brightened patch. σ: one standard deviation of the correction, relative, \
+         over the cells pixels see (from the residuals: noise, and misfit as if noise).</p><table><tr><th>material</th><th>grid</th>\
          <th>cells seen</th><th>pixels</th><th>least texel ratio</th><th>largest</th>\
-         <th>last change</th><th>texels clamped</th></tr>",
+         <th>last change</th><th>texels clamped</th><th>σ median</th><th>σ largest</th></tr>",
         span(r, "albedo.texel_rounds", Format::Integer),
     );
     for (i, fit) in fits.iter().enumerate() {
         let p = format!("albedo.texels.{i}");
         let _ = writeln!(
             h,
-            "<tr><td>{}</td><td>{}×{}</td>{}{}{}{}{}{}</tr>",
+            "<tr><td>{}</td><td>{}×{}</td>{}{}{}{}{}{}{}{}</tr>",
             escape(fit["material"].as_str().unwrap_or("")),
             span(r, &format!("{p}.grid.0"), Format::Integer),
             span(r, &format!("{p}.grid.1"), Format::Integer),
@@ -738,6 +739,8 @@ fn texels_section(
             cell(r, &format!("{p}.range.1"), Format::Ratio),
             cell(r, &format!("{p}.last_change"), Format::Percent),
             cell(r, &format!("{p}.clamped_texels"), Format::Integer),
+            cell(r, &format!("{p}.sigma.0"), Format::Percent),
+            cell(r, &format!("{p}.sigma.1"), Format::Percent),
         );
     }
     h.push_str("</table>\n");
