@@ -384,9 +384,6 @@ pub struct MaterialSums {
     pub materials: Vec<usize>,
     /// Per set.
     pub sums: Vec<NormalEquations>,
-    /// Per channel, each set's Gram ([`NormalEquations::gram`]: a projection onto the PSD cone,
-    /// an eigendecomposition), made once for the observability and the joint fit of a pass.
-    grams: std::sync::OnceLock<[Vec<Vec<f64>>; 3]>,
 }
 
 /// One transport pass whose normal equations are kept per material, for the materials `wanted`
@@ -416,7 +413,6 @@ pub fn material_sums(
             grid,
             materials,
             sums: Vec::new(),
-            grams: Default::default(),
         };
     }
     let set_of = |p: (usize, u32)| pixels.of(p).and_then(|m| set_of_material[m]);
@@ -447,7 +443,6 @@ pub fn material_sums(
         grid,
         materials,
         sums: sums.swap_remove(0),
-        grams: Default::default(),
     }
 }
 
@@ -457,14 +452,6 @@ pub fn material_parts(settings: &FitSettings) -> usize {
 }
 
 impl MaterialSums {
-    /// Channel `ch`'s Gram of every set.
-    fn grams(&self, ch: usize) -> &[Vec<f64>] {
-        &self
-            .grams
-            .get_or_init(|| std::array::from_fn(|c| self.sums.iter().map(|s| s.gram(c)).collect()))
-            [ch]
-    }
-
     /// Each material's observability (the module doc) under `envmap`, per material of the
     /// scene: `None` for those not `free` or not in a set, or unlit; else the least of its
     /// lit channels'. The sets of materials not free hold the scale; without any, `weights`
@@ -484,8 +471,9 @@ impl MaterialSums {
         let set_weights: Vec<f64> = self.materials.iter().map(|&m| weights[m]).collect();
         let per_channel: Vec<Vec<Option<f64>>> = (0..3)
             .map(|ch| {
+                let grams: Vec<Vec<f64>> = self.sums.iter().map(|s| s.gram(ch)).collect();
                 let l: Vec<f64> = lambda.iter().map(|v| v[ch]).collect();
-                observability_of(self.grams(ch), &l, &set_free, &set_weights)
+                observability_of(&grams, &l, &set_free, &set_weights)
             })
             .collect();
         for (s, &m) in self.materials.iter().enumerate() {
@@ -524,7 +512,7 @@ impl MaterialSums {
         let mut radiance = vec![Vec3::ZERO; self.grid.cell_count()];
         let mut stalled = false;
         for ch in 0..3 {
-            let grams: Vec<Vec<f64>> = used.iter().map(|&s| self.grams(ch)[s].clone()).collect();
+            let grams: Vec<Vec<f64>> = used.iter().map(|&s| self.sums[s].gram(ch)).collect();
             let tb: Vec<Vec<f64>> = used.iter().map(|&s| self.sums[s].tb(ch)).collect();
             let lower: Vec<f64> = (0..n_sets).map(|s| bounds[material(s)].0[ch]).collect();
             let upper: Vec<f64> = (0..n_sets).map(|s| bounds[material(s)].1[ch]).collect();
