@@ -155,16 +155,19 @@ pub struct ExposureReport {
     /// divided by it is what the lighting explains). The overall scale is not identifiable
     /// from the references: the lighting is in units of the geometric-mean exposure.
     pub relative: Vec<ViewExposure>,
-    /// Fits made, alternating lighting and exposures.
+    /// Fits made, alternating lighting and exposures (with `--fit-albedo texels`, over every
+    /// texel round's alternation).
     pub fits: usize,
     /// Whether the exposures converged: the last fit asks for less than
-    /// [`EXPOSURE_TOLERANCE`]'s change. When not, the exposures (and the lighting) are still
-    /// moving: the views may not share a scene (swapped photographs?), or the model fits them
-    /// too poorly to tell exposure from lighting.
+    /// [`EXPOSURE_TOLERANCE`]'s change (with texels: the last round's last fit). When not,
+    /// the exposures (and the lighting) are still moving: the views may not share a scene
+    /// (swapped photographs?), or the model fits them too poorly to tell exposure from
+    /// lighting.
     pub converged: bool,
     /// Largest relative change of an exposure the last fit (the one with every sample) asks
-    /// for: how far the exposures reported are from converged. The alternation stops below
-    /// [`EXPOSURE_TOLERANCE`] or after [`MAX_ALTERNATION_FITS`] fits.
+    /// for: how far the exposures reported are from converged. An alternation stops below
+    /// [`EXPOSURE_TOLERANCE`] or after [`MAX_ALTERNATION_FITS`] fits (with texels, each
+    /// round's; the next round starts from where it ended).
     pub last_change: f64,
 }
 
@@ -803,15 +806,20 @@ pub enum FitStatus {
 ///
 /// With [`FitAlbedo::Texels`], texel rounds follow ([`run_texels`]).
 pub fn run(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
-    let estimate = run_materials(job, progress)?;
+    let estimate = run_materials(job, None, progress)?;
     match job.settings.fit_albedo {
         Some(FitAlbedo::Texels) => run_texels(job, estimate, progress),
         _ => Ok(estimate),
     }
 }
 
-/// [`run`] up to the materials' albedo.
-fn run_materials(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
+/// [`run`] up to the materials' albedo; with `--exposure per-view` the alternation starts from
+/// `exposures` (per seen view, relative to their geometric mean) where given, else from 1.
+fn run_materials(
+    job: &Job,
+    exposures: Option<&[f64]>,
+    progress: &dyn Progress,
+) -> Result<Estimate> {
     let per_view = job.settings.exposure == Exposure::PerView;
     if !per_view && job.settings.fit_albedo.is_none() {
         return run_once(job, progress);
@@ -839,6 +847,9 @@ fn run_materials(job: &Job, progress: &dyn Progress) -> Result<Estimate> {
     // Natural logarithms of the exposures, then of each material's multiplier per channel:
     // the alternation's map is close to linear in them.
     let mut x = vec![0.0f64; n_views + 3 * materials * fitting.is_some() as usize];
+    for (x, e) in x[..n_views].iter_mut().zip(exposures.into_iter().flatten()) {
+        *x = e.ln();
+    }
     let mut history: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
     let pixels: u64 = original
         .views
@@ -1177,8 +1188,8 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
         .collect();
     let seen = job.seen;
     // `--exposure per-view`: each view's exposure so far (relative to their geometric mean).
-    // The texels are fitted to the references over them, and each round's fit starts from
-    // references scaled by them, so it fits what is left (near 1) and the exposures multiply.
+    // The texels are fitted to the references over them, and each round's alternation starts
+    // from them.
     let mut exposures: Option<Vec<f64>> = first
         .report
         .exposure
@@ -1219,8 +1230,7 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             };
             fit.render_views(&seen.views, &settings, &|n| progress.advance(n))
         });
-        let scaled = exposures.as_ref().map(|e| seen.with_exposures(e));
-        let references = &scaled.as_ref().unwrap_or(seen).references;
+        let over_exposure = |v: usize| exposures.as_ref().map_or(1.0, |e| (1.0 / e[v]) as f32);
         let mut change = 0.0f64;
         for (t, &(m, size)) in targets.iter().enumerate() {
             let Albedo::Texture { texture, factor } = &scene.materials[m].albedo else {
@@ -1236,7 +1246,8 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                         .filter(move |&(_, &id)| id as usize == m)
                         .map(move |(i, _)| {
                             let at = |img: &[Image]| img[v].rgb[i];
-                            (uvs[v][i], at(references), at(x1), at(x2))
+                            let y = at(&seen.references) * over_exposure(v);
+                            (uvs[v][i], y, at(x1), at(x2))
                         })
                 })
             };
@@ -1310,18 +1321,15 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             &Job {
                 fit: &fit,
                 truth: &truth,
-                seen: scaled.as_ref().unwrap_or(seen),
                 settings: &round,
                 render: &render,
                 ..*job
             },
+            exposures.as_deref(),
             progress,
         )?;
-        if let (Some(e), Some(report)) = (exposures.as_mut(), next.report.exposure.as_mut()) {
-            for (e, v) in e.iter_mut().zip(report.relative.iter_mut()) {
-                *e *= v.exposure;
-                v.exposure = *e;
-            }
+        if let Some(report) = next.report.exposure.as_mut() {
+            exposures = Some(report.relative.iter().map(|v| v.exposure).collect());
             report.fits += estimate.report.exposure.as_ref().map_or(0, |p| p.fits);
         }
         let report = next

@@ -467,7 +467,6 @@ impl Correction {
         self
     }
 
-    /// Cells pixels see.
     /// The median and the largest of `sigma` (per cell, as [`TexelSums::sigma`] gives)
     /// relative to the cells, over the cells the pixels see (each cell's worst channel among
     /// those with a correction above 0); `None` when no cell is seen.
@@ -488,6 +487,7 @@ impl Correction {
         Some([rel[rel.len() / 2], rel[rel.len() - 1]])
     }
 
+    /// Cells pixels see.
     pub fn cells_seen(&self) -> usize {
         self.seen.iter().filter(|&&w| w > 0.0).count()
     }
