@@ -4,8 +4,10 @@
 References are rendered from the bundled scene (the true table texture); the estimates run in
 `scenes/tabletop/baked_shadow/baked_shadow.ron` (the same scene, the table's texture darkened
 to 40% in a soft blob; scripts/make_baked_shadow.py) with `--model spheres:2`, the white
-sphere trusted: the albedo as given, `--fit-albedo materials`, and `--fit-albedo texels`; and
-in the bundled scene with the true texture for the floor. Writes `summary.json` (per run the
+sphere trusted: the albedo as given, `--fit-albedo materials`, and `--fit-albedo texels`; the
+texels again with the references as photographs at two exposures (each view's scaled by
+EXPOSURES) and `--exposure per-view`; and in the bundled scene with the true texture for the
+floor. Writes `summary.json` (per run the
 relMAEs, the fit test, times, each material's albedo, and the table texture's error against
 the true one over all texels, inside the blob and outside) and each run's report.json and
 the texels run's page figures.
@@ -58,6 +60,22 @@ def read_linear(path):
     return load_maker().srgb_to_linear(np.asarray(Image.open(path).convert("RGB"), dtype=np.float64) / 255.0)
 
 
+# The exposures the per-view run's references are taken at, per view (cam_front, cam_side).
+EXPOSURES = {"cam_front": 1.5, "cam_side": 0.6}
+
+
+def scaled_references(refs, dest):
+    """Each view's reference EXR times its EXPOSURES factor (alpha, the coverage, kept)."""
+    import mitsuba as mi
+
+    mi.set_variant("scalar_rgb")
+    dest.mkdir()
+    for view, factor in EXPOSURES.items():
+        rgba = np.array(mi.Bitmap(str(refs / f"{view}.exr")), dtype=np.float32)
+        rgba[..., :3] *= factor
+        mi.Bitmap(rgba, mi.Bitmap.PixelFormat.RGBA).write(str(dest / f"{view}.exr"))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bin", default=str(ROOT / "target" / "release" / "lightprobe"))
@@ -73,18 +91,22 @@ def main():
     baked = str(SCENES / "baked_shadow" / "baked_shadow.ron")
     trust = ["--trust-albedo", "sphere_white"]
     grid = ["--texel-grid", str(a.texel_grid)] if a.texel_grid else []
+    photos = work / "photos"
+    scaled_references(refs, photos)
     runs = {
         "true_texture": [str(SCENES / "tabletop.ron")],
         "as_given": [baked],
         "materials": [baked, "--fit-albedo", "materials", *trust],
         "texels": [baked, "--fit-albedo", "texels", *trust, *grid],
+        "texels_per_view": [baked, "--fit-albedo", "texels", *trust, *grid, "--exposure", "per-view"],
     }
     summary = {"model": "spheres:2", "trusted": "sphere_white", "runs": {}}
     baked_texture = read_linear(SCENES / "baked_shadow" / "table_baked.png")
     for name, args in runs.items():
         dest = work / name
         subprocess.run(
-            [a.bin, "estimate", *args, "--reference", str(refs), "--model", "spheres:2", "-o", str(dest), "--quiet"],
+            [a.bin, "estimate", *args, "--reference", str(photos if name == "texels_per_view" else refs),
+             "--model", "spheres:2", "-o", str(dest), "--quiet"],
             check=True,
         )
         report = json.loads((dest / "report.json").read_text())
@@ -104,6 +126,15 @@ def main():
             "fit_test_residual_over_noise": (report.get("fit_test") or {}).get("residual_over_noise"),
             "total_seconds": report["timings"]["total_seconds"],
         }
+        if report.get("exposure"):
+            # Fitted against applied, both relative to their geometric mean.
+            applied = np.array(list(EXPOSURES.values()))
+            applied = applied / np.exp(np.log(applied).mean())
+            row["exposures"] = {
+                "fitted": [v["exposure"] for v in report["exposure"]["relative"]],
+                "applied": applied.tolist(),
+                "fits": report["exposure"]["fits"],
+            }
         if name != "true_texture":
             multiplier = [1.0, 1.0, 1.0]
             texture = baked_texture
