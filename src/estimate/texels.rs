@@ -326,7 +326,8 @@ impl TexelSums {
         })
     }
 
-    /// One standard deviation of each cell of `c` (solved with `smoothness`), per channel:
+    /// One standard deviation of each cell of the correction [`TexelSums::solve`] gives with
+    /// `smoothness`, per channel:
     /// the sandwich `H⁻¹ S H⁻¹` with S the residuals' spread ([`TexelSums::add_residual`],
     /// which must have seen every pixel), so it holds whatever noise the references and the
     /// re-renders carry, and misfit as if it were noise; the prior's bias is not in it. `None`
