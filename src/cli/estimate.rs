@@ -714,11 +714,17 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
             t.pixels,
             t.range[0],
             t.range[1],
-            t.sigma.map_or(String::new(), |[median, largest]| format!(
-                " (σ {:.1}% median, {:.1}% largest)",
-                100.0 * median,
-                100.0 * largest
-            )),
+            t.sigma.map_or(
+                format!(
+                    " (no σ: measured on grids of at most {} cells)",
+                    lightprobe::estimate::texels::MAX_SIGMA_CELLS
+                ),
+                |[median, largest]| format!(
+                    " (σ {:.1}% median, {:.1}% largest)",
+                    100.0 * median,
+                    100.0 * largest
+                )
+            ),
             100.0 * t.last_change,
             if t.clamped_texels > 0 {
                 format!(", {} texels clamped to albedo 1", t.clamped_texels)

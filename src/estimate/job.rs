@@ -372,6 +372,10 @@ impl EstimateSettings {
                 crate::scene::Albedo::Constant(_) => 0,
             })
             .sum();
+        let texture_count = materials
+            .iter()
+            .filter(|m| matches!(m.albedo, crate::scene::Albedo::Texture { .. }))
+            .count();
         let materials = materials.len();
         let groups = if self.diagnose && self.colour == Colour::PerChannel {
             JACKKNIFE_GROUPS as usize
@@ -407,13 +411,25 @@ impl EstimateSettings {
             }
             None => 0,
         };
-        // Texels: two re-renders and the coordinates per pixel; one texture's sums and its
-        // sparse factor (a grid's Cholesky fills in to about 100 entries a row); a corrected
+        // Texels: two re-renders and the coordinates per pixel; one texture's sums (488 bytes
+        // a cell) and its sparse factor (a grid's Cholesky fills in to about 100 entries a
+        // row); every texture's sums and correction kept for the deviations when the grid is
+        // small enough to measure them, and one measurement's blocks of columns; a corrected
         // copy of every texture and an export's copy of one.
         let texel = match self.fit_albedo {
             Some(FitAlbedo::Texels) => {
                 let cells = (self.texel_grid as u64).pow(2);
-                pixels * (2 * 16 + 8) + cells * (9 * 24 + 56 + 100 * 16) + 2 * 12 * texture_texels
+                let textures = texture_count as u64;
+                let (kept, sigma) = if cells <= texels::MAX_SIGMA_CELLS as u64 {
+                    (textures * cells * (488 + 32), cells * 2 * 256 * 8)
+                } else {
+                    (0, 0)
+                };
+                pixels * (2 * 16 + 8)
+                    + cells * (488 + 100 * 16)
+                    + kept
+                    + sigma
+                    + 2 * 12 * texture_texels
             }
             _ => 0,
         };
@@ -1231,27 +1247,30 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
             fit.render_views(&seen.views, &settings, &|n| progress.advance(n))
         });
         let over_exposure = |v: usize| exposures.as_ref().map_or(1.0, |e| (1.0 / e[v]) as f32);
+        // Material m's pixels: texture coordinates, reference, the two re-renders.
+        let (uvs, x1, x2) = (&pixels.uv, &x1, &x2);
+        let material_pixels = |m: usize| {
+            pixels.ids.iter().enumerate().flat_map(move |(v, ids)| {
+                ids.iter()
+                    .enumerate()
+                    .filter(move |&(_, &id)| id as usize == m)
+                    .map(move |(i, _)| {
+                        let at = |img: &[Image]| img[v].rgb[i];
+                        let y = at(&seen.references) * over_exposure(v);
+                        (uvs[v][i], y, at(x1), at(x2))
+                    })
+            })
+        };
         let mut change = 0.0f64;
+        // Per target whose deviations can be measured: its sums and its correction as solved,
+        // kept until the round is known to be the last (only the last round's are reported).
+        let mut unmeasured: Vec<(usize, texels::TexelSums, texels::Correction)> = Vec::new();
         for (t, &(m, size)) in targets.iter().enumerate() {
             let Albedo::Texture { texture, factor } = &scene.materials[m].albedo else {
                 continue;
             };
             let mut sums = texels::TexelSums::new(size);
-            // The material's pixels: texture coordinates, reference, the two re-renders.
-            let (uvs, x1, x2) = (&pixels.uv, &x1, &x2);
-            let material_pixels = || {
-                pixels.ids.iter().enumerate().flat_map(move |(v, ids)| {
-                    ids.iter()
-                        .enumerate()
-                        .filter(move |&(_, &id)| id as usize == m)
-                        .map(move |(i, _)| {
-                            let at = |img: &[Image]| img[v].rgb[i];
-                            let y = at(&seen.references) * over_exposure(v);
-                            (uvs[v][i], y, at(x1), at(x2))
-                        })
-                })
-            };
-            for (uv, y, a, b) in material_pixels() {
+            for (uv, y, a, b) in material_pixels(m) {
                 sums.add(uv, y, a, b);
             }
             let Some(c) = sums.solve(settings.texel_smoothness) else {
@@ -1264,13 +1283,8 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 }
                 continue;
             };
-            for (uv, y, a, b) in material_pixels() {
-                sums.add_residual(uv, y, a, b, &c);
-            }
-            let sigma = sums
-                .sigma(settings.texel_smoothness)
-                .and_then(|s| c.relative_sigma(&s));
             let level = sums.level(&c);
+            let solved = sums.measures_sigma().then(|| c.clone());
             let c = c.divided(level);
             let (corrected, clamped, moved) = c.apply(texture, *factor);
             // A NaN change is no convergence.
@@ -1289,10 +1303,13 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 range: [1.0, 1.0],
                 last_change: moved,
                 clamped_texels: clamped,
-                sigma,
+                sigma: None,
                 file: crate::scene::export::albedo_texture_file(m, &material.name),
             };
             fits[t] = Some((c, fit));
+            if let Some(solved) = solved {
+                unmeasured.push((t, sums, solved));
+            }
             scene.materials[m].albedo = Albedo::Texture {
                 texture: std::sync::Arc::new(corrected),
                 factor: *factor,
@@ -1309,6 +1326,19 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
         // A round that will not be the last fits as the alternation's first fits do: what it
         // must give is the next round's lighting, not the report's figures.
         let last = change < texels::TEXEL_TOLERANCE || rounds == texels::MAX_TEXEL_ROUNDS;
+        if last {
+            for (t, mut sums, c) in unmeasured {
+                let (m, _) = targets[t];
+                for (uv, y, a, b) in material_pixels(m) {
+                    sums.add_residual(uv, y, a, b, &c);
+                }
+                if let Some((_, fit)) = fits[t].as_mut() {
+                    fit.sigma = sums
+                        .sigma(settings.texel_smoothness)
+                        .and_then(|s| c.relative_sigma(&s));
+                }
+            }
+        }
         let (round, render) = if last {
             (settings.clone(), *job.render)
         } else {

@@ -100,7 +100,8 @@ pub struct TexelFit {
     /// One standard deviation of the last round's correction relative to it, over the cells
     /// the pixels see (a cell's worst lit channel): the median and the largest. From the
     /// residuals ([`TexelSums::sigma`]): noise, and misfit as if it were noise. Null for
-    /// grids of more than [`MAX_SIGMA_CELLS`] cells.
+    /// grids of more than 4096 cells ([`MAX_SIGMA_CELLS`]: `--texel-grid` above 64) and
+    /// where the system is not positive definite.
     pub sigma: Option<[f64; 2]>,
     /// The corrected texture as the glTF exports refer to it, relative to each:
     /// `albedo_textures/…` (8-bit sRGB PNG of texel × factor, the factor then 1).
@@ -165,9 +166,9 @@ pub struct TexelSums {
     pub seen: Vec<f64>,
     /// Pixels added.
     pub pixels: usize,
-    /// As `gram`, of `Σ_p w_pi w_pj x̄_p² r_p²` with `r_p` a pixel's residual under a fitted
-    /// correction ([`TexelSums::add_residual`]): the spread of the right-hand side, for
-    /// [`TexelSums::sigma`].
+    /// As `gram`, of `Σ_p w_pi w_pj s_p²` with `s_p = x̄_p y_p − x¹_p x²_p c(uv_p)` a pixel's
+    /// score under a fitted correction c ([`TexelSums::add_residual`]): the spread of the
+    /// estimating equation, for [`TexelSums::sigma`].
     spread: Vec<[DVec3; 9]>,
 }
 
@@ -239,15 +240,22 @@ impl TexelSums {
         let Some(taps) = taps(uv, self.width, self.height) else {
             return;
         };
-        let mean = (x1.as_dvec3() + x2.as_dvec3()) * 0.5;
-        let r = y.as_dvec3() - mean * c.at(uv);
-        let meat = mean * mean * r * r;
+        // The pixel's term of the estimating equation the solve zeroes, `Σ w (x̄y − x¹x²c)`:
+        // its spread is the sandwich's meat.
+        let (x1, x2) = (x1.as_dvec3(), x2.as_dvec3());
+        let score = (x1 + x2) * 0.5 * y.as_dvec3() - x1 * x2 * c.at(uv);
+        let meat = score * score;
         for &(a, wa) in &taps {
             for &(b, wb) in &taps {
                 let k = self.slot(a, b);
                 self.spread[a][k] += wa * wb * meat;
             }
         }
+    }
+
+    /// Whether [`TexelSums::sigma`] measures this grid (at most [`MAX_SIGMA_CELLS`] cells).
+    pub fn measures_sigma(&self) -> bool {
+        self.gram.len() <= MAX_SIGMA_CELLS
     }
 
     /// The factor by which `c` changes the pixels' summed re-render, per channel (1 where
@@ -334,10 +342,10 @@ impl TexelSums {
     /// beyond [`MAX_SIGMA_CELLS`] cells (the columns of `H⁻¹` are solved for one by one) or
     /// where a system is not positive definite. 0 in channels with no light.
     pub fn sigma(&self, smoothness: f64) -> Option<Vec<DVec3>> {
-        let n = self.gram.len();
-        if n > MAX_SIGMA_CELLS {
+        if !self.measures_sigma() {
             return None;
         }
+        let n = self.gram.len();
         let mut out = vec![DVec3::ZERO; n];
         for ch in 0..3 {
             let Some((h, _)) = self.system(ch, smoothness) else {
@@ -597,8 +605,9 @@ mod tests {
         );
     }
 
-    /// References with noise (its deviation growing with the pixel's brightness), 200 draws:
-    /// the stated standard deviation of each cell matches the cells' scatter over the draws.
+    /// References and both re-renders with noise (its deviation growing with the pixel's
+    /// brightness), 200 draws: the stated standard deviation of each cell matches the cells'
+    /// scatter over the draws.
     /// With a faint prior every cell does; with a firm one (0.3) the prior bends the blob,
     /// and that misfit in the residuals overstates a few cells (never understates).
     #[test]
@@ -618,22 +627,24 @@ mod tests {
             for _ in 0..draws {
                 // The same pixels every draw (a capture's geometry), new noise.
                 let mut at = 99;
-                let pixels: Vec<(Vec2, Vec3, Vec3)> = (0..3000)
+                let pixels: Vec<(Vec2, Vec3, Vec3, Vec3)> = (0..3000)
                     .map(|_| {
                         let uv = Vec2::new(rng(&mut at) as f32, rng(&mut at) as f32);
-                        let x = Vec3::splat((0.2 + 0.6 * rng(&mut at)) as f32);
-                        let clean = x.x as f64 * truth(uv) as f64;
-                        let y = clean * (1.0 + 0.1 * gauss(&mut seed));
-                        (uv, Vec3::splat(y as f32), x)
+                        let x = 0.2 + 0.6 * rng(&mut at);
+                        let y = x * truth(uv) as f64 * (1.0 + 0.1 * gauss(&mut seed));
+                        let mut render =
+                            || Vec3::splat((x * (1.0 + 0.05 * gauss(&mut seed))) as f32);
+                        let (x1, x2) = (render(), render());
+                        (uv, Vec3::splat(y as f32), x1, x2)
                     })
                     .collect();
                 let mut sums = TexelSums::new((w, h));
-                for &(uv, y, x) in &pixels {
-                    sums.add(uv, y, x, x);
+                for &(uv, y, x1, x2) in &pixels {
+                    sums.add(uv, y, x1, x2);
                 }
                 let c = sums.solve(smoothness).expect("solved");
-                for &(uv, y, x) in &pixels {
-                    sums.add_residual(uv, y, x, x, &c);
+                for &(uv, y, x1, x2) in &pixels {
+                    sums.add_residual(uv, y, x1, x2, &c);
                 }
                 let sigma = sums.sigma(smoothness).expect("measured");
                 for a in 0..n {

@@ -720,7 +720,8 @@ fn texels_section(
          change map is of the albedo as rendered, fitted over given less 1 (mean of the \
          channels), the material's multiplier included: shading baked into the given texture \
          shows as a brightened patch. σ: one standard deviation of the correction, relative, \
-         over the cells pixels see (from the residuals: noise, and misfit as if noise).</p><table><tr><th>material</th><th>grid</th>\
+         over the cells pixels see (from the residuals: noise, and misfit as if noise); \
+         none on grids of more than 4096 cells.</p><table><tr><th>material</th><th>grid</th>\
          <th>cells seen</th><th>pixels</th><th>least texel ratio</th><th>largest</th>\
          <th>last change</th><th>texels clamped</th><th>σ median</th><th>σ largest</th></tr>",
         span(r, "albedo.texel_rounds", Format::Integer),
