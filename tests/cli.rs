@@ -1329,11 +1329,20 @@ fn estimate_runs_end_to_end_and_reports() {
         "5",
         "--spp",
         "16",
-        "--quiet",
         "--reference",
         out.join("reference").to_str().unwrap(),
     ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    // Not a terminal: a line as each phase starts and ends, up to the written outputs.
+    for line in [
+        "lightprobe: estimate: started",
+        "lightprobe: estimate: 100% after",
+        "lightprobe: writing outputs: started",
+        "lightprobe: writing outputs: 100% after",
+    ] {
+        assert!(stderr.contains(line), "{line:?} not in {stderr}");
+    }
     let env2 = lightprobe::envmap::Envmap::load(&out2.join("envmap.ron")).unwrap();
     assert_eq!(env.radiance(), env2.radiance());
     // --fit-only: the same envmap, no evaluation renders and no errors in the report.

@@ -1208,7 +1208,7 @@ fn sphere_fits_report_their_progress_as_they_go() {
     // A sphere model's phase counts its fit's renders, not only its re-render: with no
     // re-render at all (--fit-only) the bar moves in small steps while the fit runs (no
     // step, the last included, over a quarter of the phase), and reports exactly what it
-    // declared.
+    // declared. So does the phase of its intervals' renders after it.
     use lightprobe::estimate::job::{EstimateSettings, LightModel};
     for k in [1, 2] {
         let settings = EstimateSettings {
@@ -1218,37 +1218,41 @@ fn sphere_fits_report_their_progress_as_they_go() {
             ..EstimateSettings::new(&bundled_scene().settings)
         };
         let rec = Recorder::default();
-        let largest = std::sync::atomic::AtomicU64::new(0);
-        on_bundled_scene(&settings, &Largest(&rec, &largest));
+        let largest = Largest(&rec, Default::default());
+        on_bundled_scene(&settings, &largest);
+        let steps = largest.1.into_inner().unwrap();
         let phases = rec.0.into_inner().unwrap();
-        let (_, declared, done) = phases
-            .iter()
-            .find(|p| p.0 == "sphere lights")
-            .unwrap_or_else(|| panic!("spheres:{k}: {phases:?}"));
-        assert_eq!(done, declared, "spheres:{k}");
-        let largest = largest.into_inner();
-        assert!(
-            largest * 4 <= *declared,
-            "spheres:{k}: a step of {largest} of {declared}"
-        );
+        for name in ["sphere lights", "intervals"] {
+            let (_, declared, done) = phases
+                .iter()
+                .find(|p| p.0 == name)
+                .unwrap_or_else(|| panic!("spheres:{k}, {name}: {phases:?}"));
+            assert_eq!(done, declared, "spheres:{k}, {name}");
+            let largest = steps[name];
+            assert!(
+                largest * 4 <= *declared,
+                "spheres:{k}, {name}: a step of {largest} of {declared}"
+            );
+        }
     }
 }
 
-/// Keeps the largest advance of the "sphere lights" phase (and passes all on to a `Recorder`).
-struct Largest<'a>(&'a Recorder, &'a std::sync::atomic::AtomicU64);
+/// Keeps the largest advance of each phase (and passes all on to a `Recorder`).
+struct Largest<'a>(
+    &'a Recorder,
+    std::sync::Mutex<std::collections::HashMap<String, u64>>,
+);
 
 impl lightprobe::estimate::job::Progress for Largest<'_> {
     fn phase(&self, name: &str, units: u64) {
         self.0.phase(name, units);
     }
     fn advance(&self, units: u64) {
-        let phases = self.0.0.lock().unwrap();
-        let sphere = phases.last().is_some_and(|p| p.0 == "sphere lights");
-        drop(phases);
-        if sphere {
-            self.1
-                .fetch_max(units, std::sync::atomic::Ordering::Relaxed);
-        }
+        let name = self.0.0.lock().unwrap().last().unwrap().0.clone();
+        let mut steps = self.1.lock().unwrap();
+        let largest = steps.entry(name).or_default();
+        *largest = (*largest).max(units);
+        drop(steps);
         self.0.advance(units);
     }
 }

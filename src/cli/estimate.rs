@@ -8,7 +8,7 @@ use anyhow::Context;
 
 use lightprobe::Error;
 use lightprobe::estimate::job::{
-    self, EstimateReport, EstimateSettings, Exposure, Job, LightModel, References, Rings,
+    self, EstimateReport, EstimateSettings, Exposure, Job, LightModel, Progress, References, Rings,
 };
 use lightprobe::estimate::spheres::LightStatus;
 use lightprobe::output;
@@ -451,14 +451,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             100.0 * e.last_change
         ));
     }
-    for note in output::write_estimate(
+    // The images, maps, exports, figures and page: seconds on a large capture.
+    bars.phase("writing outputs", 1);
+    let notes = output::write_estimate(
         &a.out,
         Some(&scene),
         &mut estimate,
         &seen,
         a.reference.is_none(),
         t_all,
-    )? {
+    )?;
+    bars.advance(1);
+    bars.finish();
+    for note in notes {
         say(&format!("lightprobe: note: {note}"));
     }
     let report = &estimate.report;

@@ -2399,7 +2399,22 @@ fn fit_spheres(
             .refine
             .residual;
         let t = std::time::Instant::now();
+        // The radiance solve's render, then two half-sample renders at the lights and at
+        // each of their four parameters moved ([`super::spheres::uncertainty`]).
+        let renders = 2 + 4 * so.fit.fitted.len() as u64;
+        let bar = FitProgress::start(
+            progress,
+            "intervals",
+            &[1],
+            (0, 0),
+            renders * residual.spp as u64 * all_fitted,
+        );
+        let all = Observations {
+            progress: Some(&|k| bar.fitted(k)),
+            ..all
+        };
         super::spheres::measure_intervals(job.fit, &all, &mut so.fit.fitted, job.center, &residual);
+        bar.finish();
         t.elapsed().as_secs_f64()
     };
     if !choose {
