@@ -837,6 +837,25 @@ fn cases() -> Vec<Case> {
             "scene.ron: --trust-albedo names material \"marble\", which the scene does not have",
         ),
         c(
+            "estimate fitting the albedo and per-view exposures while choosing the model",
+            vec![("scene.ron", sidecar("", LIGHT))],
+            &[
+                "estimate",
+                "{d}/scene.ron",
+                "--out",
+                "{d}/out",
+                "--fit-albedo",
+                "materials",
+                "--exposure",
+                "per-view",
+                "--model",
+                "auto",
+                "--quiet",
+            ]
+            .to_vec(),
+            "fitting the albedo and per-view exposures together needs one light model",
+        ),
+        c(
             "estimate fitting the albedo without the evaluation",
             vec![("scene.ron", sidecar("", LIGHT))],
             &[

@@ -104,8 +104,9 @@ pub struct Args {
     /// from the light (lit only by light no other material sees), is kept as given and
     /// reported so; it takes two such materials sharing light, or one beside a trusted one.
     /// report.json's "albedo" lists every material's given and fitted albedo; the written
-    /// glTF, Blender and Mitsuba scenes carry the fitted one. With --exposure per-view it
-    /// needs --model spheres or spheres:K. `texels` then corrects each fitted textured
+    /// glTF, Blender and Mitsuba scenes carry the fitted one. With --exposure per-view the
+    /// exposures alternate around these fits (with the envmap, each a joint fit); not with
+    /// --model auto. `texels` then corrects each fitted textured
     /// material's texture by a grid of multipliers (--texel-grid cells, smooth by
     /// --texel-smoothness) from the pixels that see it, and fits the lighting again, up to 3
     /// rounds: shading baked into a photographed texture is taken out where the lighting does

@@ -296,12 +296,12 @@ impl EstimateSettings {
         }
         if self.fit_albedo.is_some()
             && self.exposure == Exposure::PerView
-            && matches!(self.model, LightModel::Envmap | LightModel::Auto)
+            && self.model == LightModel::Auto
         {
             return Err(Error::Invalid(
-                "fitting the albedo and per-view exposures together needs a sphere model \
-                 (--model spheres or spheres:K): with the envmap the albedo is fitted jointly \
-                 with the lighting, and that joint fit has no exposures yet"
+                "fitting the albedo and per-view exposures together needs one light model \
+                 (--model envmap, spheres or spheres:K), not --model auto: each of the \
+                 alternation's fits would choose a model again"
                     .into(),
             ));
         }
@@ -816,6 +816,10 @@ pub enum FitStatus {
 /// reported as the last change; at most [`MAX_ALTERNATION_FITS`] fits in all. Ratios of sums,
 /// not least-squares slopes: the render's noise would bias a slope low.
 ///
+/// The envmap's albedo is fitted jointly with it ([`run_joint`]), not by ratios: with
+/// per-view exposures, each of the alternation's fits is a joint fit and only the exposures
+/// alternate.
+///
 /// A fitted albedo is judged in its own scene too when the job judges in the scene it fits
 /// in (`fit` and `truth` share a scene: a user's estimate); a sweep trial's truth keeps its
 /// true albedo, so its errors measure the lighting alone.
@@ -840,7 +844,10 @@ fn run_materials(
     if !per_view && job.settings.fit_albedo.is_none() {
         return run_once(job, progress);
     }
-    if !per_view && job.settings.model == LightModel::Envmap {
+    // The envmap's albedo is fitted jointly with it; with per-view exposures, each of the
+    // alternation's fits is such a joint fit.
+    let joint = job.settings.fit_albedo.is_some() && job.settings.model == LightModel::Envmap;
+    if !per_view && joint {
         return run_joint(job, progress);
     }
     job.settings.check()?;
@@ -848,8 +855,8 @@ fn run_materials(
     let original = job.seen;
     let (mut settings, mut render) = first_fits(job);
     let mut fitting = match job.settings.fit_albedo {
-        Some(_) => Some(AlbedoFit::new(job, progress)?),
-        None => None,
+        Some(_) if !joint => Some(AlbedoFit::new(job, progress)?),
+        _ => None,
     };
     // The scene the lighting is fitted in, its materials set to the current albedo each fit.
     let mut scene = fitting.as_ref().map(|_| job.fit.scene.clone());
@@ -894,17 +901,19 @@ fn run_materials(
             Some((f, t)) => (f, t),
             None => (job.fit, job.truth),
         };
-        let mut estimate = run_once(
-            &Job {
-                fit,
-                truth,
-                seen,
-                settings: &settings,
-                render: &render,
-                ..*job
-            },
-            progress,
-        )?;
+        let this = Job {
+            fit,
+            truth,
+            seen,
+            settings: &settings,
+            render: &render,
+            ..*job
+        };
+        let mut estimate = if joint {
+            run_joint(&this, progress)?
+        } else {
+            run_once(&this, progress)?
+        };
         // The lighting rendered in the scene it was fitted in: what the steps compare.
         let fitted_renders;
         let renders = match &fitting {
