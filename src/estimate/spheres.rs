@@ -1636,8 +1636,16 @@ impl Uncertainty {
 /// 326; a second or two).
 pub const MAX_INTERVAL_UNKNOWNS: usize = 330;
 
+/// Whether [`uncertainty`] measures intervals for `lights` sphere lights in front of
+/// `background`: the products it forms cost unknowns² × rows, so a fine background (25 rings:
+/// 2,214 radiance unknowns, hours) goes without, past [`MAX_INTERVAL_UNKNOWNS`].
+pub fn intervals_measured(lights: usize, background: Option<&RingGrid>) -> bool {
+    let unknowns = 4 * lights + 3 * (lights + background.map_or(0, |g| g.cell_count()));
+    unknowns <= MAX_INTERVAL_UNKNOWNS
+}
+
 /// [`Uncertainty`] of `lights` (with `radiance` per column) at the residual's settings; None
-/// past [`MAX_INTERVAL_UNKNOWNS`].
+/// where not [`intervals_measured`].
 pub fn uncertainty(
     renderer: &Renderer,
     obs: &Observations,
@@ -1657,11 +1665,7 @@ pub fn uncertainty(
         camera_sees_lights: false,
         ..*residual
     };
-    // The products below cost unknowns² × rows: a fine background (25 rings: 2,214 radiance
-    // unknowns) would take hours, so its lights go without intervals.
-    let unknowns =
-        4 * lights.len() + 3 * (lights.len() + obs.background.map_or(0, |g| g.cell_count()));
-    if unknowns > MAX_INTERVAL_UNKNOWNS {
+    if !intervals_measured(lights.len(), obs.background) {
         return None;
     }
     let polar: Vec<Polar> = lights.iter().map(|l| Polar::of(l, center)).collect();
@@ -1919,11 +1923,14 @@ pub fn measure_intervals(
     center: Vec3,
     residual: &RenderSettings,
 ) {
+    if !intervals_measured(fitted.len(), obs.background) {
+        // Not measured: the flags stay None rather than read as "not identified".
+        return;
+    }
     let l: Vec<SphereLight> = fitted.iter().map(|f| f.light).collect();
     let n = 4 * l.len();
     let (radiance, _) = solve_radiance(&sphere_problem(renderer, obs, &l, residual));
     let Some(unc) = uncertainty(renderer, obs, &l, &radiance, center, residual) else {
-        // Not measured: the flags stay None rather than read as "not identified".
         return;
     };
     for (j, f) in fitted.iter_mut().enumerate() {
@@ -1978,7 +1985,8 @@ pub fn measure_intervals(
 
 #[cfg(test)]
 mod tests {
-    use super::{FIT_PIXELS, fit_masks, line_search};
+    use super::{FIT_PIXELS, fit_masks, intervals_measured, line_search};
+    use crate::envmap::RingGrid;
     use crate::scene::Camera;
     use glam::Vec3;
 
@@ -2023,6 +2031,17 @@ mod tests {
         assert_eq!(fit_masks(&cams, &masks, 4, FIT_PIXELS), fit);
         let small: Vec<Vec<bool>> = masks[..1].to_vec();
         assert_eq!(fit_masks(&cams[..1], &small, 4, FIT_PIXELS), small);
+    }
+
+    #[test]
+    fn intervals_are_measured_up_to_eight_lights_before_a_nine_ring_background() {
+        // 4 parameters and 3 radiances per light, 3 radiances per background cell.
+        let nine = RingGrid::new(9);
+        assert_eq!(4 * 8 + 3 * (8 + nine.cell_count()), 326);
+        assert!(intervals_measured(8, Some(&nine)));
+        assert!(intervals_measured(40, None));
+        assert!(!intervals_measured(1, Some(&RingGrid::new(11))));
+        assert!(!intervals_measured(48, None));
     }
 
     #[test]
