@@ -70,7 +70,9 @@ fn render_reference_writes_images_aovs_and_report() {
         "depth,normal,albedo",
         "--quiet",
     ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(!stderr.contains(": started"), "--quiet: {stderr}");
     let want = [
         "cam_front.albedo.exr",
         "cam_front.depth.exr",
@@ -1509,9 +1511,17 @@ fn estimate_fits_the_albedo_and_writes_it_back() {
         "table",
         "--quiet",
     ]);
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert!(o.status.success(), "{stderr}");
     assert!(stdout.contains("albedo fitted per material"), "{stdout}");
+    // --quiet: no phase is announced, none counted in tenths (stderr is not a terminal).
+    assert!(
+        !stderr.contains(": started") && !stderr.contains("% after"),
+        "{stderr}"
+    );
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     let albedo = &report["albedo"];

@@ -1222,7 +1222,7 @@ fn sphere_fits_report_their_progress_as_they_go() {
         on_bundled_scene(&settings, &largest);
         let steps = largest.1.into_inner().unwrap();
         let phases = rec.0.into_inner().unwrap();
-        for name in ["sphere lights", "intervals"] {
+        for name in ["sphere lights", "sphere intervals"] {
             let (_, declared, done) = phases
                 .iter()
                 .find(|p| p.0 == name)
@@ -1257,6 +1257,27 @@ impl lightprobe::estimate::job::Progress for Largest<'_> {
     }
 }
 
+/// `sc` with two of its three materials' albedo off by up to 20% per channel.
+fn albedo_off(sc: &Scene) -> Scene {
+    let off = [
+        Vec3::ONE,
+        Vec3::new(0.85, 1.15, 0.9),
+        Vec3::new(1.2, 0.8, 1.1),
+    ];
+    let mut wrong = sc.clone();
+    for (m, k) in wrong.materials.iter_mut().zip(off) {
+        *m = m.scaled(k);
+    }
+    wrong
+}
+
+/// Each image times its exposure, as photographs at those exposures.
+fn at_exposures(images: &mut [Image], exposures: &[f32]) {
+    for (img, s) in images.iter_mut().zip(exposures) {
+        img.rgb.iter_mut().for_each(|p| *p *= s);
+    }
+}
+
 #[test]
 fn per_material_albedo_is_recovered_beside_the_lighting() {
     // The fit's scene has two of three materials' albedo off by up to 20% per channel; the
@@ -1272,15 +1293,7 @@ fn per_material_albedo_is_recovered_beside_the_lighting() {
     let render = settings(256, 1);
     let (refs, _) = render_all(&truth, &sc, 256, 1);
     let seen = job::observe(&truth, &render, References::Images(refs), &()).unwrap();
-    let off = [
-        Vec3::ONE,
-        Vec3::new(0.85, 1.15, 0.9),
-        Vec3::new(1.2, 0.8, 1.1),
-    ];
-    let mut wrong = sc.clone();
-    for (m, k) in wrong.materials.iter_mut().zip(off) {
-        *m = m.scaled(k);
-    }
+    let wrong = albedo_off(&sc);
     let fit = truth.with_scene(&wrong, &lights);
     let run = |fit_albedo, trust: &[&str], fit: &Renderer| {
         let settings = EstimateSettings {
@@ -1369,9 +1382,7 @@ fn per_view_exposures_are_recovered_and_the_lighting_is_in_their_geometric_mean(
     let render = settings(256, 1);
     let (mut refs, _) = render_all(&r, &sc, 256, 1);
     let applied = [2.0f32, 0.6];
-    for (img, s) in refs.iter_mut().zip(applied) {
-        img.rgb.iter_mut().for_each(|p| *p *= s);
-    }
+    at_exposures(&mut refs, &applied);
     let seen = job::observe(&r, &render, References::Images(refs), &()).unwrap();
     let run = |exposure| {
         let settings = EstimateSettings {
@@ -1432,19 +1443,9 @@ fn albedo_and_per_view_exposures_are_fitted_together_with_the_envmap() {
     let render = settings(256, 1);
     let (mut refs, _) = render_all(&truth, &sc, 256, 1);
     let applied = [2.0f32, 0.6];
-    for (img, s) in refs.iter_mut().zip(applied) {
-        img.rgb.iter_mut().for_each(|p| *p *= s);
-    }
+    at_exposures(&mut refs, &applied);
     let seen = job::observe(&truth, &render, References::Images(refs), &()).unwrap();
-    let off = [
-        Vec3::ONE,
-        Vec3::new(0.85, 1.15, 0.9),
-        Vec3::new(1.2, 0.8, 1.1),
-    ];
-    let mut wrong = sc.clone();
-    for (m, k) in wrong.materials.iter_mut().zip(off) {
-        *m = m.scaled(k);
-    }
+    let wrong = albedo_off(&sc);
     let fit = truth.with_scene(&wrong, &lights);
     let settings = EstimateSettings {
         rings: Rings::Fixed(3),
@@ -2140,6 +2141,7 @@ fn shading_baked_into_a_texture_is_taken_out_by_texels() {
     let (refs, _) = render_all(&truth, sc, 256, 1);
     let seen = job::observe(&truth, &render, References::Images(refs), &()).unwrap();
     let fit = truth.with_scene(&table.baked, &lights);
+    let progress = Recorder::default();
     let run = |fit_albedo, fit: &Renderer| {
         let settings = EstimateSettings {
             rings: Rings::Fixed(3),
@@ -2157,7 +2159,7 @@ fn shading_baked_into_a_texture_is_taken_out_by_texels() {
             fit,
             ..Job::new(&truth, &seen, &render, &settings)
         };
-        job::run(&job, &()).unwrap()
+        job::run(&job, &progress).unwrap()
     };
     let exact = run(None, &truth).report.rel_mae.unwrap();
     let materials = run(Some(FitAlbedo::Materials), &fit);
@@ -2197,6 +2199,15 @@ fn shading_baked_into_a_texture_is_taken_out_by_texels() {
         0.0 < median && median <= largest && largest < 0.2,
         "{fit:?}"
     );
+    // Every phase, the deviations' columns (three channels per cell) among them, reports
+    // exactly the work it declared.
+    let phases = progress.0.into_inner().unwrap();
+    let columns = 3 * (fit.grid[0] * fit.grid[1]) as u64;
+    assert!(
+        phases.contains(&("texel deviations".to_string(), columns, columns)),
+        "{phases:?}"
+    );
+    assert!(phases.iter().all(|p| p.1 == p.2), "{phases:?}");
 }
 
 #[test]
@@ -2217,9 +2228,7 @@ fn texels_are_corrected_beside_per_view_exposures() {
     let (refs, masks) = render_all(&truth, sc, 256, 1);
     let applied = [2.0f32, 0.6];
     let mut photos = refs.clone();
-    for (img, s) in photos.iter_mut().zip(applied) {
-        img.rgb.iter_mut().for_each(|p| *p *= s);
-    }
+    at_exposures(&mut photos, &applied);
     let fit = truth.with_scene(&table.baked, &lights);
     let run = |refs: &[Image], exposure| {
         let seen = job::observe(&truth, &render, References::Images(refs.to_vec()), &()).unwrap();

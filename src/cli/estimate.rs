@@ -721,10 +721,16 @@ fn albedo_summary(a: &AlbedoReport, seconds: f64) -> Vec<String> {
             t.range[0],
             t.range[1],
             t.sigma.map_or(
-                format!(
-                    " (no σ: measured on grids of at most {} cells)",
-                    lightprobe::estimate::texels::MAX_SIGMA_CELLS
-                ),
+                if (t.grid[0] as usize) * (t.grid[1] as usize)
+                    > lightprobe::estimate::texels::MAX_SIGMA_CELLS
+                {
+                    format!(
+                        " (no σ: measured on grids of at most {} cells)",
+                        lightprobe::estimate::texels::MAX_SIGMA_CELLS
+                    )
+                } else {
+                    " (no σ: its system could not be solved)".to_string()
+                },
                 |[median, largest]| format!(
                     " (σ {:.1}% median, {:.1}% largest)",
                     100.0 * median,

@@ -272,6 +272,13 @@ impl Bars {
     }
 }
 
+/// A command that fails part way clears its bar before its error is printed.
+impl Drop for Bars {
+    fn drop(&mut self) {
+        self.finish();
+    }
+}
+
 impl Progress for Bars {
     fn phase(&self, name: &str, units: u64) {
         if self.quiet {

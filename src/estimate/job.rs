@@ -418,13 +418,12 @@ impl EstimateSettings {
         // copy of every texture and an export's copy of one.
         let texel = match self.fit_albedo {
             Some(FitAlbedo::Texels) => {
+                // At most: a non-square texture's grid is narrower than `texel_grid` along
+                // its short side, and may be measured where a square one would not be.
                 let cells = (self.texel_grid as u64).pow(2);
+                let measured = cells.min(texels::MAX_SIGMA_CELLS as u64);
                 let textures = texture_count as u64;
-                let (kept, sigma) = if cells <= texels::MAX_SIGMA_CELLS as u64 {
-                    (textures * cells * (488 + 32), cells * 2 * 256 * 8)
-                } else {
-                    (0, 0)
-                };
+                let (kept, sigma) = (textures * measured * (488 + 32), measured * 2 * 256 * 8);
                 pixels * (2 * 16 + 8)
                     + cells * (488 + 100 * 16)
                     + kept
@@ -1283,12 +1282,24 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 sums.add(uv, y, a, b);
             }
             let Some(c) = sums.solve(settings.texel_smoothness) else {
-                if rounds == 1 {
-                    notes.push(format!(
-                        "material {:?}: its correction's system could not be solved (nothing \
-                         lit, or not positive definite); its texture is kept as given",
-                        scene.materials[m].name
-                    ));
+                // Said in any round: a later round's failure leaves the report with an earlier
+                // round's figures, and no σ.
+                let name = &scene.materials[m].name;
+                notes.push(if fits[t].is_some() {
+                    format!(
+                        "material {name:?}: round {rounds}'s correction system could not be \
+                         solved (not positive definite); its texture and figures are round \
+                         {}'s, without σ",
+                        rounds - 1
+                    )
+                } else {
+                    format!(
+                        "material {name:?}: its correction's system could not be solved \
+                         (nothing lit, or not positive definite); its texture is kept as given"
+                    )
+                });
+                if let Some((_, fit)) = fits[t].as_mut() {
+                    fit.sigma = None;
                 }
                 continue;
             };
@@ -1335,16 +1346,27 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
         // A round that will not be the last fits as the alternation's first fits do: what it
         // must give is the next round's lighting, not the report's figures.
         let last = change < texels::TEXEL_TOLERANCE || rounds == texels::MAX_TEXEL_ROUNDS;
-        if last {
+        if last && !unmeasured.is_empty() {
+            // A phase of its own: a 64×64 grid's columns take seconds.
+            let columns: u64 = unmeasured
+                .iter()
+                .map(|(_, _, c)| 3 * c.cells.len() as u64)
+                .sum();
+            progress.phase("texel deviations", columns);
             for (t, mut sums, c) in unmeasured {
                 let (m, _) = targets[t];
                 for (uv, y, a, b) in material_pixels(m) {
                     sums.add_residual(uv, y, a, b, &c);
                 }
+                // A system that fails part way reports the rest of its columns at its end.
+                let done = AtomicU64::new(0);
+                let sigma = sums.sigma(settings.texel_smoothness, &|k| {
+                    done.fetch_add(k, Ordering::Relaxed);
+                    progress.advance(k);
+                });
+                progress.advance((3 * c.cells.len() as u64).saturating_sub(done.into_inner()));
                 if let Some((_, fit)) = fits[t].as_mut() {
-                    fit.sigma = sums
-                        .sigma(settings.texel_smoothness)
-                        .and_then(|s| c.relative_sigma(&s));
+                    fit.sigma = sigma.and_then(|s| c.relative_sigma(&s));
                 }
             }
         }
@@ -2399,6 +2421,10 @@ fn fit_spheres(
     // compares, held-out ones included).
     let intervals = |so: &mut SphereOutcome| {
         let grid = so.fit.background.as_ref().map(|b| b.grid.clone());
+        // No phase for intervals that will not be measured: its bar would jump to its end.
+        if !super::spheres::intervals_measured(so.fit.fitted.len(), grid.as_ref()) {
+            return 0.0;
+        }
         let all = Observations {
             holdout: false,
             background: grid.as_ref(),
@@ -2413,7 +2439,7 @@ fn fit_spheres(
         let renders = 2 + 4 * so.fit.fitted.len() as u64;
         let bar = FitProgress::start(
             progress,
-            "intervals",
+            "sphere intervals",
             &[1],
             (0, 0),
             renders * residual.spp as u64 * all_fitted,

@@ -100,8 +100,8 @@ pub struct TexelFit {
     /// One standard deviation of the last round's correction relative to it, over the cells
     /// the pixels see (a cell's worst lit channel): the median and the largest. From the
     /// residuals ([`TexelSums::sigma`]): noise, and misfit as if it were noise. Null for
-    /// grids of more than 4096 cells ([`MAX_SIGMA_CELLS`]: `--texel-grid` above 64) and
-    /// where the system is not positive definite.
+    /// grids of more than 4096 cells ([`MAX_SIGMA_CELLS`]: a square texture's `--texel-grid`
+    /// above 64) and where the last round's system could not be solved.
     pub sigma: Option<[f64; 2]>,
     /// The corrected texture as the glTF exports refer to it, relative to each:
     /// `albedo_textures/…` (8-bit sRGB PNG of texel × factor, the factor then 1).
@@ -340,8 +340,9 @@ impl TexelSums {
     /// which must have seen every pixel), so it holds whatever noise the references and the
     /// re-renders carry, and misfit as if it were noise; the prior's bias is not in it. `None`
     /// beyond [`MAX_SIGMA_CELLS`] cells (the columns of `H⁻¹` are solved for one by one) or
-    /// where a system is not positive definite. 0 in channels with no light.
-    pub fn sigma(&self, smoothness: f64) -> Option<Vec<DVec3>> {
+    /// where a system is not positive definite. 0 in channels with no light. `solved(k)`
+    /// is told of every `k` columns done, `3 × cells` in all when it measures.
+    pub fn sigma(&self, smoothness: f64, solved: &dyn Fn(u64)) -> Option<Vec<DVec3>> {
         if !self.measures_sigma() {
             return None;
         }
@@ -349,6 +350,7 @@ impl TexelSums {
         let mut out = vec![DVec3::ZERO; n];
         for ch in 0..3 {
             let Some((h, _)) = self.system(ch, smoothness) else {
+                solved(n as u64);
                 continue;
             };
             let llt = h.sp_cholesky(faer::Side::Lower).ok()?;
@@ -375,6 +377,7 @@ impl TexelSums {
                     }
                     out[start + j][ch] = v.max(0.0).sqrt();
                 }
+                solved(k as u64);
             }
         }
         Some(out)
@@ -646,7 +649,11 @@ mod tests {
                 for &(uv, y, x1, x2) in &pixels {
                     sums.add_residual(uv, y, x1, x2, &c);
                 }
-                let sigma = sums.sigma(smoothness).expect("measured");
+                let columns = std::cell::Cell::new(0);
+                let sigma = sums
+                    .sigma(smoothness, &|k| columns.set(columns.get() + k))
+                    .expect("measured");
+                assert_eq!(columns.get(), 3 * n as u64);
                 for a in 0..n {
                     sum[a] += c.cells[a].x;
                     sum2[a] += c.cells[a].x * c.cells[a].x;
@@ -670,7 +677,13 @@ mod tests {
         // Without a residual seen, the spread is nil: no deviation is claimed from nothing.
         let mut empty = TexelSums::new((w, h));
         empty.add(Vec2::new(0.5, 0.5), Vec3::ONE, Vec3::ONE, Vec3::ONE);
-        assert!(empty.sigma(0.3).unwrap().iter().all(|s| *s == DVec3::ZERO));
+        assert!(
+            empty
+                .sigma(0.3, &|_| ())
+                .unwrap()
+                .iter()
+                .all(|s| *s == DVec3::ZERO)
+        );
     }
 
     /// Noisy re-renders: the cross product keeps the fit unbiased where the square of one

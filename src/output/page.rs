@@ -721,7 +721,7 @@ fn texels_section(
          channels), the material's multiplier included: shading baked into the given texture \
          shows as a brightened patch. σ: one standard deviation of the correction, relative, \
          over the cells pixels see (from the residuals: noise, and misfit as if noise); \
-         none on grids of more than 4096 cells.</p><table><tr><th>material</th><th>grid</th>\
+         none on grids of more than 4096 cells or where the system could not be solved.</p><table><tr><th>material</th><th>grid</th>\
          <th>cells seen</th><th>pixels</th><th>least texel ratio</th><th>largest</th>\
          <th>last change</th><th>texels clamped</th><th>σ median</th><th>σ largest</th></tr>",
         span(r, "albedo.texel_rounds", Format::Integer),
