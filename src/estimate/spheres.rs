@@ -1573,6 +1573,10 @@ fn residual_envmap(
             let acc = crate::render::RadianceAccumulator(&l);
             let frame =
                 with.render_some(cam, 3000 + v as u64, settings, &acc, Some(&fitted), &|_| {});
+            if let Some(progress) = obs.progress {
+                let lit = mask.iter().filter(|&&m| m).count() as u64;
+                progress(lit * settings.spp as u64);
+            }
             let pred = frame.into_image();
             Image {
                 rgb: reference
@@ -1589,7 +1593,14 @@ fn residual_envmap(
         holdout: obs.holdout,
         ..super::FitSettings::new(settings, rings, super::Solver::Nnls, 2 * settings.spp, 1)
     };
-    super::fit(renderer, obs.cameras, &residual, obs.masks, &fit, &|_| {}).envmap
+    // Its transport reports pixels, each lit at the fit's samples.
+    let spp = fit.transport.spp as u64;
+    let progress = |pixels: u64| {
+        if let Some(progress) = obs.progress {
+            progress(pixels * spp);
+        }
+    };
+    super::fit(renderer, obs.cameras, &residual, obs.masks, &fit, &progress).envmap
 }
 
 /// The joint covariance of a sphere model's parameters: per light its [`Polar`] coordinates
