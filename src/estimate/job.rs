@@ -913,8 +913,18 @@ fn run_materials(
         } else {
             run_once(&this, progress)?
         };
-        // The lighting rendered in the scene it was fitted in: what the steps compare.
-        let fitted_renders;
+        // The lighting rendered in the scene it was fitted in: what the steps compare. Seeds
+        // apart from the references' (rendered references share `render`'s).
+        let albedo_render = |r: Renderer| {
+            progress.phase("albedo render", pixels);
+            let first = pipeline::evaluation_settings(&render);
+            let settings = RenderSettings {
+                seed: first.seed.wrapping_add(ALBEDO_RENDER_SEED),
+                ..first
+            };
+            r.render_views(&original.views, &settings, &|k| progress.advance(k))
+        };
+        let (fitted_renders, fitted_scene);
         let renders = match &fitting {
             Some(f) => {
                 if f.observability.is_none() {
@@ -922,17 +932,21 @@ fn run_materials(
                     let f = fitting.as_mut().expect("fitting");
                     f.pass(fit, seen, envmap, &settings, &render, progress);
                 }
-                progress.phase("albedo render", pixels);
                 let lights = final_lights(&estimate.envmap, estimate.spheres.as_ref());
-                // Seeds apart from the references' (rendered references share `render`'s).
-                let first = pipeline::evaluation_settings(&render);
-                let settings = RenderSettings {
-                    seed: first.seed.wrapping_add(ALBEDO_RENDER_SEED),
-                    ..first
-                };
-                fitted_renders =
-                    fit.with_lights(&lights)
-                        .render_views(&original.views, &settings, &|k| progress.advance(k));
+                fitted_renders = albedo_render(fit.with_lights(&lights));
+                &fitted_renders
+            }
+            // A joint fit's renders are the judge's, which keeps its own albedo where it
+            // judges in another scene (a trial's truth): rendered again at the fitted albedo.
+            None if joint && !std::ptr::eq(job.fit.scene, job.truth.scene) => {
+                let mut scene = job.fit.scene.clone();
+                scene.materials = estimate
+                    .materials
+                    .clone()
+                    .expect("the joint fit sets the materials");
+                fitted_scene = scene;
+                let lights = final_lights(&estimate.envmap, None);
+                fitted_renders = albedo_render(job.fit.with_scene(&fitted_scene, &lights));
                 &fitted_renders
             }
             None => match &estimate.spheres {
@@ -1235,6 +1249,33 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
         .collect();
     // Per target, its last correction and its report.
     let mut fits: Vec<Option<(texels::Correction, TexelFit)>> = vec![None; targets.len()];
+    // Per target, the round its system last failed in, unless a later round solved it: said
+    // once the rounds are over (a later round's success makes an earlier failure moot).
+    let mut failed: Vec<Option<usize>> = vec![None; targets.len()];
+    let failure_notes = |failed: &[Option<usize>],
+                         fits: &[Option<(texels::Correction, TexelFit)>],
+                         scene: &crate::scene::Scene|
+     -> Vec<String> {
+        failed
+            .iter()
+            .enumerate()
+            .filter_map(|(t, r)| Some((t, (*r)?)))
+            .map(|(t, round)| {
+                let name = &scene.materials[targets[t].0].name;
+                match &fits[t] {
+                    Some(_) => format!(
+                        "material {name:?}: round {round}'s correction system could not be \
+                         solved (non-finite values); its texture and figures are an earlier \
+                         round's, without σ"
+                    ),
+                    None => format!(
+                        "material {name:?}: its correction's system could not be solved \
+                         (nothing lit, or non-finite values); its texture is kept as given"
+                    ),
+                }
+            })
+            .collect()
+    };
     let mut albedo_fits = first_report.fits;
     let mut estimate = first;
     let mut rounds = 0;
@@ -1282,27 +1323,10 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
                 sums.add(uv, y, a, b);
             }
             let Some(c) = sums.solve(settings.texel_smoothness) else {
-                // Said in any round: a later round's failure leaves the report with an earlier
-                // round's figures, and no σ.
-                let name = &scene.materials[m].name;
-                notes.push(if fits[t].is_some() {
-                    format!(
-                        "material {name:?}: round {rounds}'s correction system could not be \
-                         solved (not positive definite); its texture and figures are round \
-                         {}'s, without σ",
-                        rounds - 1
-                    )
-                } else {
-                    format!(
-                        "material {name:?}: its correction's system could not be solved \
-                         (nothing lit, or not positive definite); its texture is kept as given"
-                    )
-                });
-                if let Some((_, fit)) = fits[t].as_mut() {
-                    fit.sigma = None;
-                }
+                failed[t] = Some(rounds);
                 continue;
             };
+            failed[t] = None;
             let level = sums.level(&c);
             let solved = sums.measures_sigma().then(|| c.clone());
             let c = c.divided(level);
@@ -1337,6 +1361,7 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
         }
         if fits.iter().all(Option::is_none) {
             // Nothing corrected: the materials' fit stands.
+            notes.extend(failure_notes(&failed, &fits, &scene));
             if let Some(a) = estimate.report.albedo.as_mut() {
                 a.texel_notes = notes;
             }
@@ -1438,6 +1463,7 @@ fn run_texels(job: &Job, first: Estimate, progress: &dyn Progress) -> Result<Est
     }
     albedo_report.fits = albedo_fits;
     albedo_report.texel_rounds = rounds;
+    notes.extend(failure_notes(&failed, &fits, &scene));
     albedo_report.texel_notes = notes;
     albedo_report.texels = fits
         .into_iter()

@@ -2046,13 +2046,13 @@ mod tests {
 
     #[test]
     fn intervals_are_measured_up_to_eight_lights_before_a_nine_ring_background() {
-        // 4 parameters and 3 radiances per light, 3 radiances per background cell.
+        // The most `--model` allows (8 lights) before a 9-ring background: measured; one more
+        // light, or one more ring pair behind a single light: not.
         let nine = RingGrid::new(9);
-        assert_eq!(4 * 8 + 3 * (8 + nine.cell_count()), 326);
         assert!(intervals_measured(8, Some(&nine)));
-        assert!(intervals_measured(40, None));
+        assert!(!intervals_measured(9, Some(&nine)));
         assert!(!intervals_measured(1, Some(&RingGrid::new(11))));
-        assert!(!intervals_measured(48, None));
+        assert!(intervals_measured(8, None));
     }
 
     #[test]

@@ -612,7 +612,7 @@ mod tests {
     /// brightness), 200 draws: the stated standard deviation of each cell matches the cells'
     /// scatter over the draws.
     /// With a faint prior every cell does; with a firm one (0.3) the prior bends the blob,
-    /// and that misfit in the residuals overstates a few cells (never understates).
+    /// and that misfit in the residuals overstates a few cells.
     #[test]
     fn stated_deviations_match_the_scatter_over_noisy_references() {
         let (w, h) = (6u32, 5u32);
